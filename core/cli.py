@@ -1,0 +1,66 @@
+"""The ``esgs`` console command.
+
+Subcommands are the modules of :mod:`esgs.core.commands`; each defines ``HELP`` (one
+line), ``add_arguments(parser)`` and ``run(args) -> int``. Heavy imports (torch...) stay
+inside ``run`` so ``esgs --help`` is instant.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import pkgutil
+import sys
+from typing import Sequence
+
+from . import commands as _commands_package
+from .errors import ESGSError
+
+
+def _command_modules() -> dict[str, object]:
+    modules = {}
+    for info in sorted(pkgutil.iter_modules(_commands_package.__path__), key=lambda i: i.name):
+        if info.name.startswith("_"):
+            continue
+        module = importlib.import_module(f"{_commands_package.__name__}.{info.name}")
+        name = getattr(module, "NAME", info.name.replace("_", "-"))
+        modules[name] = module
+    return modules
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The full argument parser with every subcommand."""
+    from .. import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="esgs",
+        description="ESGS for Blender: Martian surface reconstruction with Gaussian splatting.",
+    )
+    parser.add_argument("--version", action="version", version=f"esgs {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, module in _command_modules().items():
+        help_text = getattr(module, "HELP", "")
+        command_parser = sub.add_parser(name, help=help_text, description=help_text)
+        module.add_arguments(command_parser)  # type: ignore[attr-defined]
+        command_parser.set_defaults(_run=module.run)  # type: ignore[attr-defined]
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``esgs`` command; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "_run", None):
+        parser.print_help()
+        return 0
+    try:
+        return int(args._run(args) or 0)
+    except ESGSError as err:
+        print(f"esgs {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"esgs {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

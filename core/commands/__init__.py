@@ -1,0 +1,1 @@
+"""Subcommands of the ``esgs`` CLI, one module each (see :mod:`esgs.core.cli`)."""
