@@ -1,0 +1,230 @@
+"""The training job runner (core/jobs.py) against small fake trainers with the CLI's interface."""
+from __future__ import annotations
+
+import json
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from esgs.core import jobs
+from esgs.core.errors import ConfigError, ESGSError
+
+# A stand-in for `esgs train` with the same arguments and event protocol. It checkpoints
+# its step on SIGTERM and continues from the checkpoint with --resume, like the real one.
+FAKE_TRAINER = textwrap.dedent(
+    """
+    import argparse, json, signal, sys, time
+    from pathlib import Path
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("scene")
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--iterations", type=int, required=True)
+    parser.add_argument("--events", required=True)
+    parser.add_argument("--resume", action="store_true")
+    parser.add_argument("--step-s", type=float, default=0.0)
+    parser.add_argument("--crash-at", type=int, default=-1)
+    parser.add_argument("--error-event-at", type=int, default=-1)
+    args = parser.parse_args()
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    checkpoint = out / "checkpoint.json"
+    start = json.loads(checkpoint.read_text())["step"] if args.resume and checkpoint.exists() else 0
+    (out / f"args_{int(time.time() * 1e6)}.json").write_text(json.dumps(sys.argv[1:]))
+    events = open(args.events, "a", buffering=1)
+    step = start
+
+    def emit(kind="progress", message="", **metrics):
+        events.write(json.dumps({"step": step, "total": args.iterations, "stage": "train",
+                                 "metrics": metrics, "kind": kind, "message": message,
+                                 "time": time.time()}) + "\\n")
+        events.flush()
+
+    def on_term(signum, frame):
+        checkpoint.write_text(json.dumps({"step": step}))
+        emit("message", "checkpoint saved")
+        sys.exit(0)
+
+    signal.signal(signal.SIGTERM, on_term)
+    print("fake trainer starting at", start, flush=True)
+    while step < args.iterations:
+        step += 1
+        if step == args.crash_at:
+            print("Traceback (most recent call last):", file=sys.stderr)
+            print("RuntimeError: CUDA out of memory (fake)", file=sys.stderr, flush=True)
+            sys.exit(3)
+        if step == args.error_event_at:
+            emit("error", "scene has no cameras (fake)")
+            sys.exit(2)
+        emit(loss=1.0 / step, psnr=10.0 + step, n_gaussians=1000 + step, eta_s=(args.iterations - step) * args.step_s)
+        time.sleep(args.step_s)
+    (out / "point_cloud.ply").write_text("ply")
+    emit("done", "finished", loss=1.0 / step, psnr=10.0 + step, n_gaussians=1000 + step, eta_s=0.0)
+    """
+)
+
+
+@pytest.fixture
+def fake_trainer(tmp_path: Path) -> list[str]:
+    script = tmp_path / "fake_trainer.py"
+    script.write_text(FAKE_TRAINER)
+    return [sys.executable, str(script)]
+
+
+@pytest.fixture
+def scene(tmp_path: Path) -> Path:
+    folder = tmp_path / "scene"
+    folder.mkdir()
+    return folder
+
+
+def test_progress_is_parsed_and_job_finishes(tmp_path, fake_trainer, scene):
+    updates = []
+    job = jobs.TrainingJob(scene, tmp_path / "run", iterations=20, trainer=fake_trainer)
+    job.start()
+    state = job.wait(timeout=60, poll_s=0.05, on_update=updates.append)
+    assert state.status == jobs.FINISHED, state
+    assert state.returncode == 0
+    assert (state.step, state.total) == (20, 20)
+    assert state.loss == pytest.approx(1.0 / 20)
+    assert state.psnr == pytest.approx(30.0)
+    assert state.n_gaussians == 1020
+    assert state.events_seen == 21  # 20 steps + done
+    assert state.fraction == 1.0
+    assert (tmp_path / "run" / "point_cloud.ply").exists()
+    assert updates and updates[-1].status == jobs.FINISHED
+    # the child's own printing is kept for error messages and consoles
+    assert any("fake trainer starting at 0" in line for line in job.output_tail)
+
+
+def test_command_line_has_the_trainer_interface(tmp_path, scene):
+    job = jobs.TrainingJob(scene, tmp_path / "run", iterations=7, extra_args=["--depth", "--priors", "gt"],
+                           trainer=["PY", "-m", "esgs.core.cli", "train"])
+    assert job.command() == ["PY", "-m", "esgs.core.cli", "train", str(scene), "--out", str(tmp_path / "run"),
+                             "--iterations", "7", "--events", str(tmp_path / "run" / "events.jsonl"),
+                             "--depth", "--priors", "gt"]
+    assert "--resume" in job.command(resume=True)
+    assert "--resume" not in job.command()
+
+
+def test_cancel_checkpoints_and_resume_continues(tmp_path, fake_trainer, scene):
+    run = tmp_path / "run"
+    job = jobs.TrainingJob(scene, run, iterations=400, trainer=fake_trainer + ["--step-s", "0.02"])
+    job.start()
+    deadline = time.monotonic() + 30
+    while job.state().step < 5 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    state = job.cancel(timeout=30)
+    assert state.status == jobs.CANCELLED
+    assert not job.running
+    stopped_at = json.loads((run / "checkpoint.json").read_text())["step"]
+    assert 5 <= stopped_at < 400
+    assert not (run / "point_cloud.ply").exists()
+
+    # resume with fewer remaining steps so the test stays short: same job, --resume appended
+    job.iterations = stopped_at + 10
+    job.trainer = fake_trainer
+    job.resume()
+    state = job.wait(timeout=60, poll_s=0.05)
+    assert state.status == jobs.FINISHED, state
+    assert state.step == stopped_at + 10
+    # only the resumed run's events count: it restarted from the checkpoint, not from 0
+    assert state.events_seen == 11
+    argv_files = sorted(run.glob("args_*.json"))
+    assert len(argv_files) == 2
+    assert "--resume" not in json.loads(argv_files[0].read_text())
+    assert "--resume" in json.loads(argv_files[1].read_text())
+
+
+def test_crash_reports_the_childs_message(tmp_path, fake_trainer, scene):
+    job = jobs.TrainingJob(scene, tmp_path / "run", iterations=10, trainer=fake_trainer + ["--crash-at", "4"])
+    state = job.start().wait(timeout=60, poll_s=0.05)
+    assert state.status == jobs.FAILED
+    assert state.returncode == 3
+    assert state.error == "RuntimeError: CUDA out of memory (fake)"
+    assert state.step == 3
+
+
+def test_error_event_message_wins(tmp_path, fake_trainer, scene):
+    job = jobs.TrainingJob(scene, tmp_path / "run", iterations=10, trainer=fake_trainer + ["--error-event-at", "2"])
+    state = job.start().wait(timeout=60, poll_s=0.05)
+    assert state.status == jobs.FAILED
+    assert state.error == "scene has no cameras (fake)"
+
+
+def test_missing_interpreter_fails_cleanly(tmp_path, scene):
+    job = jobs.TrainingJob(scene, tmp_path / "run", iterations=3, trainer=[str(tmp_path / "no_such_python")])
+    with pytest.raises(ESGSError, match="could not start the trainer"):
+        job.start()
+    assert job.state().status == jobs.FAILED
+    assert not job.running
+
+
+def test_bad_arguments_are_config_errors(tmp_path, scene):
+    with pytest.raises(ConfigError):
+        jobs.TrainingJob(scene, tmp_path / "run", iterations=0)
+    job = jobs.TrainingJob(tmp_path / "absent", tmp_path / "run", iterations=3, trainer=["x"])
+    with pytest.raises(ConfigError, match="scene folder"):
+        job.start()
+    with pytest.raises(ConfigError, match="does not exist"):
+        jobs.find_python(tmp_path / "missing" / "python")
+
+
+def test_one_running_job_per_key(tmp_path, fake_trainer, scene):
+    first = jobs.TrainingJob(scene, tmp_path / "run1", iterations=400, trainer=fake_trainer + ["--step-s", "0.02"])
+    second = jobs.TrainingJob(scene, tmp_path / "run2", iterations=3, trainer=fake_trainer)
+    try:
+        jobs.start_job("scene-a", first)
+        with pytest.raises(ESGSError, match="already running"):
+            jobs.start_job("scene-a", second)
+        assert jobs.get_job("scene-a") is first
+    finally:
+        first.cancel(timeout=30)
+    jobs.start_job("scene-a", second)
+    assert second.wait(timeout=60, poll_s=0.05).status == jobs.FINISHED
+    jobs.forget_job("scene-a")
+    assert jobs.get_job("scene-a") is None
+
+
+def test_stop_all_jobs_leaves_no_child(tmp_path, fake_trainer, scene):
+    job = jobs.TrainingJob(scene, tmp_path / "run", iterations=400, trainer=fake_trainer + ["--step-s", "0.02"])
+    job.start()
+    while job.state().step < 2:
+        time.sleep(0.02)
+    jobs.stop_all_jobs(timeout=30)
+    assert job._process.poll() is not None
+    assert job.wait(timeout=10).status == jobs.CANCELLED
+
+
+def test_find_python_prefers_explicit_then_environment(tmp_path, monkeypatch):
+    python = tmp_path / "python"
+    python.write_text("")
+    assert jobs.find_python(python) == str(python)
+    monkeypatch.setenv("ESGS_PYTHON", str(python))
+    assert jobs.find_python() == str(python)
+    monkeypatch.delenv("ESGS_PYTHON")
+    assert Path(jobs.find_python()).is_file()
+
+
+def test_partial_lines_are_not_parsed_early(tmp_path):
+    job = jobs.TrainingJob(tmp_path, tmp_path / "run", iterations=5, trainer=["x"])
+    job.events_path.parent.mkdir(parents=True)
+    line = json.dumps({"step": 2, "total": 5, "metrics": {"loss": 0.5}, "kind": "progress"})
+    job.events_path.write_text(line[:10])
+    offset, pending = job._read_events(0, b"")
+    assert job.state().events_seen == 0 and pending == line[:10].encode()
+    job.events_path.write_text(line + "\n" + "not json\n")
+    offset, pending = job._read_events(offset, pending)
+    state = job.state()
+    assert (state.events_seen, state.step, state.loss) == (1, 2, 0.5)
+    assert pending == b""
+
+
+def test_summary_and_duration():
+    state = jobs.JobState(status=jobs.RUNNING, step=3, total=10, loss=0.25, psnr=21.456, n_gaussians=12345, eta_s=3725)
+    assert state.summary() == "running  step 3/10  loss 0.25  PSNR 21.46 dB  12,345 Gaussians  ETA 1:02:05"
+    assert jobs.format_duration(65) == "1:05"
