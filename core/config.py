@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import types
 import typing
 from pathlib import Path
 from typing import Any, TypeVar
@@ -26,7 +27,7 @@ def _resolved_fields(cls: type) -> list[tuple[dataclasses.Field, Any]]:
 
 def _base_type(annotation: Any) -> Any:
     origin = typing.get_origin(annotation)
-    if origin is typing.Union or str(origin) == "types.UnionType":
+    if origin is typing.Union or origin is types.UnionType:
         args = [a for a in typing.get_args(annotation) if a is not type(None)]
         return _base_type(args[0]) if len(args) == 1 else annotation
     return annotation
