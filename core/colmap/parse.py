@@ -1,0 +1,381 @@
+"""Independent, defensive parsers of COLMAP's sparse-model files.
+
+pycolmap (C++) may abort the whole process on malformed input, so every file is parsed
+and checked here first, in numpy/struct, and only handed to pycolmap when its structure
+is sound. Each parser returns the project's dataclasses; :mod:`.validate` then checks the
+cross references (cameras of images, tracks of points).
+
+Binary layout (little endian), as COLMAP writes it:
+
+- ``cameras.bin``: u64 count; per camera u32 id, i32 model id, u64 width, u64 height,
+  f64 params[P(model)].
+- ``images.bin``: u64 count; per image u32 id, f64 qvec[4] (w, x, y, z), f64 tvec[3],
+  u32 camera id, NUL-terminated name, u64 M, M x (f64 x, f64 y, u64 point3D id).
+- ``points3D.bin``: u64 count; per point u64 id, f64 xyz[3], u8 rgb[3], f64 error,
+  u64 L, L x (u32 image id, u32 point2D index).
+
+The text files hold the same records, one per line (images take two lines), with ``#``
+comments.
+"""
+from __future__ import annotations
+
+import re
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DatasetError
+from .camera_models import CAMERA_MODELS, CAMERA_MODELS_BY_ID
+from .model import Camera, Image, Point3D
+
+#: COLMAP's "no 3D point" marker for a 2D observation in binary files (u64 max).
+INVALID_POINT3D_ID_BINARY = 2**64 - 1
+#: COLMAP's invalid camera / image id (u32 max); never a real id.
+INVALID_ID_32 = 2**32 - 1
+#: Larger than any real sensor; anything above is a corrupt field, not a camera.
+MAX_IMAGE_SIDE = 1_000_000
+
+_CAMERA_HEAD = struct.Struct("<IiQQ")
+_IMAGE_HEAD = struct.Struct("<I4d3dI")
+_POINT_HEAD = struct.Struct("<Q3d3BdQ")
+_U64 = struct.Struct("<Q")
+_OBSERVATION_DTYPE = np.dtype([("xy", "<f8", (2,)), ("point3d_id", "<u8")])
+_TRACK_DTYPE = np.dtype([("image_id", "<u4"), ("point2d_idx", "<u4")])
+
+# Strict number syntax: what both Python and C++ (std::stod/stoi) read the same way.
+# Atomic groups and possessive repeats keep the whole-line patterns linear on bad input.
+_INT = r"(?>[+-]?[0-9]++)"
+_FLOAT = r"(?>[+-]?(?:[0-9]++(?:\.[0-9]*+)?|\.[0-9]++)(?:[eE][+-]?[0-9]++)?)"
+_INT_RE = re.compile(_INT)
+_FLOAT_RE = re.compile(_FLOAT)
+# COLMAP splits text records on single spaces; so do we, so both readers agree.
+_OBSERVATIONS_RE = re.compile(rf"(?:{_FLOAT} {_FLOAT} {_INT}(?: {_FLOAT} {_FLOAT} {_INT})*+)?")
+_TRACK_RE = re.compile(rf"(?:{_INT} {_INT}(?: {_INT} {_INT})*+)?")
+_LINE_TRIM = " \t\r\v\f"
+
+
+# --------------------------------------------------------------------------------------
+# binary
+
+
+class _Reader:
+    """Bounds-checked cursor over a file's bytes; every overrun is a DatasetError."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        try:
+            self.data = path.read_bytes()
+        except OSError as error:
+            raise DatasetError(f"cannot read file: {error.strerror or error}", path=path) from error
+        self.pos = 0
+
+    def remaining(self) -> int:
+        return len(self.data) - self.pos
+
+    def need(self, size: int, what: str) -> None:
+        if size > self.remaining():
+            raise DatasetError(
+                f"file is truncated: {what} needs {size} bytes at offset {self.pos}, "
+                f"only {self.remaining()} left",
+                path=self.path,
+                hint="re-export the model from COLMAP",
+            )
+
+    def unpack(self, layout: struct.Struct, what: str) -> tuple:
+        self.need(layout.size, what)
+        values = layout.unpack_from(self.data, self.pos)
+        self.pos += layout.size
+        return values
+
+    def array(self, dtype: np.dtype, count: int, what: str) -> np.ndarray:
+        self.need(count * dtype.itemsize, what)
+        values = np.frombuffer(self.data, dtype=dtype, count=count, offset=self.pos)
+        self.pos += count * dtype.itemsize
+        return values
+
+    def count(self, record_min_size: int, what: str) -> int:
+        (count,) = self.unpack(_U64, f"the number of {what}")
+        # A corrupt count must not send us looping over billions of records.
+        if count * record_min_size > self.remaining():
+            raise DatasetError(
+                f"header announces {count} {what} but the file is too short for them",
+                path=self.path,
+                hint="the file is truncated or corrupt; re-export the model",
+            )
+        return count
+
+    def name(self, what: str) -> str:
+        end = self.data.find(b"\0", self.pos)
+        if end < 0:
+            raise DatasetError(f"file is truncated inside {what}", path=self.path)
+        raw = self.data[self.pos : end]
+        self.pos = end + 1
+        return _check_name(raw, self.path, what)
+
+    def finish(self) -> None:
+        if self.remaining():
+            raise DatasetError(
+                f"{self.remaining()} unexpected bytes after the last record (offset {self.pos})",
+                path=self.path,
+                hint="the file is corrupt; re-export the model",
+            )
+
+
+def _check_name(raw: bytes, path: Path, what: str) -> str:
+    try:
+        name = raw.decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise DatasetError(f"{what} is not valid UTF-8", path=path) from error
+    if not name or any(ord(char) < 32 or ord(char) == 127 for char in name):
+        raise DatasetError(f"{what} {name!r} is empty or holds control characters", path=path)
+    return name
+
+
+def _fail(path: Path, message: str, hint: str | None = "the file is corrupt; re-export the model") -> DatasetError:
+    return DatasetError(message, path=path, hint=hint)
+
+
+def _check_camera(camera: Camera, path: Path) -> None:
+    if not (0 < camera.width <= MAX_IMAGE_SIDE and 0 < camera.height <= MAX_IMAGE_SIDE):
+        raise _fail(path, f"camera {camera.camera_id} has an impossible size {camera.width} x {camera.height}")
+    if not np.all(np.isfinite(camera.params)):
+        raise _fail(path, f"camera {camera.camera_id} has non-finite parameters {camera.params.tolist()}")
+
+
+def _check_pose(image: Image, path: Path) -> None:
+    if not (np.all(np.isfinite(image.quat_wxyz)) and np.all(np.isfinite(image.translation))):
+        raise _fail(path, f"image {image.image_id} ({image.name}) has a non-finite pose")
+    norm = float(np.linalg.norm(image.quat_wxyz))
+    if not 1e-6 < norm < 1e6:
+        raise _fail(path, f"image {image.image_id} ({image.name}) has a degenerate rotation quaternion")
+    if not np.all(np.isfinite(image.points2d)):
+        raise _fail(path, f"image {image.image_id} ({image.name}) has non-finite 2D points")
+
+
+def _check_point(point: Point3D, path: Path) -> None:
+    if not (np.all(np.isfinite(point.xyz)) and np.isfinite(point.error)):
+        raise _fail(path, f"3D point {point.point3d_id} has non-finite coordinates or error")
+
+
+def _check_unique(kind: str, key: int | str, seen: set, path: Path) -> None:
+    if key in seen:
+        raise _fail(path, f"{kind} {key!r} appears twice")
+    seen.add(key)
+
+
+def read_cameras_binary(path: Path) -> dict[int, Camera]:
+    """Parse and check ``cameras.bin``."""
+    reader = _Reader(path)
+    count = reader.count(_CAMERA_HEAD.size, "cameras")
+    cameras: dict[int, Camera] = {}
+    for _ in range(count):
+        camera_id, model_id, width, height = reader.unpack(_CAMERA_HEAD, "a camera record")
+        info = CAMERA_MODELS_BY_ID.get(model_id)
+        if info is None:
+            raise _fail(path, f"camera {camera_id} has unknown model id {model_id}")
+        if camera_id == INVALID_ID_32 or camera_id in cameras:
+            raise _fail(path, f"camera id {camera_id} is invalid or appears twice")
+        params = reader.array(np.dtype("<f8"), info.num_params, f"camera {camera_id} parameters").astype(np.float64)
+        camera = Camera(camera_id, info.name, int(width), int(height), params)
+        _check_camera(camera, path)
+        cameras[camera_id] = camera
+    reader.finish()
+    return cameras
+
+
+def read_images_binary(path: Path) -> dict[int, Image]:
+    """Parse and check ``images.bin``; a 2D point without 3D point gets id -1."""
+    reader = _Reader(path)
+    count = reader.count(_IMAGE_HEAD.size + 2 + _U64.size, "images")
+    images: dict[int, Image] = {}
+    names: set[str] = set()
+    for _ in range(count):
+        image_id, qw, qx, qy, qz, tx, ty, tz, camera_id = reader.unpack(_IMAGE_HEAD, "an image record")
+        if image_id == INVALID_ID_32 or image_id in images:
+            raise _fail(path, f"image id {image_id} is invalid or appears twice")
+        name = reader.name(f"the name of image {image_id}")
+        _check_unique("image name", name, names, path)
+        (num_points,) = reader.unpack(_U64, f"the number of 2D points of image {image_id}")
+        observations = reader.array(_OBSERVATION_DTYPE, num_points, f"the 2D points of image {image_id}")
+        point3d_ids = observations["point3d_id"].astype(np.int64)  # u64 max wraps to -1 = none
+        bad = (point3d_ids < 0) & (observations["point3d_id"] != INVALID_POINT3D_ID_BINARY)
+        if np.any(bad):
+            raise _fail(path, f"image {image_id} refers to an out-of-range 3D point id")
+        image = Image(
+            image_id,
+            name,
+            camera_id,
+            np.array([qw, qx, qy, qz]),
+            np.array([tx, ty, tz]),
+            observations["xy"].astype(np.float64).reshape(-1, 2),
+            point3d_ids,
+        )
+        _check_pose(image, path)
+        images[image_id] = image
+    reader.finish()
+    return images
+
+
+def read_points3d_binary(path: Path) -> dict[int, Point3D]:
+    """Parse and check ``points3D.bin``."""
+    reader = _Reader(path)
+    count = reader.count(_POINT_HEAD.size, "3D points")
+    points: dict[int, Point3D] = {}
+    for _ in range(count):
+        point_id, x, y, z, red, green, blue, error, track_length = reader.unpack(_POINT_HEAD, "a 3D point record")
+        if point_id >= 2**63 or point_id in points:
+            raise _fail(path, f"3D point id {point_id} is invalid or appears twice")
+        track = reader.array(_TRACK_DTYPE, track_length, f"the track of 3D point {point_id}")
+        point = Point3D(
+            point_id,
+            np.array([x, y, z]),
+            np.array([red, green, blue], dtype=np.uint8),
+            float(error),
+            track["image_id"].astype(np.int64),
+            track["point2d_idx"].astype(np.int64),
+        )
+        _check_point(point, path)
+        points[point_id] = point
+    reader.finish()
+    return points
+
+
+# --------------------------------------------------------------------------------------
+# text
+
+
+def _text_lines(path: Path) -> list[str]:
+    try:
+        raw = path.read_bytes()
+    except OSError as error:
+        raise DatasetError(f"cannot read file: {error.strerror or error}", path=path) from error
+    if b"\0" in raw:
+        raise _fail(path, "text model file holds NUL bytes (is it a binary file named .txt?)")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise _fail(path, f"text model file is not valid UTF-8 (byte {error.start})") from error
+    # COLMAP reads lines split on '\n' and trims them; other line breaks are content to it.
+    return [line.strip(_LINE_TRIM) for line in text.split("\n")]
+
+
+def _is_skipped(line: str) -> bool:
+    return not line or line.startswith("#")
+
+
+def _split(line: str, path: Path, line_number: int) -> list[str]:
+    tokens = line.split(" ")
+    if "" in tokens:
+        raise _fail(path, f"line {line_number}: fields must be separated by single spaces")
+    return tokens
+
+
+def _int(token: str, path: Path, line_number: int, what: str, low: int, high: int) -> int:
+    if not _INT_RE.fullmatch(token):
+        raise _fail(path, f"line {line_number}: {what} {token!r} is not an integer")
+    value = int(token)
+    if not low <= value <= high:
+        raise _fail(path, f"line {line_number}: {what} {value} is out of range [{low}, {high}]")
+    return value
+
+
+def _floats(tokens: list[str], path: Path, line_number: int, what: str) -> np.ndarray:
+    for token in tokens:
+        if not _FLOAT_RE.fullmatch(token):
+            raise _fail(path, f"line {line_number}: {what} {token!r} is not a number")
+    values = np.array([float(token) for token in tokens], dtype=np.float64)
+    if not np.all(np.isfinite(values)) or np.any((values != 0) & (np.abs(values) < 1e-300)):
+        raise _fail(path, f"line {line_number}: {what} out of the double range")
+    return values
+
+
+def read_cameras_text(path: Path) -> dict[int, Camera]:
+    """Parse and check ``cameras.txt`` (``CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]``)."""
+    cameras: dict[int, Camera] = {}
+    for number, line in enumerate(_text_lines(path), start=1):
+        if _is_skipped(line):
+            continue
+        tokens = _split(line, path, number)
+        if len(tokens) < 4:
+            raise _fail(path, f"line {number}: a camera needs CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]")
+        camera_id = _int(tokens[0], path, number, "camera id", 0, 2**31 - 1)
+        info = CAMERA_MODELS.get(tokens[1])
+        if info is None:
+            raise _fail(path, f"line {number}: unknown camera model {tokens[1]!r}", hint=f"known: {', '.join(CAMERA_MODELS)}")
+        width = _int(tokens[2], path, number, "width", 1, MAX_IMAGE_SIDE)
+        height = _int(tokens[3], path, number, "height", 1, MAX_IMAGE_SIDE)
+        if len(tokens) - 4 != info.num_params:
+            raise _fail(path, f"line {number}: model {info.name} takes {info.num_params} parameters, got {len(tokens) - 4}")
+        if camera_id in cameras:
+            raise _fail(path, f"line {number}: camera id {camera_id} appears twice")
+        camera = Camera(camera_id, info.name, width, height, _floats(tokens[4:], path, number, "camera parameter"))
+        _check_camera(camera, path)
+        cameras[camera_id] = camera
+    return cameras
+
+
+def read_images_text(path: Path) -> dict[int, Image]:
+    """Parse and check ``images.txt``: a pose line, then a (possibly empty) 2D-point line."""
+    lines = _text_lines(path)
+    images: dict[int, Image] = {}
+    names: set[str] = set()
+    index = 0
+    while index < len(lines):
+        line, number = lines[index], index + 1
+        index += 1
+        if _is_skipped(line):
+            continue
+        tokens = _split(line, path, number)
+        if len(tokens) != 10:
+            raise _fail(path, f"line {number}: an image needs IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME (10 fields, got {len(tokens)})")
+        image_id = _int(tokens[0], path, number, "image id", 0, 2**31 - 1)
+        pose = _floats(tokens[1:8], path, number, "pose value")
+        camera_id = _int(tokens[8], path, number, "camera id", 0, 2**31 - 1)
+        name = _check_name(tokens[9].encode("utf-8"), path, f"line {number}: image name")
+        if image_id in images:
+            raise _fail(path, f"line {number}: image id {image_id} appears twice")
+        _check_unique("image name", name, names, path)
+        # The observation line always follows its pose line, even when empty.
+        observation_line = lines[index] if index < len(lines) else ""
+        index += 1
+        if not _OBSERVATIONS_RE.fullmatch(observation_line):
+            raise _fail(path, f"line {number + 1}: 2D points of image {image_id} must be X Y POINT3D_ID triples")
+        tokens = observation_line.split(" ") if observation_line else []
+        xy = _floats([token for i, token in enumerate(tokens) if i % 3 != 2], path, number + 1, "2D point")
+        ids = [int(token) for token in tokens[2::3]]
+        if any(not -1 <= value < 2**63 for value in ids):
+            raise _fail(path, f"line {number + 1}: a 3D point id of image {image_id} is out of range")
+        image = Image(image_id, name, camera_id, pose[:4], pose[4:], xy.reshape(-1, 2), np.array(ids, dtype=np.int64))
+        _check_pose(image, path)
+        images[image_id] = image
+    return images
+
+
+def read_points3d_text(path: Path) -> dict[int, Point3D]:
+    """Parse and check ``points3D.txt`` (``ID X Y Z R G B ERROR TRACK[] as (IMAGE_ID, POINT2D_IDX)``)."""
+    points: dict[int, Point3D] = {}
+    for number, line in enumerate(_text_lines(path), start=1):
+        if _is_skipped(line):
+            continue
+        tokens = line.split(" ", 8)
+        if "" in tokens[:8]:
+            raise _fail(path, f"line {number}: fields must be separated by single spaces")
+        if len(tokens) < 8:
+            raise _fail(path, f"line {number}: a 3D point needs POINT3D_ID X Y Z R G B ERROR TRACK[]")
+        point_id = _int(tokens[0], path, number, "3D point id", 0, 2**63 - 2)
+        values = _floats(tokens[1:4] + tokens[7:8], path, number, "3D point value")
+        rgb = [_int(token, path, number, "colour", 0, 255) for token in tokens[4:7]]
+        track_text = tokens[8] if len(tokens) > 8 else ""
+        if not _TRACK_RE.fullmatch(track_text):
+            raise _fail(path, f"line {number}: the track of 3D point {point_id} must be IMAGE_ID POINT2D_IDX pairs")
+        track = [int(token) for token in track_text.split(" ")] if track_text else []
+        if any(not 0 <= value < 2**31 - 1 for value in track):
+            raise _fail(path, f"line {number}: the track of 3D point {point_id} holds an out-of-range id")
+        if point_id in points:
+            raise _fail(path, f"line {number}: 3D point id {point_id} appears twice")
+        track_array = np.array(track, dtype=np.int64).reshape(-1, 2)
+        point = Point3D(point_id, values[:3], np.array(rgb, np.uint8), float(values[3]), track_array[:, 0].copy(), track_array[:, 1].copy())
+        _check_point(point, path)
+        points[point_id] = point
+    return points
