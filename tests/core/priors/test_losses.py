@@ -1,0 +1,121 @@
+"""Prior loss terms: gradients, masks, alignment and geometry checked against known answers."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from esgs.core.priors import losses
+
+
+def _plane_depth(height=12, width=16, tilt=0.3, distance=5.0, dtype=torch.float64):
+    """Depth of the plane n.X = d seen by a pinhole camera, and K, and the plane normal."""
+    K = torch.tensor([[20.0, 0, width / 2], [0, 22.0, height / 2], [0, 0, 1]], dtype=dtype)
+    normal = torch.tensor([0.0, math.sin(tilt), -math.cos(tilt)], dtype=dtype)  # faces the camera
+    v, u = torch.meshgrid(torch.arange(height, dtype=dtype), torch.arange(width, dtype=dtype), indexing="ij")
+    rays = torch.stack([(u + 0.5 - K[0, 2]) / K[0, 0], (v + 0.5 - K[1, 2]) / K[1, 1], torch.ones_like(u)], -1)
+    # plane: normal . X = -distance  (X = t * ray, depth = t)
+    depth = -distance / (rays @ normal)
+    return depth, K, normal
+
+
+def test_normals_from_depth_recover_a_tilted_plane():
+    depth, K, normal = _plane_depth()
+    estimated, valid = losses.normals_from_depth(depth, K)
+    assert valid.sum() == (depth.shape[0] - 2) * (depth.shape[1] - 2)
+    cos = (estimated[valid] @ normal)
+    assert torch.all(cos > 1 - 1e-9)
+
+
+def test_depth_normal_consistency_is_zero_when_consistent_and_positive_otherwise():
+    depth, K, normal = _plane_depth()
+    consistent = normal.expand(*depth.shape, 3).clone()
+    assert losses.depth_normal_consistency_loss(depth, consistent, K).item() == pytest.approx(0.0, abs=1e-9)
+    wrong = torch.tensor([0.0, 0.0, -1.0], dtype=depth.dtype).expand(*depth.shape, 3)
+    expected = 1 - (-normal[2]).item()  # cos between (0,0,-1) and the plane normal
+    assert losses.depth_normal_consistency_loss(depth, wrong, K).item() == pytest.approx(expected, rel=1e-6)
+
+
+def test_scale_shift_fit_recovers_known_transform_despite_outliers():
+    generator = torch.Generator().manual_seed(0)
+    pred = torch.rand(40, 50, generator=generator, dtype=torch.float64) * 10 + 1
+    target = 2.5 * pred - 0.75
+    mask = torch.ones_like(pred, dtype=torch.bool)
+    outliers = torch.rand(pred.shape, generator=generator) < 0.05
+    corrupted = torch.where(outliers, target + 40.0, target)
+    scale, shift = losses.fit_scale_shift(pred, corrupted, mask)
+    assert scale.item() == pytest.approx(2.5, rel=1e-6)
+    assert shift.item() == pytest.approx(-0.75, abs=1e-5)
+    # masked-out pixels do not take part
+    masked = torch.where(mask & ~outliers, target, torch.full_like(target, 1e6))
+    scale2, shift2 = losses.fit_scale_shift(pred, masked, ~outliers)
+    assert (scale2.item(), shift2.item()) == pytest.approx((2.5, -0.75), rel=1e-9, abs=1e-9)
+
+
+@pytest.mark.parametrize("mode", ["log", "inverse"])
+def test_depth_loss_gradient_matches_finite_differences(mode):
+    generator = torch.Generator().manual_seed(1)
+    rendered = (torch.rand(6, 7, generator=generator, dtype=torch.float64) + 1).requires_grad_()
+    prior = torch.rand(6, 7, generator=generator, dtype=torch.float64) * 3 + 1
+    mask = torch.rand(6, 7, generator=generator) > 0.2
+    weights = torch.rand(6, 7, generator=generator, dtype=torch.float64)
+    func = lambda r: losses.depth_loss(r, prior, mask, weights, mode=mode)
+    assert torch.autograd.gradcheck(func, (rendered,), eps=1e-6, atol=1e-6)
+
+
+def test_normal_loss_gradient_and_zero_at_match():
+    generator = torch.Generator().manual_seed(2)
+    rendered = torch.randn(5, 6, 3, generator=generator, dtype=torch.float64).requires_grad_()
+    prior = torch.randn(5, 6, 3, generator=generator, dtype=torch.float64)
+    prior = prior / prior.norm(dim=-1, keepdim=True)
+    mask = torch.ones(5, 6, dtype=torch.bool)
+    assert torch.autograd.gradcheck(lambda r: losses.normal_loss(r, prior, mask), (rendered,), eps=1e-6, atol=1e-6)
+    assert losses.normal_loss(prior * 0.7, prior, mask).item() == pytest.approx(0.0, abs=1e-12)
+    # opposite normals: L1 = 2 * sum|n| per pixel, angular = 2
+    expected = (2 * prior.abs().sum(-1) + 2).mean().item()
+    assert losses.normal_loss(-prior, prior, mask).item() == pytest.approx(expected, rel=1e-9)
+
+
+def test_masked_pixels_never_contribute():
+    generator = torch.Generator().manual_seed(3)
+    rendered = torch.rand(8, 8, generator=generator) + 1
+    prior = torch.rand(8, 8, generator=generator) + 1
+    mask = torch.zeros(8, 8, dtype=torch.bool)
+    mask[:4] = True  # the bottom half is "sky"
+    base = losses.depth_loss(rendered, prior, mask)
+    sky_changed = prior.clone()
+    sky_changed[4:] = 1000.0
+    assert losses.depth_loss(rendered, sky_changed, mask).item() == base.item()
+    rendered_normal = torch.randn(8, 8, 3, generator=generator)
+    prior_normal = torch.randn(8, 8, 3, generator=generator)
+    base_n = losses.normal_loss(rendered_normal, prior_normal, mask)
+    prior_normal[4:] = torch.tensor([1.0, 0.0, 0.0])
+    assert losses.normal_loss(rendered_normal, prior_normal, mask).item() == base_n.item()
+    # empty mask: zero loss, still differentiable
+    empty = torch.zeros_like(mask)
+    r = rendered.clone().requires_grad_()
+    value = losses.depth_loss(r, prior, empty)
+    value.backward()
+    assert value.item() == 0.0 and torch.all(r.grad == 0)
+
+
+def test_relative_depth_prior_aligned_gives_zero_loss():
+    rendered = torch.rand(10, 10, dtype=torch.float64) * 4 + 2
+    prior = (rendered - 0.5) / 3.0  # relative prior: rendered = 3 * prior + 0.5
+    mask = torch.ones_like(rendered, dtype=torch.bool)
+    assert losses.depth_loss(rendered, prior, mask, relative=True).item() == pytest.approx(0.0, abs=1e-9)
+    assert losses.depth_loss(rendered, prior, mask, relative=False).item() > 0.1
+
+
+def test_edge_aware_weights_are_low_on_edges_and_one_on_flat_regions():
+    image = torch.zeros(10, 10, 3)
+    image[:, 5:] = 1.0
+    weights = losses.edge_aware_weights(image, edge_strength=10.0)
+    assert weights[:, :3].min().item() == 1.0 and weights[:, 6:].min().item() == 1.0
+    assert weights[:, 4].max().item() == pytest.approx(math.exp(-10.0), rel=1e-5)
+
+
+def test_unknown_mode_is_rejected():
+    with pytest.raises(ValueError, match="unknown depth loss mode"):
+        losses.depth_loss(torch.ones(2, 2), torch.ones(2, 2), torch.ones(2, 2, dtype=torch.bool), mode="abs")
