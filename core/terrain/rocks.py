@@ -1,0 +1,102 @@
+"""Rocks after the Golombek & Rapp (1997) rock-abundance model of Mars landing sites.
+
+The cumulative fractional area covered by rocks of diameter >= D (metres) is
+
+    F_k(D) = k exp(-q(k) D),   q(k) = 1.79 + 0.152 / k,
+
+where k is the total rock abundance (F_k(0)). Differentiating gives the area covered by
+rocks per unit diameter, k q exp(-q D); dividing by one rock's footprint pi D^2 / 4 gives the
+number density per unit area and diameter, n(D) = 4 k q exp(-q D) / (pi D^2). We place rocks
+with D in [D_min, D_max] only, so the placed rocks cover F_k(D) - F_k(D_max) of the area at
+and above every D. Diameters are drawn by stratified inverse-CDF sampling of n(D), which
+keeps the covered area close to the model even for a few hundred rocks.
+
+Rocks are separate objects (the heightfield does not include them); each sits on the
+surface, a share of its height buried, and prefers bedrock over sand.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .config import TerrainConfig
+
+ROCK_COLUMNS = ("x", "y", "z_base", "diameter_m", "height_m", "yaw_rad", "shape_seed")
+
+
+def rock_q(abundance: float) -> float:
+    """q(k) = 1.79 + 0.152 / k of the Golombek-Rapp model (1/m)."""
+    return 1.79 + 0.152 / abundance
+
+
+def cumulative_area_fraction(diameter_m: np.ndarray | float, abundance: float) -> np.ndarray:
+    """F_k(D): fraction of the area covered by rocks with diameter >= D."""
+    return abundance * np.exp(-rock_q(abundance) * np.asarray(diameter_m, dtype=np.float64))
+
+
+def _diameter_table(abundance: float, min_diameter_m: float, max_diameter_m: float,
+                    samples: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+    """Diameters [S] (log-spaced) and the cumulative number per unit area below each [S]."""
+    q = rock_q(abundance)
+    diameters = np.geomspace(min_diameter_m, max_diameter_m, samples)
+    density = 4.0 * abundance * q * np.exp(-q * diameters) / (np.pi * diameters ** 2)
+    steps = 0.5 * (density[1:] + density[:-1]) * np.diff(diameters)
+    return diameters, np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def expected_rock_count(abundance: float, min_diameter_m: float, max_diameter_m: float, area_m2: float) -> float:
+    """Expected number of rocks with D in [min, max] on ``area_m2`` square metres."""
+    if abundance <= 0:
+        return 0.0
+    _, cumulative = _diameter_table(abundance, min_diameter_m, max_diameter_m)
+    return float(cumulative[-1] * area_m2)
+
+
+def sample_rock_diameters(abundance: float, min_diameter_m: float, max_diameter_m: float, area_m2: float,
+                          rng: np.random.Generator) -> np.ndarray:
+    """Rock diameters [M] whose covered area follows F_k(D) - F_k(D_max) on ``area_m2``.
+
+    M is the expected count rounded; diameters come from stratified inverse-CDF samples
+    (one uniform draw in each of M equal probability strata), in random order.
+    """
+    if abundance <= 0:
+        return np.zeros(0)
+    diameters, cumulative = _diameter_table(abundance, min_diameter_m, max_diameter_m)
+    count = int(round(cumulative[-1] * area_m2))
+    if count == 0:
+        return np.zeros(0)
+    # Invert in log-diameter: the CDF is steep at small D and smooth in log D.
+    strata = (np.arange(count) + rng.uniform(0.0, 1.0, size=count)) / count
+    log_d = np.interp(strata * cumulative[-1], cumulative, np.log(diameters))
+    return rng.permutation(np.exp(log_d))
+
+
+def place_rocks(config: TerrainConfig, terrain: "Terrain", rng: np.random.Generator) -> np.ndarray:  # noqa: F821
+    """Rock table [M, 7]: x, y, z_base, diameter_m, height_m, yaw_rad, shape_seed.
+
+    ``z_base`` is where the rock's bottom sits: the lowest ground under its footprint minus
+    the buried share of its height, so no rock floats on a slope.
+    """
+    area = config.extent_m ** 2
+    diameters = sample_rock_diameters(config.rock_abundance, config.rock_min_diameter_m,
+                                      config.rock_max_diameter_m, area, rng)
+    count = diameters.size
+    if count == 0:
+        return np.zeros((0, 7))
+    # Positions: a cell drawn with weight favouring bedrock, then uniform inside the cell.
+    weights = 1.0 - config.rock_sand_avoidance * terrain.sand_mask.astype(np.float64).ravel()
+    weights = np.maximum(weights, 1e-6)
+    cells = rng.choice(weights.size, size=count, p=weights / weights.sum())
+    rows, cols = np.divmod(cells, terrain.resolution)
+    cell = terrain.cell_m
+    half = config.extent_m / 2
+    x = np.clip(-half + (cols + rng.uniform(-0.5, 0.5, count)) * cell, -half, half)
+    y = np.clip(-half + (rows + rng.uniform(-0.5, 0.5, count)) * cell, -half, half)
+    heights = diameters * config.rock_height_ratio * rng.uniform(0.7, 1.3, count)
+    yaw = rng.uniform(0.0, 2.0 * np.pi, count)
+    shape_seed = rng.integers(0, 2 ** 31 - 1, count).astype(np.float64)
+    ground = terrain.height_at(x, y)
+    for angle in (0.0, 0.5 * np.pi, np.pi, 1.5 * np.pi):
+        ground = np.minimum(ground, terrain.height_at(x + 0.5 * diameters * np.cos(angle),
+                                                      y + 0.5 * diameters * np.sin(angle)))
+    z_base = ground - config.rock_embed_fraction * heights
+    return np.stack([x, y, z_base, diameters, heights, yaw, shape_seed], axis=1)
