@@ -1,0 +1,300 @@
+"""Numba kernels of the CPU backend: tile binning, alpha compositing and its backward.
+
+Layout: per-Gaussian screen data as separate contiguous arrays (structure of arrays),
+features as one [N, F] row per Gaussian, images as [H, W, F]. The same kernels serve
+float32 and float64 inputs (Numba compiles one version per dtype and caches both); all
+arithmetic constants come in through ``constants`` so float32 data stays in float32.
+
+Compositing walks each tile's depth-sorted Gaussian list, and for each Gaussian only the
+pixels of the tile inside its ellipse (row by row, from the quadratic's roots). Per pixel
+the order is still front to back, so the result equals a per-pixel walk. A Gaussian is
+skipped at a pixel without an ``exp`` when its Mahalanobis distance exceeds the level at
+which its alpha falls below 1/255.
+
+Determinism: tiles write only their own pixels and their own gradient records (one per
+tile-Gaussian pair); per-Gaussian gradients are then summed pair by pair in a fixed order.
+Nothing depends on thread scheduling, so outputs and gradients are bit-identical between
+runs and thread counts.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+# Indices into the ``constants`` array (same dtype as the data).
+C_HALF, C_ONE, C_TWO, C_ALPHA_MIN, C_ALPHA_MAX, C_T_MIN, C_SLACK = range(7)
+#: Per-pair gradient record columns before the feature gradients.
+R_MEAN_X, R_MEAN_Y, R_CONIC_A, R_CONIC_B, R_CONIC_C, R_OPACITY = range(6)
+RECORD_FIXED = 6
+
+
+@njit(cache=True)
+def bin_gaussians(order, box_x0, box_x1, box_y0, box_y1, tile_size, tiles_x, tiles_y):
+    """Tile lists by counting sort over Gaussians taken in depth order.
+
+    order: [M] Gaussian ids sorted front to back; box_*: [N] inclusive pixel bounds.
+    Returns tile_start [T + 1], pair_gaussian [P] (per tile, depth order),
+    gaussian_pair_start [M + 1] and gaussian_pairs [P] (the pair positions of each
+    Gaussian of ``order``, for the gradient reduction).
+    """
+    tiles = tiles_x * tiles_y
+    counts = np.zeros(tiles + 1, dtype=np.int64)
+    gaussian_pair_start = np.zeros(order.shape[0] + 1, dtype=np.int64)
+    for i in range(order.shape[0]):
+        g = order[i]
+        tx0 = box_x0[g] // tile_size
+        tx1 = box_x1[g] // tile_size
+        ty0 = box_y0[g] // tile_size
+        ty1 = box_y1[g] // tile_size
+        for ty in range(ty0, ty1 + 1):
+            for tx in range(tx0, tx1 + 1):
+                counts[ty * tiles_x + tx + 1] += 1
+        gaussian_pair_start[i + 1] = gaussian_pair_start[i] + (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+    tile_start = np.cumsum(counts)
+    pairs = tile_start[tiles]
+    cursor = tile_start[:tiles].copy()
+    pair_gaussian = np.empty(pairs, dtype=np.int32)
+    gaussian_pairs = np.empty(pairs, dtype=np.int64)
+    for i in range(order.shape[0]):
+        g = order[i]
+        tx0 = box_x0[g] // tile_size
+        tx1 = box_x1[g] // tile_size
+        ty0 = box_y0[g] // tile_size
+        ty1 = box_y1[g] // tile_size
+        slot = gaussian_pair_start[i]
+        for ty in range(ty0, ty1 + 1):
+            for tx in range(tx0, tx1 + 1):
+                tile = ty * tiles_x + tx
+                position = cursor[tile]
+                cursor[tile] = position + 1
+                pair_gaussian[position] = g
+                gaussian_pairs[slot] = position
+                slot += 1
+    return tile_start, pair_gaussian, gaussian_pair_start, gaussian_pairs
+
+
+@njit(cache=True, inline="always")
+def _row_span(dy, a, b, c, level, mean_x, x_first, x_stop, half, slack):
+    """Pixels [start, stop) of one row, clipped to [x_first, x_stop), whose centre x + 1/2
+    satisfies a dx^2 + 2 b dx dy + c dy^2 <= level (a little wider, never narrower)."""
+    disc = a * level - (a * c - b * b) * dy * dy
+    if disc < 0:
+        return 0, 0
+    root = math.sqrt(disc)
+    low = mean_x + (-b * dy - root) / a - half - slack
+    high = mean_x + (-b * dy + root) / a - half + slack
+    if low < x_first:
+        low = x_first
+    if high > x_stop:
+        high = x_stop
+    start = int(math.ceil(low))
+    stop = int(math.floor(high)) + 1
+    if start < x_first:
+        start = x_first
+    if stop > x_stop:
+        stop = x_stop
+    return start, stop
+
+
+@njit(cache=True, parallel=True)
+def composite_forward(tile_order, tile_start, pair_gaussian, tiles_x, tile_size, centres_x, centres_y,
+                      mean_x, mean_y, conic_a, conic_b, conic_c, opacity, level,
+                      box_x0, box_x1, box_y0, box_y1, features, constants,
+                      out_features, out_transmittance, out_stop, tile_evaluations):
+    """Front-to-back compositing of every tile.
+
+    out_features [H, W, F] must be zero; out_transmittance [H, W] receives the final T;
+    out_stop [H, W] the pair position at which the pixel stopped (its tile's end if it
+    never did); tile_evaluations [T] the Gaussian-pixel evaluations per tile.
+    """
+    half = constants[C_HALF]
+    one = constants[C_ONE]
+    alpha_min = constants[C_ALPHA_MIN]
+    alpha_max = constants[C_ALPHA_MAX]
+    t_min = constants[C_T_MIN]
+    slack = constants[C_SLACK]
+    two = constants[C_TWO]
+    height = out_features.shape[0]
+    width = out_features.shape[1]
+    channels = out_features.shape[2]
+    for i in prange(tile_order.shape[0]):
+        tile = tile_order[i]
+        tile_y = tile // tiles_x
+        tile_x = tile - tile_y * tiles_x
+        x0 = tile_x * tile_size
+        y0 = tile_y * tile_size
+        x1 = min(x0 + tile_size, width)
+        y1 = min(y0 + tile_size, height)
+        start = tile_start[tile]
+        end = tile_start[tile + 1]
+        for y in range(y0, y1):
+            for x in range(x0, x1):
+                out_transmittance[y, x] = one
+                out_stop[y, x] = end
+        active = (x1 - x0) * (y1 - y0)
+        evaluations = 0
+        for k in range(start, end):
+            g = pair_gaussian[k]
+            row_first = max(box_y0[g], y0)
+            row_stop = min(box_y1[g] + 1, y1)
+            col_first = max(box_x0[g], x0)
+            col_stop = min(box_x1[g] + 1, x1)
+            mx = mean_x[g]
+            my = mean_y[g]
+            a = conic_a[g]
+            b = conic_b[g]
+            c = conic_c[g]
+            o = opacity[g]
+            q_max = level[g]
+            for y in range(row_first, row_stop):
+                dy = centres_y[y] - my
+                xa, xb = _row_span(dy, a, b, c, q_max, mx, col_first, col_stop, half, slack)
+                for x in range(xa, xb):
+                    if out_stop[y, x] != end:
+                        continue
+                    dx = centres_x[x] - mx
+                    q = a * dx * dx + two * b * dx * dy + c * dy * dy
+                    evaluations += 1
+                    if q > q_max:
+                        continue
+                    alpha = o * math.exp(-half * q)
+                    if alpha > alpha_max:
+                        alpha = alpha_max
+                    if alpha < alpha_min:
+                        continue
+                    transmittance = out_transmittance[y, x]
+                    after = transmittance * (one - alpha)
+                    if after < t_min:
+                        out_stop[y, x] = k
+                        active -= 1
+                        continue
+                    weight = alpha * transmittance
+                    for ch in range(channels):
+                        out_features[y, x, ch] += weight * features[g, ch]
+                    out_transmittance[y, x] = after
+            if active == 0:
+                break
+        tile_evaluations[tile] = evaluations
+
+
+@njit(cache=True, parallel=True)
+def composite_backward(tile_order, tile_start, pair_gaussian, tiles_x, tile_size, centres_x, centres_y,
+                       mean_x, mean_y, conic_a, conic_b, conic_c, opacity, level,
+                       box_x0, box_x1, box_y0, box_y1, features, constants,
+                       final_transmittance, stop, grad_features, grad_alpha,
+                       scratch_transmittance, scratch_behind, records):
+    """Per-pair gradient records, walking each tile's Gaussians back to front.
+
+    grad_features [H, W, F], grad_alpha [H, W]: gradients of the composited features and of
+    alpha = 1 - final T. scratch_transmittance [H, W] and scratch_behind [H, W, F] are work
+    arrays (overwritten). records [P, 6 + F] receives, per pair, the gradients w.r.t.
+    mean x, mean y, conic a, b, c, opacity and the F features.
+    """
+    half = constants[C_HALF]
+    one = constants[C_ONE]
+    two = constants[C_TWO]
+    alpha_min = constants[C_ALPHA_MIN]
+    alpha_max = constants[C_ALPHA_MAX]
+    slack = constants[C_SLACK]
+    zero = one - one
+    height = grad_features.shape[0]
+    width = grad_features.shape[1]
+    channels = grad_features.shape[2]
+    for i in prange(tile_order.shape[0]):
+        tile = tile_order[i]
+        tile_y = tile // tiles_x
+        tile_x = tile - tile_y * tiles_x
+        x0 = tile_x * tile_size
+        y0 = tile_y * tile_size
+        x1 = min(x0 + tile_size, width)
+        y1 = min(y0 + tile_size, height)
+        start = tile_start[tile]
+        end = tile_start[tile + 1]
+        for y in range(y0, y1):
+            for x in range(x0, x1):
+                scratch_transmittance[y, x] = final_transmittance[y, x]
+                for ch in range(channels):
+                    scratch_behind[y, x, ch] = zero
+        grad_feature_sum = np.zeros(channels, dtype=features.dtype)
+        for k in range(end - 1, start - 1, -1):
+            g = pair_gaussian[k]
+            row_first = max(box_y0[g], y0)
+            row_stop = min(box_y1[g] + 1, y1)
+            col_first = max(box_x0[g], x0)
+            col_stop = min(box_x1[g] + 1, x1)
+            mx = mean_x[g]
+            my = mean_y[g]
+            a = conic_a[g]
+            b = conic_b[g]
+            c = conic_c[g]
+            o = opacity[g]
+            q_max = level[g]
+            g_mx = zero
+            g_my = zero
+            g_a = zero
+            g_b = zero
+            g_c = zero
+            g_o = zero
+            for ch in range(channels):
+                grad_feature_sum[ch] = zero
+            for y in range(row_first, row_stop):
+                dy = centres_y[y] - my
+                xa, xb = _row_span(dy, a, b, c, q_max, mx, col_first, col_stop, half, slack)
+                for x in range(xa, xb):
+                    if k >= stop[y, x]:
+                        continue
+                    dx = centres_x[x] - mx
+                    q = a * dx * dx + two * b * dx * dy + c * dy * dy
+                    if q > q_max:
+                        continue
+                    gaussian = math.exp(-half * q)
+                    raw = o * gaussian
+                    alpha = raw
+                    if alpha > alpha_max:
+                        alpha = alpha_max
+                    if alpha < alpha_min:
+                        continue
+                    inv_keep = one / (one - alpha)
+                    transmittance = scratch_transmittance[y, x] * inv_keep
+                    weight = alpha * transmittance
+                    grad_alpha_here = grad_alpha[y, x] * final_transmittance[y, x] * inv_keep
+                    for ch in range(channels):
+                        upstream = grad_features[y, x, ch]
+                        value = features[g, ch]
+                        grad_feature_sum[ch] += weight * upstream
+                        grad_alpha_here += upstream * (transmittance * value - scratch_behind[y, x, ch] * inv_keep)
+                        scratch_behind[y, x, ch] += weight * value
+                    scratch_transmittance[y, x] = transmittance
+                    if raw <= alpha_max:
+                        g_o += gaussian * grad_alpha_here
+                        grad_q = -half * raw * grad_alpha_here
+                        g_a += grad_q * dx * dx
+                        g_b += grad_q * two * dx * dy
+                        g_c += grad_q * dy * dy
+                        g_mx -= grad_q * two * (a * dx + b * dy)
+                        g_my -= grad_q * two * (b * dx + c * dy)
+            records[k, R_MEAN_X] = g_mx
+            records[k, R_MEAN_Y] = g_my
+            records[k, R_CONIC_A] = g_a
+            records[k, R_CONIC_B] = g_b
+            records[k, R_CONIC_C] = g_c
+            records[k, R_OPACITY] = g_o
+            for ch in range(channels):
+                records[k, RECORD_FIXED + ch] = grad_feature_sum[ch]
+
+
+@njit(cache=True, parallel=True)
+def reduce_records(order, gaussian_pair_start, gaussian_pairs, records, out):
+    """out[order[i]] = sum of the records of Gaussian order[i]'s pairs, in a fixed order.
+
+    out: [N, 6 + F], zero on entry.
+    """
+    columns = records.shape[1]
+    for i in prange(order.shape[0]):
+        g = order[i]
+        for r in range(gaussian_pair_start[i], gaussian_pair_start[i + 1]):
+            position = gaussian_pairs[r]
+            for j in range(columns):
+                out[g, j] += records[position, j]
