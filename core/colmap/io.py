@@ -148,8 +148,10 @@ def from_pycolmap(reconstruction: "pycolmap.Reconstruction", source: str = "") -
         x, y, z, w = np.asarray(pose.rotation.quat, dtype=np.float64)  # pycolmap stores xyzw
         points2d = image.points2D
         xy = np.array([point.xy for point in points2d], dtype=np.float64).reshape(-1, 2)
-        # COLMAP's "no 3D point" is u64 max; reinterpreted as int64 it is -1.
-        ids = np.array([point.point3D_id for point in points2d], dtype=np.uint64).view(np.int64)
+        ids = np.full(len(points2d), -1, dtype=np.int64)  # -1: no 3D point
+        observed = image.get_observation_point2D_idxs()
+        if observed:
+            ids[np.asarray(observed, dtype=np.int64)] = [point.point3D_id for point in image.get_observation_points2D()]
         images[int(image_id)] = Image(
             int(image_id), image.name, int(image.camera_id), np.array([w, x, y, z]), np.asarray(pose.translation, dtype=np.float64).copy(), xy, ids
         )
