@@ -178,6 +178,18 @@ def set_scene_resolution_from_camera(scene: bpy.types.Scene, width: int, height:
     render.pixel_aspect_y = aspect_y
 
 
+def use_camera(scene: bpy.types.Scene, obj: bpy.types.Object) -> None:
+    """Make ``obj`` the scene camera and, for a camera made by :func:`camera_object_from_opencv`,
+    set the render resolution and pixel aspect it was made for (models with several sizes)."""
+    if obj.type != "CAMERA":
+        raise ConfigError(f"object '{obj.name}' is a {obj.type}, not a camera")
+    stored = _stored_parameters(obj)
+    if stored is not None:
+        K, _, (width, height) = stored
+        set_scene_resolution_from_camera(scene, width, height, K[0, 0], K[1, 1])
+    scene.camera = obj
+
+
 def render_size(scene: bpy.types.Scene) -> tuple[int, int]:
     """The rendered image size in pixels (resolution times percentage, as Blender rounds it)."""
     render = scene.render

@@ -1,0 +1,64 @@
+"""File > Import > COLMAP scene: a thin wrapper around ``import_colmap_scene``."""
+from __future__ import annotations
+
+import bpy
+
+from ..core.errors import ESGSError
+from ..esgs_addon.colmap_scene import import_colmap_scene
+from ..esgs_addon.settings_colmap_import import options_from_properties
+
+
+class ESGS_OT_import_colmap(bpy.types.Operator):
+    """Import a COLMAP scene (cameras, sparse points, optional image planes) into a new collection"""
+
+    bl_idname = "esgs.import_colmap"
+    bl_label = "Import COLMAP Scene"
+    bl_options = {"REGISTER", "UNDO", "PRESET"}
+
+    directory: bpy.props.StringProperty(
+        name="Scene folder",
+        description="Scene folder holding images/ and sparse/0, or the COLMAP model folder itself",
+        subtype="DIR_PATH",
+    )
+    filter_folder: bpy.props.BoolProperty(default=True, options={"HIDDEN"})
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def draw(self, context):
+        settings = context.scene.esgs.colmap_import
+        for name in settings.__annotations__:
+            self.layout.prop(settings, name)
+
+    def execute(self, context):
+        options = options_from_properties(context.scene.esgs.colmap_import)
+        try:
+            result = import_colmap_scene(self.directory, options, scene=context.scene)
+        except ESGSError as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        for warning in result["warnings"]:
+            self.report({"WARNING"}, warning)
+        points = result["points"]
+        count = len(points.data.points) if points is not None else 0
+        self.report(
+            {"INFO"},
+            f"Imported '{result['collection'].name}': {len(result['cameras'])} cameras, {count} points",
+        )
+        return {"FINISHED"}
+
+
+def menu_entry(self, context):
+    self.layout.operator(ESGS_OT_import_colmap.bl_idname, text="COLMAP Scene (ESGS)")
+
+
+CLASSES = (ESGS_OT_import_colmap,)
+
+
+def register_hooks() -> None:
+    bpy.types.TOPBAR_MT_file_import.append(menu_entry)
+
+
+def unregister_hooks() -> None:
+    bpy.types.TOPBAR_MT_file_import.remove(menu_entry)
