@@ -415,3 +415,29 @@ def test_point_colours_render_in_cycles():
         path.unlink(missing_ok=True)
     assert left_mean[0] > 0.5 and left_mean[2] < 0.1
     assert right_mean[2] > 0.5 and right_mean[0] < 0.1
+
+
+def test_example_script_saves_a_blend(tmp_path):
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO_ROOT
+
+    scene_dir = maupertuis_scene(tmp_path)
+    output = tmp_path / "out" / "roof.blend"
+    completed = subprocess.run(
+        [sys.executable, str(REPO_ROOT / "examples" / "import_colmap.py"), str(scene_dir), "--output", str(output),
+         "--orient-up", "--image-planes", "--collection-name", "roof"],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert completed.returncode == 0, completed.stderr
+    bpy.ops.wm.open_mainfile(filepath=str(output))
+    collection = bpy.data.collections["roof"]
+    assert sum(obj.type == "CAMERA" for obj in collection.objects) == 4
+    assert sum(obj.type == "MESH" for obj in collection.objects) == 4
+    assert len(bpy.data.objects["roof points"].data.points) == 1039
+    assert not np.allclose(np.array(collection[colmap_scene.PROP_TRANSFORM]).reshape(4, 4), np.eye(4))
+
+    failed = subprocess.run([sys.executable, str(REPO_ROOT / "examples" / "import_colmap.py"), str(tmp_path / "nothing")],
+                            capture_output=True, text=True, timeout=120)
+    assert failed.returncode == 1 and "folder not found" in failed.stderr
