@@ -17,6 +17,8 @@ import numpy as np
 from .errors import DatasetError, ESGSError, FormatError
 from .io_utils import atomic_path, atomic_write_bytes
 
+#: Larger than any map this project writes; beyond it a header is taken as corrupt.
+MAX_EXR_SIDE = 65536
 #: Header attributes OpenEXR manages itself; user metadata may not use these names.
 _EXR_STANDARD_ATTRIBUTES = frozenset(
     {
@@ -155,16 +157,28 @@ def read_exr(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     if not path.is_file():
         raise DatasetError("EXR file does not exist", path=path)
     try:
+        # The header first: a corrupt data window must not make OpenEXR allocate gigabytes.
+        header = OpenEXR.File(str(path), header_only=True).header()
+        low, high = (np.asarray(corner, dtype=np.int64) for corner in header["dataWindow"])
+        width, height = (high - low + 1).tolist()
+        num_channels = len(header["channels"])
+        if not (0 < width <= MAX_EXR_SIDE and 0 < height <= MAX_EXR_SIDE and 0 < num_channels <= 64):
+            raise DatasetError(f"EXR header announces an implausible {width} x {height} x {num_channels} image", path=path)
+        # OpenEXR drops a part whose pixels fail to decode (printing a warning), so a
+        # damaged file surfaces here as an exception from channels().
         exr = OpenEXR.File(str(path), separate_channels=True)
         header = exr.header()
-        raw_channels = exr.channels()
         channels = {}
-        for name, channel in raw_channels.items():
+        for name, channel in exr.channels().items():
             pixels = np.asarray(channel.pixels)
+            if pixels.shape != (height, width):
+                raise DatasetError(f"EXR channel {name!r} is {pixels.shape}, the header says {(height, width)}", path=path)
             if pixels.dtype == np.float16:
                 pixels = pixels.astype(np.float32)
             channels[str(name)] = np.ascontiguousarray(pixels)
-    except Exception as error:  # OpenEXR raises RuntimeError/ValueError on damaged files
+    except DatasetError:
+        raise
+    except Exception as error:  # OpenEXR raises RuntimeError/ValueError/KeyError on damaged files
         raise DatasetError(f"cannot read EXR (truncated or corrupt): {error}", path=path, hint="re-create the file") from error
     metadata = {str(key): value for key, value in header.items() if isinstance(value, str) and key not in _EXR_STANDARD_ATTRIBUTES}
     return channels, metadata
