@@ -40,6 +40,8 @@ class ESGS_OT_import_colmap(bpy.types.Operator):
             return {"CANCELLED"}
         for warning in result["warnings"]:
             self.report({"WARNING"}, warning)
+        if result["image_planes"]:
+            show_textures_in_solid_view(context)
         points = result["points"]
         count = len(points.data.points) if points is not None else 0
         self.report(
@@ -47,6 +49,17 @@ class ESGS_OT_import_colmap(bpy.types.Operator):
             f"Imported '{result['collection'].name}': {len(result['cameras'])} cameras, {count} points",
         )
         return {"FINISHED"}
+
+
+def show_textures_in_solid_view(context) -> None:
+    """Solid view shows image textures only in 'Texture' colour mode; switch the open 3D views
+    still on the default 'Material' mode so the image planes show their photos."""
+    screen = getattr(context, "screen", None)
+    for area in screen.areas if screen is not None else ():
+        if area.type == "VIEW_3D":
+            shading = area.spaces.active.shading
+            if shading.type == "SOLID" and shading.color_type == "MATERIAL":
+                shading.color_type = "TEXTURE"
 
 
 def menu_entry(self, context):

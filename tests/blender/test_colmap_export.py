@@ -11,9 +11,9 @@ from mathutils import Euler, Vector  # noqa: E402
 
 from esgs.core.colmap.io import read_model  # noqa: E402
 from esgs.core.errors import ConfigError, ESGSError  # noqa: E402
-from esgs.esgs_addon import cameras, colmap_scene  # noqa: E402
+from esgs.esgs_addon import cameras  # noqa: E402
 from esgs.esgs_addon.colmap_scene import ColmapImportOptions, export_cameras_to_colmap, import_colmap_scene  # noqa: E402
-from tests.blender.test_colmap_import import maupertuis_scene, synthetic_model, tilt_rotation, write_scene  # noqa: E402
+from tests.blender.colmap_helpers import maupertuis_scene, synthetic_model, tilt_rotation, write_scene  # noqa: E402
 
 
 def hand_made_cameras() -> list[bpy.types.Object]:

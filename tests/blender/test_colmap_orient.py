@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from esgs.esgs_addon import orient
-from tests.blender.test_colmap_import import look_at, tilt_rotation
+from tests.blender.colmap_helpers import look_at, tilt_rotation
 
 
 def random_unit(rng, count):
