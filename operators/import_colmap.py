@@ -13,7 +13,7 @@ class ESGS_OT_import_colmap(bpy.types.Operator):
 
     bl_idname = "esgs.import_colmap"
     bl_label = "Import COLMAP Scene"
-    bl_options = {"REGISTER", "UNDO", "PRESET"}
+    bl_options = {"REGISTER", "UNDO"}
 
     directory: bpy.props.StringProperty(
         name="Scene folder",

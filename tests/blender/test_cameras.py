@@ -176,3 +176,28 @@ def test_cycles_renders_points_where_opencv_projects_them(case, tmp_path):
         errors.append(np.linalg.norm(centroid - [u, v]))
     # a sphere's image centroid sits a little off its centre's projection; sampling noise on top
     assert np.mean(errors) < 0.12 and np.max(errors) < 0.3
+
+
+@pytest.mark.parametrize("fit", ["AUTO", "HORIZONTAL", "VERTICAL"])
+@pytest.mark.parametrize("aspect", [(1.0, 1.1), (1.1, 1.0), (1.0, 1.0)])
+def test_intrinsics_of_any_blender_camera_match_blender_projection(fit, aspect):
+    """Cameras not made by us: every sensor fit, with a pixel aspect that flips AUTO's choice."""
+    scene = bpy.context.scene
+    scene.render.resolution_x, scene.render.resolution_y = 640, 600
+    scene.render.resolution_percentage = 100
+    scene.render.pixel_aspect_x, scene.render.pixel_aspect_y = aspect
+    data = bpy.data.cameras.new("user")
+    data.lens, data.sensor_width, data.sensor_height = 42.0, 30.0, 22.0
+    data.sensor_fit, data.shift_x, data.shift_y = fit, 0.07, -0.11
+    obj = bpy.data.objects.new("user", data)
+    obj.location = (1.0, -2.0, 3.0)
+    obj.rotation_euler = (0.9, 0.1, -0.4)
+    scene.collection.objects.link(obj)
+    bpy.context.view_layer.update()
+    K, pose, width, height = cameras.opencv_from_camera_object(obj, scene)
+    rng = np.random.default_rng(5)
+    pixels = rng.uniform([0, 0], [width, height], size=(20, 2))
+    camera_points = np.column_stack([np.linalg.solve(K, np.vstack([pixels.T, np.ones(20)])).T[:, :2], np.ones(20)])
+    camera_points *= rng.uniform(1, 20, size=(20, 1))
+    world_points = (camera_points - pose[:3, 3]) @ pose[:3, :3]
+    np.testing.assert_allclose(project_blender(scene, obj, world_points), pixels, atol=1e-3)
