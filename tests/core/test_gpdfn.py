@@ -67,15 +67,15 @@ def test_trilinear_sampling_reproduces_a_linear_field():
 
 def test_offsets_get_gradients_and_residuals_grow_when_trained():
     torch.manual_seed(0)
-    params = _gaussians(count=800)
+    params = _gaussians(count=300)
     module = GPDFN(GPDFNConfig(fused_k=3))
-    optimizer = torch.optim.Adam(module.parameters(), lr=1e-2)
+    optimizer = torch.optim.Adam(module.parameters(), lr=2e-2)
     # target: each Gaussian's colour should become the mean colour of its x-neighbours, which
     # the module can only learn by reading its neighbours
     target = params["sh_dc"].roll(1, dims=0) * 0.0 + params["sh_dc"].mean(0)
     first_loss = None
     offset_grad_seen = False
-    for step in range(150):
+    for step in range(80):
         out = module(**params)
         loss = ((params["sh_dc"] + out["sh_dc"] - target) ** 2).mean()
         optimizer.zero_grad()
