@@ -164,7 +164,8 @@ def _distortion_warning(camera: Camera) -> str:
     return (
         f"camera {camera.camera_id} uses the {camera.model} model: its lens distortion cannot be shown by a "
         f"Blender camera and was NOT applied (parameters kept as custom properties on the cameras); "
-        f"undistort with COLMAP's image_undistorter and set 'Undistorted folder' for exact views"
+        f"undistort the scene (esgs.core.colmap.undistort.undistort_model or COLMAP's image_undistorter) "
+        f"and set 'Undistorted path' for exact views"
     )
 
 
@@ -200,7 +201,7 @@ def import_colmap_scene(
         raise DatasetError(
             "the undistorted model still has cameras with distortion",
             path=model_dir,
-            hint="point 'Undistorted folder' at the output of COLMAP's image_undistorter",
+            hint="point 'Undistorted path' at an undistorted scene (images/ and sparse/0 with PINHOLE cameras)",
         )
     for camera in sorted(model.cameras.values(), key=lambda c: c.camera_id):
         if not camera.is_pinhole:

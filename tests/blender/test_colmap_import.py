@@ -149,7 +149,7 @@ def test_synthetic_pinhole_portrait_and_landscape_project_like_pycolmap(tmp_path
     assert errors.mean() < 0.05 and errors.max() < 0.2
 
 
-def test_distorted_model_warns_and_keeps_parameters(tmp_path):
+def test_distorted_model_warns_and_keeps_parameters(tmp_path, capfd):
     model = synthetic_model(sizes=((640, 480),), model_name="OPENCV", extra_params=(0.01, -0.002, 0.001, 0.0005))
     scene_dir = write_scene(tmp_path, model)
     result = import_colmap_scene(scene_dir)
@@ -160,6 +160,11 @@ def test_distorted_model_warns_and_keeps_parameters(tmp_path):
         np.testing.assert_allclose(list(obj[colmap_scene.PROP_CAMERA_PARAMS]), model.cameras[1].params)
         K, _, _, _ = cameras.opencv_from_camera_object(obj, bpy.context.scene)
         np.testing.assert_allclose(K, model.cameras[1].K(), atol=1e-9)
+    # the operator passes the warning on to the user
+    capfd.readouterr()
+    assert bpy.ops.esgs.import_colmap(directory=str(scene_dir)) == {"FINISHED"}
+    printed = capfd.readouterr()
+    assert "Warning" in printed.out + printed.err and "OPENCV" in printed.out + printed.err
 
 
 def test_undistorted_folder_is_used_instead(tmp_path):
