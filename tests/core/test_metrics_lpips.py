@@ -162,3 +162,14 @@ def test_conversion_layout_and_archive_pipeline(tmp_path, monkeypatch):
     assert lpips_available()  # cached now, even offline
     model = LPIPS(path)
     torch.testing.assert_close(model.convs[1].weight, torch.from_numpy(converted["conv1.weight"]))
+
+
+def test_cli_check_reports_missing_weights(tmp_path, monkeypatch, capsys):
+    from esgs.core.cli import main
+
+    monkeypatch.setenv("ESGS_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("ESGS_LPIPS_OFFLINE", "1")
+    assert main(["lpips-weights", "--check"]) == 1
+    assert "not available" in capsys.readouterr().out
+    assert main(["lpips-weights"]) == 2  # offline and nothing cached: a clear error, no traceback
+    assert "ESGS_LPIPS_OFFLINE" in capsys.readouterr().err
