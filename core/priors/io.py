@@ -1,0 +1,175 @@
+"""Prior maps on disk: ``SCENE/priors/<source>/{depth,normal,mask}/<stem>.{exr,png}``.
+
+One format for every source (``gt`` synthetic ground truth, ``labels`` rendered from a mesh,
+``ndn`` the diffusion prior, ``sfm`` projected COLMAP points):
+
+- depth EXR, channel ``Z``: distance along the camera z axis in scene units (metres for
+  synthetic scenes, SfM units for reconstructions); 0 = no value. Header ``depth_kind`` is
+  ``metric`` or ``relative`` (known up to scale and shift; aligned during training).
+- normal EXR, channels ``X, Y, Z``: unit normals; header ``frame`` is ``camera_opencv``
+  (x right, y down, z forward; what we write) or ``world`` (converted on load with the pose).
+- mask PNG: 255 = valid surface, 0 = sky / no surface / no prior.
+
+``<stem>`` is the image name without its extension (sub-folders kept).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DatasetError
+from ..imageio import read_depth_exr, read_image, read_normal_exr, write_depth_exr, write_normal_exr, write_png
+
+PRIOR_SOURCES = ("gt", "labels", "ndn", "sfm")
+CAMERA_FRAME = "camera_opencv"
+
+
+@dataclass
+class PriorMaps:
+    """The priors of one view at one resolution. ``None`` where the source has no such map."""
+
+    depth: np.ndarray | None  # [H, W] float32, 0 = invalid
+    normal: np.ndarray | None  # [H, W, 3] float32, camera frame (OpenCV axes)
+    mask: np.ndarray  # [H, W] bool, True = valid surface
+    relative_depth: bool = False
+    source: str = ""
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.mask.shape  # type: ignore[return-value]
+
+
+def prior_dir(scene_dir: str | Path, source: str) -> Path:
+    """``SCENE/priors/<source>``."""
+    return Path(scene_dir) / "priors" / source
+
+
+def image_stem(image_name: str) -> str:
+    """The image name without its extension, sub-folders kept ("a/b.png" -> "a/b")."""
+    path = Path(image_name)
+    return str(path.with_suffix("")) if path.suffix else image_name
+
+
+def available_prior_sources(scene_dir: str | Path) -> list[str]:
+    """Sources present under ``SCENE/priors`` (folders with a depth or normal sub-folder)."""
+    root = Path(scene_dir) / "priors"
+    if not root.is_dir():
+        return []
+    return sorted(p.name for p in root.iterdir() if (p / "depth").is_dir() or (p / "normal").is_dir())
+
+
+def write_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, depth: np.ndarray | None = None,
+                     normal: np.ndarray | None = None, mask: np.ndarray | None = None, relative_depth: bool = False,
+                     units: str = "m", metadata: dict[str, str] | None = None) -> None:
+    """Write one view's prior maps atomically in the standard layout."""
+    root = prior_dir(scene_dir, source)
+    stem = image_stem(image_name)
+    extra = {"source": source, **(metadata or {})}
+    if depth is not None:
+        write_depth_exr(root / "depth" / f"{stem}.exr", np.asarray(depth, np.float32), units=units,
+                        metadata={**extra, "depth_kind": "relative" if relative_depth else "metric"})
+    if normal is not None:
+        write_normal_exr(root / "normal" / f"{stem}.exr", np.asarray(normal, np.float32), frame=CAMERA_FRAME,
+                         metadata=extra)
+    if mask is not None:
+        write_png(root / "mask" / f"{stem}.png", np.where(np.asarray(mask, bool), 255, 0).astype(np.uint8))
+
+
+def _resize_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Resize a depth map without blending across edges: block-minimum of valid values for an
+    integer shrink (keeps sparse SfM samples), nearest neighbour otherwise."""
+    import cv2
+
+    in_height, in_width = depth.shape
+    if (in_height, in_width) == (height, width):
+        return depth
+    fy, fx = in_height / height, in_width / width
+    if fx == fy and float(fx).is_integer() and fx > 1:
+        factor = int(fx)
+        blocks = np.where(depth > 0, depth, np.inf).reshape(height, factor, width, factor)
+        reduced = blocks.min(axis=(1, 3))
+        return np.where(np.isfinite(reduced), reduced, 0.0).astype(np.float32)
+    return cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
+
+
+def _resize_nearest(array: np.ndarray, width: int, height: int) -> np.ndarray:
+    import cv2
+
+    if array.shape[:2] == (height, width):
+        return array
+    return cv2.resize(array, (width, height), interpolation=cv2.INTER_NEAREST)
+
+
+def load_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, size: tuple[int, int] | None = None,
+                    world_to_camera_rotation: np.ndarray | None = None) -> PriorMaps:
+    """Read one view's priors, checked and brought to ``size`` = (width, height) if given.
+
+    Depth and mask must share a size; normals stored in the ``world`` frame are rotated into
+    the camera frame with ``world_to_camera_rotation`` [3,3] (required then). Raises
+    :class:`DatasetError` naming the file for a missing view, mismatched sizes or an unknown
+    frame.
+    """
+    root = prior_dir(scene_dir, source)
+    stem = image_stem(image_name)
+    depth_path, normal_path, mask_path = (root / "depth" / f"{stem}.exr", root / "normal" / f"{stem}.exr",
+                                          root / "mask" / f"{stem}.png")
+    if not root.is_dir():
+        raise DatasetError(f"no prior folder for source {source!r}", path=root,
+                           hint=f"available: {', '.join(available_prior_sources(scene_dir)) or 'none'}; "
+                                f"make one with `esgs priors SCENE --method {source}`")
+    depth = normal = None
+    relative = False
+    if depth_path.exists():
+        depth, header = read_depth_exr(depth_path)
+        kind = header.get("depth_kind", "metric")
+        if kind not in ("metric", "relative"):
+            raise DatasetError(f"unknown depth_kind {kind!r} (expected metric or relative)", path=depth_path)
+        relative = kind == "relative"
+        depth = np.nan_to_num(depth.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    if normal_path.exists():
+        normal, header = read_normal_exr(normal_path)
+        frame = header.get("frame", CAMERA_FRAME)
+        if frame == "world":
+            if world_to_camera_rotation is None:
+                raise DatasetError("normals are in the world frame but no camera pose was given", path=normal_path)
+            normal = normal @ np.asarray(world_to_camera_rotation, np.float32).T
+        elif frame != CAMERA_FRAME:
+            raise DatasetError(f"unknown normal frame {frame!r} (expected {CAMERA_FRAME} or world)", path=normal_path)
+        normal = np.nan_to_num(normal.astype(np.float32))
+    if depth is None and normal is None:
+        raise DatasetError(f"no depth or normal prior for image {image_name!r}", path=root,
+                           hint=f"expected {depth_path.name} under depth/ or normal/")
+    reference = depth if depth is not None else normal
+    height, width = reference.shape[:2]
+    if depth is not None and normal is not None and normal.shape[:2] != depth.shape:
+        raise DatasetError(f"normal map {normal.shape[1]}x{normal.shape[0]} does not match depth map "
+                           f"{width}x{height}", path=normal_path)
+    if mask_path.exists():
+        mask_image = read_image(mask_path)
+        mask = (mask_image if mask_image.ndim == 2 else mask_image[..., 0]) > 127
+        if mask.shape != (height, width):
+            raise DatasetError(f"mask {mask.shape[1]}x{mask.shape[0]} does not match the prior maps {width}x{height}",
+                               path=mask_path)
+    else:
+        mask = np.ones((height, width), bool)
+    if depth is not None:
+        mask = mask & (depth > 0) if source == "sfm" else mask
+    if size is not None:
+        target_width, target_height = size
+        if abs(target_width / width - target_height / height) > 0.02:
+            raise DatasetError(f"prior maps are {width}x{height} but the view is {target_width}x{target_height} "
+                               f"(different aspect ratio)", path=root)
+        if depth is not None:
+            depth = _resize_depth(depth, target_width, target_height)
+        if normal is not None:
+            normal = _resize_nearest(normal, target_width, target_height)
+        if depth is not None and source == "sfm":
+            mask = depth > 0  # sparse samples: nearest resizing of the mask would drop them
+        else:
+            mask = _resize_nearest(mask.astype(np.uint8), target_width, target_height).astype(bool)
+    if normal is not None:
+        length = np.linalg.norm(normal, axis=-1, keepdims=True)
+        normal = np.where(length > 1e-6, normal / np.maximum(length, 1e-6), 0.0).astype(np.float32)
+    return PriorMaps(depth=depth, normal=normal, mask=mask, relative_depth=relative, source=source)

@@ -1,0 +1,58 @@
+"""Sparse SfM depth priors: each view's triangulated COLMAP points, projected into it."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..colmap import ColmapModel
+from ..progress import ProgressCallback, ProgressEvent, no_progress
+from .io import write_prior_maps
+
+
+def sparse_depth_map(model: ColmapModel, image_id: int, *, max_error_px: float = 2.0,
+                     min_track_length: int = 2) -> np.ndarray:
+    """[H, W] float32 depth (camera z) at the pixels where the image observes a 3D point; 0 elsewhere.
+
+    Uses the image's own observations (its 2D keypoints linked to 3D points), keeping points
+    with reprojection error <= ``max_error_px`` and track length >= ``min_track_length``; where
+    two points fall in one pixel the nearer wins (it occludes the other).
+    """
+    image = model.images[image_id]
+    camera = model.cameras[image.camera_id]
+    depth = np.zeros((camera.height, camera.width), np.float32)
+    linked = image.point3d_ids >= 0
+    if not np.any(linked):
+        return depth
+    rotation = image.rotation_matrix()
+    keypoints = image.points2d[linked]
+    xyz_list, keep = [], []
+    for point_id in image.point3d_ids[linked]:
+        point = model.points.get(int(point_id))
+        ok = point is not None and point.error <= max_error_px and point.track_length >= min_track_length
+        keep.append(ok)
+        xyz_list.append(point.xyz if point is not None else np.zeros(3))
+    keep_mask = np.array(keep, bool)
+    if not np.any(keep_mask):
+        return depth
+    xyz = np.stack(xyz_list)[keep_mask]
+    pixels = keypoints[keep_mask]
+    z = (xyz @ rotation.T + image.translation)[:, 2]
+    columns = np.floor(pixels[:, 0]).astype(int)
+    rows = np.floor(pixels[:, 1]).astype(int)
+    inside = (z > 0) & (columns >= 0) & (columns < camera.width) & (rows >= 0) & (rows < camera.height)
+    order = np.argsort(-z[inside])  # far first, so nearer points overwrite them
+    depth[rows[inside][order], columns[inside][order]] = z[inside][order]
+    return depth
+
+
+def write_sfm_priors(scene_dir: str | Path, model: ColmapModel, progress: ProgressCallback = no_progress,
+                     **options) -> int:
+    """Write ``priors/sfm/depth`` and ``mask`` for every registered image; returns the count."""
+    images = model.sorted_images()
+    for index, image in enumerate(images):
+        depth = sparse_depth_map(model, image.image_id, **options)
+        write_prior_maps(scene_dir, "sfm", image.name, depth=depth, mask=depth > 0, units="sfm",
+                         metadata={"note": "sparse: projected COLMAP points"})
+        progress(ProgressEvent(step=index + 1, total=len(images), stage="sfm priors"))
+    return len(images)
