@@ -93,3 +93,21 @@ def test_sfm_depth_matches_the_points_the_image_observes(tmp_path):
     assert write_sfm_priors(tmp_path, model) == len(model.images)
     maps = load_prior_maps(tmp_path, "sfm", image.name)
     assert maps.normal is None and maps.mask.sum() == np.count_nonzero(maps.depth)
+
+
+def test_priors_command_writes_sfm_maps(tmp_path):
+    import shutil
+    import subprocess
+    import sys
+
+    data = require_shared("colmap_maupertuis")
+    (tmp_path / "sparse").mkdir()
+    shutil.copytree(data / "sparse_bin", tmp_path / "sparse" / "0")
+    shutil.copytree(data / "images", tmp_path / "images")
+    result = subprocess.run([sys.executable, "-m", "esgs.core", "priors", str(tmp_path), "--method", "sfm"],
+                            capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert sorted(p.name for p in (tmp_path / "priors/sfm/depth").iterdir()) == ["00.exr", "01.exr", "02.exr", "03.exr"]
+    missing = subprocess.run([sys.executable, "-m", "esgs.core", "priors", str(tmp_path / "nope")],
+                             capture_output=True, text=True)
+    assert missing.returncode == 2 and "Traceback" not in missing.stderr
