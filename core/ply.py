@@ -60,7 +60,8 @@ class GaussianPly:
     sh_rest: [N, K-1, 3] higher-order SH coefficients, K = (sh_degree + 1)^2 (K-1 may be 0).
     opacity_logit: [N] opacity before the sigmoid. log_scales: [N, 3] natural log of the
     axis scales. quats_wxyz: [N, 4] rotation quaternions (w, x, y, z), not normalised.
-    Arrays are converted to contiguous float32 on construction; shapes are checked.
+    Arrays (or torch tensors, detached and moved to the CPU) are converted to contiguous
+    float32 numpy arrays on construction; shapes are checked (ESGSError when inconsistent).
     """
 
     means: np.ndarray
@@ -73,7 +74,10 @@ class GaussianPly:
 
     def __post_init__(self) -> None:
         for name in ("means", "normals", "sh_dc", "sh_rest", "opacity_logit", "log_scales", "quats_wxyz"):
-            setattr(self, name, np.ascontiguousarray(np.asarray(getattr(self, name)), dtype=np.float32))
+            value = getattr(self, name)
+            if hasattr(value, "detach"):  # a torch tensor (possibly on a GPU, possibly with grad)
+                value = value.detach().cpu().numpy()
+            setattr(self, name, np.ascontiguousarray(np.asarray(value), dtype=np.float32))
         n = self.means.shape[0] if self.means.ndim == 2 else -1
         expected = {
             "means": (n, 3), "normals": (n, 3), "sh_dc": (n, 3), "opacity_logit": (n,),

@@ -226,3 +226,15 @@ def test_bad_shapes_are_rejected():
     with pytest.raises(ESGSError, match="quats_wxyz"):
         GaussianPly(np.zeros((2, 3)), np.zeros((2, 3)), np.zeros((2, 3)), np.zeros((2, 0, 3)),
                     np.zeros(2), np.zeros((2, 3)), np.zeros((2, 3)))
+
+
+def test_accepts_torch_tensors_with_grad(tmp_path):
+    import torch
+
+    source = _random_gaussians(5, 1, seed=3)
+    tensors = {name: torch.from_numpy(getattr(source, name).copy()).requires_grad_(True)
+               for name in ("means", "normals", "sh_dc", "sh_rest", "opacity_logit", "log_scales", "quats_wxyz")}
+    gaussians = GaussianPly(**tensors)
+    assert isinstance(gaussians.means, np.ndarray) and gaussians.means.dtype == np.float32
+    write_gaussians_ply(tmp_path / "t.ply", gaussians)
+    np.testing.assert_array_equal(read_gaussians_ply(tmp_path / "t.ply").sh_rest, source.sh_rest)
