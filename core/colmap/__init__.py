@@ -8,10 +8,14 @@ Public API (see :mod:`.model` for the dataclasses):
 - ``load_scene(scene_dir) -> (model, images_dir)``: a scene folder (images/ + sparse/0).
 - ``validate_images(model, images_dir)``, ``check_image_sizes(model, images_dir)``.
 - ``pinhole_part(model_name, params) -> (fx, fy, cx, cy)`` for every COLMAP camera model.
+- ``undistort_model(model, images_dir, out_dir)`` and the per-image pieces
+  (``undistorted_camera``, ``undistortion_maps``, ``undistort_image``, ``undistort_points``):
+  any camera model to PINHOLE.
 """
 from .camera_models import CAMERA_MODELS, PINHOLE_MODELS, model_info, pinhole_part
 from .io import find_model_dir, from_pycolmap, load_scene, parse_model, read_model, to_pycolmap, write_model
 from .model import Camera, ColmapModel, Image, Point3D
+from .undistort import undistort_image, undistort_model, undistort_points, undistorted_camera, undistortion_maps
 from .validate import check_image_sizes, check_references, validate_images
 
 __all__ = [
@@ -31,6 +35,11 @@ __all__ = [
     "pinhole_part",
     "read_model",
     "to_pycolmap",
+    "undistort_image",
+    "undistort_model",
+    "undistort_points",
+    "undistorted_camera",
+    "undistortion_maps",
     "validate_images",
     "write_model",
 ]

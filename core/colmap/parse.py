@@ -19,6 +19,7 @@ comments.
 """
 from __future__ import annotations
 
+import math
 import re
 import struct
 from pathlib import Path
@@ -153,11 +154,6 @@ def _check_pose(image: Image, path: Path) -> None:
         raise _fail(path, f"image {image.image_id} ({image.name}) has non-finite 2D points")
 
 
-def _check_point(point: Point3D, path: Path) -> None:
-    if not (np.all(np.isfinite(point.xyz)) and np.isfinite(point.error)):
-        raise _fail(path, f"3D point {point.point3d_id} has non-finite coordinates or error")
-
-
 def _check_unique(kind: str, key: int | str, seen: set, path: Path) -> None:
     if key in seen:
         raise _fail(path, f"{kind} {key!r} appears twice")
@@ -218,26 +214,70 @@ def read_images_binary(path: Path) -> dict[int, Image]:
 
 
 def read_points3d_binary(path: Path) -> dict[int, Point3D]:
-    """Parse and check ``points3D.bin``."""
+    """Parse and check ``points3D.bin``.
+
+    One Python pass finds where each variable-length record starts; the fields are then
+    gathered and checked with numpy, which keeps million-point models fast.
+    """
     reader = _Reader(path)
     count = reader.count(_POINT_HEAD.size, "3D points")
-    points: dict[int, Point3D] = {}
+    data, size, head = reader.data, len(reader.data), _POINT_HEAD.size
+    starts, lengths = [], []
+    position = reader.pos
+    unpack_length = _U64.unpack_from
     for _ in range(count):
-        point_id, x, y, z, red, green, blue, error, track_length = reader.unpack(_POINT_HEAD, "a 3D point record")
-        if point_id >= 2**63 or point_id in points:
-            raise _fail(path, f"3D point id {point_id} is invalid or appears twice")
-        track = reader.array(_TRACK_DTYPE, track_length, f"the track of 3D point {point_id}")
-        point = Point3D(
-            point_id,
-            np.array([x, y, z]),
-            np.array([red, green, blue], dtype=np.uint8),
-            float(error),
-            track["image_id"].astype(np.int64),
-            track["point2d_idx"].astype(np.int64),
-        )
-        _check_point(point, path)
-        points[point_id] = point
+        if position + head > size:
+            reader.pos = position
+            reader.need(head, "a 3D point record")
+        (length,) = unpack_length(data, position + head - _U64.size)
+        starts.append(position)
+        lengths.append(length)
+        position += head + _TRACK_DTYPE.itemsize * length
+        if position > size:
+            raise _fail(path, f"file is truncated: the track of the 3D point record at offset {starts[-1]} "
+                              f"({length} elements) runs past the end", hint="re-export the model from COLMAP")
+    reader.pos = position
     reader.finish()
+    if count == 0:
+        return {}
+    buffer = np.frombuffer(data, dtype=np.uint8)
+    start_array = np.asarray(starts, dtype=np.int64)
+    length_array = np.asarray(lengths, dtype=np.int64)
+    head_dtype = np.dtype([("id", "<u8"), ("xyz", "<f8", (3,)), ("rgb", "u1", (3,)), ("error", "<f8")])
+    heads = buffer[start_array[:, None] + np.arange(head_dtype.itemsize)].reshape(-1).view(head_dtype)
+    total = int(length_array.sum())
+    first_element = np.cumsum(length_array) - length_array
+    element_starts = (
+        np.repeat(start_array + head, length_array)
+        + _TRACK_DTYPE.itemsize * (np.arange(total, dtype=np.int64) - np.repeat(first_element, length_array))
+    )
+    elements = buffer[element_starts[:, None] + np.arange(_TRACK_DTYPE.itemsize)].reshape(-1).view(_TRACK_DTYPE)
+
+    ids = heads["id"]
+    bad = np.flatnonzero(ids >= 2**63)
+    if len(bad):
+        raise _fail(path, f"3D point id {int(ids[bad[0]])} is out of range")
+    unique, first_index, counts = np.unique(ids, return_index=True, return_counts=True)
+    if len(unique) != count:
+        raise _fail(path, f"3D point id {int(unique[np.argmax(counts > 1)])} appears twice")
+    finite = np.all(np.isfinite(heads["xyz"]), axis=1) & np.isfinite(heads["error"])
+    if not np.all(finite):
+        raise _fail(path, f"3D point {int(ids[np.argmin(finite)])} has non-finite coordinates or error")
+
+    image_ids = elements["image_id"].astype(np.int64)
+    point2d_idxs = elements["point2d_idx"].astype(np.int64)
+    xyz = heads["xyz"].astype(np.float64)
+    rgb = heads["rgb"].astype(np.uint8)
+    points: dict[int, Point3D] = {}
+    for index, (point_id, begin, length) in enumerate(zip(ids.tolist(), first_element.tolist(), lengths)):
+        points[point_id] = Point3D(
+            point_id,
+            xyz[index],
+            rgb[index],
+            float(heads["error"][index]),
+            image_ids[begin : begin + length],
+            point2d_idxs[begin : begin + length],
+        )
     return points
 
 
@@ -352,30 +392,69 @@ def read_images_text(path: Path) -> dict[int, Image]:
     return images
 
 
+_POINT_LINE_RE = re.compile(
+    rf"({_INT}) ({_FLOAT}) ({_FLOAT}) ({_FLOAT}) ({_INT}) ({_INT}) ({_INT}) ({_FLOAT})((?: {_INT} {_INT})*+)"
+)
+
+
 def read_points3d_text(path: Path) -> dict[int, Point3D]:
-    """Parse and check ``points3D.txt`` (``ID X Y Z R G B ERROR TRACK[] as (IMAGE_ID, POINT2D_IDX)``)."""
+    """Parse and check ``points3D.txt`` (``ID X Y Z R G B ERROR TRACK[] as (IMAGE_ID, POINT2D_IDX)``).
+
+    Well-formed lines take one regular-expression match; a line that does not match is
+    re-read field by field to say exactly what is wrong with it.
+    """
     points: dict[int, Point3D] = {}
     for number, line in enumerate(_text_lines(path), start=1):
         if _is_skipped(line):
             continue
-        tokens = line.split(" ", 8)
-        if "" in tokens[:8]:
-            raise _fail(path, f"line {number}: fields must be separated by single spaces")
-        if len(tokens) < 8:
-            raise _fail(path, f"line {number}: a 3D point needs POINT3D_ID X Y Z R G B ERROR TRACK[]")
-        point_id = _int(tokens[0], path, number, "3D point id", 0, 2**63 - 2)
-        values = _floats(tokens[1:4] + tokens[7:8], path, number, "3D point value")
-        rgb = [_int(token, path, number, "colour", 0, 255) for token in tokens[4:7]]
-        track_text = tokens[8] if len(tokens) > 8 else ""
-        if not _TRACK_RE.fullmatch(track_text):
-            raise _fail(path, f"line {number}: the track of 3D point {point_id} must be IMAGE_ID POINT2D_IDX pairs")
-        track = [int(token) for token in track_text.split(" ")] if track_text else []
-        if any(not 0 <= value < 2**31 - 1 for value in track):
-            raise _fail(path, f"line {number}: the track of 3D point {point_id} holds an out-of-range id")
+        match = _POINT_LINE_RE.fullmatch(line)
+        if match is None:
+            _explain_point_line(line, path, number)
+            raise _fail(path, f"line {number}: malformed 3D point line")
+        fields = match.groups()
+        point_id = int(fields[0])
+        values = [float(fields[1]), float(fields[2]), float(fields[3]), float(fields[7])]
+        rgb = [int(fields[4]), int(fields[5]), int(fields[6])]
+        track = [int(token) for token in fields[8].split()] if fields[8] else []
+        if not (
+            0 <= point_id <= 2**63 - 2
+            and all(0 <= value <= 255 for value in rgb)
+            and all(0 <= value < 2**31 - 1 for value in track)
+            and all(_double_in_range(value) for value in values)
+        ):
+            _explain_point_line(line, path, number)
+            raise _fail(path, f"line {number}: a field of 3D point {point_id} is out of range")
         if point_id in points:
             raise _fail(path, f"line {number}: 3D point id {point_id} appears twice")
-        track_array = np.array(track, dtype=np.int64).reshape(-1, 2)
-        point = Point3D(point_id, values[:3], np.array(rgb, np.uint8), float(values[3]), track_array[:, 0].copy(), track_array[:, 1].copy())
-        _check_point(point, path)
-        points[point_id] = point
+        points[point_id] = Point3D(
+            point_id,
+            np.array(values[:3]),
+            np.array(rgb, np.uint8),
+            values[3],
+            np.array(track[0::2], dtype=np.int64),
+            np.array(track[1::2], dtype=np.int64),
+        )
     return points
+
+
+def _double_in_range(value: float) -> bool:
+    """Finite and representable by std::stod (which rejects subnormal results)."""
+    return math.isfinite(value) and (value == 0.0 or abs(value) >= 1e-300)
+
+
+def _explain_point_line(line: str, path: Path, number: int) -> None:
+    """Raise the precise DatasetError for a points3D.txt line that failed the fast path."""
+    tokens = line.split(" ", 8)
+    if "" in tokens[:8]:
+        raise _fail(path, f"line {number}: fields must be separated by single spaces")
+    if len(tokens) < 8:
+        raise _fail(path, f"line {number}: a 3D point needs POINT3D_ID X Y Z R G B ERROR TRACK[]")
+    point_id = _int(tokens[0], path, number, "3D point id", 0, 2**63 - 2)
+    _floats(tokens[1:4] + tokens[7:8], path, number, "3D point value")
+    for token in tokens[4:7]:
+        _int(token, path, number, "colour", 0, 255)
+    track_text = tokens[8] if len(tokens) > 8 else ""
+    if not _TRACK_RE.fullmatch(track_text):
+        raise _fail(path, f"line {number}: the track of 3D point {point_id} must be IMAGE_ID POINT2D_IDX pairs")
+    if any(not 0 <= int(token) < 2**31 - 1 for token in track_text.split(" ") if token):
+        raise _fail(path, f"line {number}: the track of 3D point {point_id} holds an out-of-range id")

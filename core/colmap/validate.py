@@ -35,40 +35,56 @@ def check_references(model: ColmapModel, path: str | Path | None = None) -> None
                                f"{len(image.point3d_ids)} 3D point ids", path=where)
 
     # (point id, image id, 2D index) seen from the tracks and from the images must agree.
-    track_triples = []
-    for point in model.points.values():
-        if len(point.track_image_ids) != len(point.track_point2d_idxs):
-            raise DatasetError(f"3D point {point.point3d_id} has a malformed track", path=where)
-        for image_id, index in zip(point.track_image_ids.tolist(), point.track_point2d_idxs.tolist()):
-            image = model.images.get(image_id)
-            if image is None:
-                raise DatasetError(
-                    f"3D point {point.point3d_id} is observed in image {image_id}, which is not in the images file",
-                    path=where,
-                    hint="the model is inconsistent; re-export it from COLMAP",
-                )
-            if not 0 <= index < len(image.point3d_ids):
-                raise DatasetError(
-                    f"3D point {point.point3d_id} is observed as 2D point {index} of image {image_id}, "
-                    f"which has only {len(image.point3d_ids)} 2D points",
-                    path=where,
-                    hint="the model is inconsistent; re-export it from COLMAP",
-                )
-        if len(point.track_image_ids):
-            track_triples.append(
-                np.stack(
-                    [np.full(len(point.track_image_ids), point.point3d_id, np.int64), point.track_image_ids, point.track_point2d_idxs],
-                    axis=1,
-                )
-            )
+    point_ids = np.fromiter(model.points.keys(), dtype=np.int64, count=len(model.points))
+    track_images = [point.track_image_ids for point in model.points.values()]
+    track_indices = [point.track_point2d_idxs for point in model.points.values()]
+    lengths = np.array([len(ids) for ids in track_images], dtype=np.int64)
+    if any(len(ids) != len(indices) for ids, indices in zip(track_images, track_indices)):
+        bad = next(p for p in model.points.values() if len(p.track_image_ids) != len(p.track_point2d_idxs))
+        raise DatasetError(f"3D point {bad.point3d_id} has a malformed track", path=where)
+    if len(point_ids) and lengths.sum():
+        from_tracks = np.stack(
+            [
+                np.repeat(point_ids, lengths),
+                np.concatenate(track_images).astype(np.int64),
+                np.concatenate(track_indices).astype(np.int64),
+            ],
+            axis=1,
+        )
+    else:
+        from_tracks = np.zeros((0, 3), np.int64)
+    image_ids = np.array(sorted(model.images), dtype=np.int64)
+    num_points2d = np.array([len(model.images[int(i)].point3d_ids) for i in image_ids], dtype=np.int64)
+    if len(image_ids):
+        slot = np.clip(np.searchsorted(image_ids, from_tracks[:, 1]), 0, len(image_ids) - 1)
+        known = image_ids[slot] == from_tracks[:, 1]
+    else:
+        slot = np.zeros(len(from_tracks), np.int64)
+        known = np.zeros(len(from_tracks), bool)
+    if not np.all(known):
+        point_id, image_id, _ = from_tracks[np.argmin(known)].tolist()
+        raise DatasetError(
+            f"3D point {point_id} is observed in image {image_id}, which is not in the images file",
+            path=where,
+            hint="the model is inconsistent; re-export it from COLMAP",
+        )
+    in_range = (from_tracks[:, 2] >= 0) & (from_tracks[:, 2] < num_points2d[slot])
+    if not np.all(in_range):
+        point_id, image_id, index = from_tracks[np.argmin(in_range)].tolist()
+        raise DatasetError(
+            f"3D point {point_id} is observed as 2D point {index} of image {image_id}, "
+            f"which has only {len(model.images[image_id].point3d_ids)} 2D points",
+            path=where,
+            hint="the model is inconsistent; re-export it from COLMAP",
+        )
     image_triples = []
     for image in model.images.values():
-        observed = np.flatnonzero(image.point3d_ids >= 0)
+        observed = np.flatnonzero(np.asarray(image.point3d_ids) >= 0)
         if len(observed):
             image_triples.append(
-                np.stack([image.point3d_ids[observed], np.full(len(observed), image.image_id, np.int64), observed], axis=1)
+                np.stack([np.asarray(image.point3d_ids)[observed], np.full(len(observed), image.image_id, np.int64), observed], axis=1)
             )
-    from_tracks = _sorted_rows(track_triples)
+    from_tracks = _sorted_rows([from_tracks])
     from_images = _sorted_rows(image_triples)
     if from_tracks.shape != from_images.shape or not np.array_equal(from_tracks, from_images):
         mismatch = _first_difference(from_tracks, from_images)

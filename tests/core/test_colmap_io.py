@@ -69,7 +69,9 @@ def test_binary_and_text_agree(maupertuis: Path) -> None:
 
 @pytest.mark.parametrize("folder", ["sparse_bin", "sparse_txt"])
 def test_own_parser_agrees_with_pycolmap(maupertuis: Path, folder: str) -> None:
-    assert_models_equal(parse_model(maupertuis / folder), read_model(maupertuis / folder))
+    reference = read_model(maupertuis / folder)
+    assert_models_equal(parse_model(maupertuis / folder), reference)
+    assert_models_equal(read_model(maupertuis / folder, use_pycolmap=False), reference)
 
 
 @pytest.mark.parametrize("binary", [True, False])
@@ -135,3 +137,46 @@ def test_missing_files_are_named(maupertuis: Path, tmp_path: Path) -> None:
         read_model(tmp_path)
     with pytest.raises(DatasetError, match="does not exist"):
         read_model(tmp_path / "nothing")
+
+
+def random_model(seed: int = 0) -> ColmapModel:
+    """A consistent model with full-precision doubles, three camera models, shared points."""
+    from esgs.core.colmap import Camera, Image, Point3D
+
+    rng = np.random.default_rng(seed)
+    cameras = {
+        1: Camera(1, "OPENCV", 640, 480, rng.uniform(0.01, 500, 8)),
+        4: Camera(4, "SIMPLE_RADIAL", 800, 600, rng.uniform(0.01, 500, 4)),
+        9: Camera(9, "FULL_OPENCV", 1024, 768, rng.uniform(0.01, 500, 12)),
+    }
+    images, tracks = {}, {}
+    for image_id, camera_id in ((3, 1), (5, 4), (8, 9), (11, 4)):
+        ids = np.full(40, -1, dtype=np.int64)
+        for index in rng.choice(40, 25, replace=False):
+            point_id = int(rng.integers(1, 30)) * 7
+            if any(image == image_id for image, _ in tracks.get(point_id, [])):
+                continue  # one observation per image and point, as COLMAP keeps it
+            ids[index] = point_id
+            tracks.setdefault(point_id, []).append((image_id, int(index)))
+        quat = rng.normal(size=4)
+        images[image_id] = Image(image_id, f"dir/img_{image_id}.png", camera_id, quat / np.linalg.norm(quat) * np.sign(quat[0]),
+                                 rng.normal(size=3), rng.uniform(0, 600, (40, 2)), ids)
+    points = {
+        point_id: Point3D(point_id, rng.normal(size=3), rng.integers(0, 256, 3).astype(np.uint8), float(rng.uniform()),
+                          np.array([t[0] for t in track]), np.array([t[1] for t in track]))
+        for point_id, track in tracks.items()
+    }
+    return ColmapModel(cameras, images, points)
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_round_trip_synthetic_full_precision(tmp_path: Path, binary: bool) -> None:
+    model = random_model()
+    write_model(model, tmp_path / "m", binary=binary)
+    again = read_model(tmp_path / "m")
+    # COLMAP prints 17 significant digits in text: doubles survive exactly there too;
+    # quaternions only to 1 ulp (pycolmap normalises them).
+    assert_models_equal(model, again, atol=0.0)
+    for image_id, image in model.images.items():
+        np.testing.assert_allclose(again.images[image_id].quat_wxyz, image.quat_wxyz, rtol=0, atol=1e-15)
+    assert_models_equal(read_model(tmp_path / "m", use_pycolmap=False), again)
