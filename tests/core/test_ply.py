@@ -238,3 +238,19 @@ def test_accepts_torch_tensors_with_grad(tmp_path):
     assert isinstance(gaussians.means, np.ndarray) and gaussians.means.dtype == np.float32
     write_gaussians_ply(tmp_path / "t.ply", gaussians)
     np.testing.assert_array_equal(read_gaussians_ply(tmp_path / "t.ply").sh_rest, source.sh_rest)
+
+
+def test_written_file_parses_with_an_independent_reader(tmp_path):
+    """trimesh's own PLY parser sees the same property names and values as our layout promises."""
+    import trimesh
+
+    gaussians = _random_gaussians(6, 3, seed=4)
+    path = tmp_path / "g.ply"
+    write_gaussians_ply(path, gaussians)
+    raw = trimesh.load(path, process=False).metadata["_ply_raw"]["vertex"]["data"]
+    assert list(raw.dtype.names) == _canonical_names(15)
+    for c in range(3):
+        for k in range(15):
+            np.testing.assert_array_equal(raw[f"f_rest_{c * 15 + k}"], gaussians.sh_rest[:, k, c])
+    np.testing.assert_array_equal(raw["rot_0"], gaussians.quats_wxyz[:, 0])
+    np.testing.assert_array_equal(raw["opacity"], gaussians.opacity_logit)
