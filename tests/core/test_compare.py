@@ -151,3 +151,28 @@ def test_load_mesh_reads_back_a_written_mesh(tmp_path):
     loaded_vertices, loaded_faces = compare.load_mesh(path)
     np.testing.assert_allclose(loaded_vertices, vertices, atol=1e-6)
     np.testing.assert_array_equal(loaded_faces, faces)
+
+
+def test_cli_reports_and_writes_json(tmp_path, capsys):
+    from esgs.core.cli import main
+    from esgs.core.ply import GaussianPly, write_gaussians_ply
+
+    vertices, faces = grid_plane(cells=2)
+    mesh_path = tmp_path / "gt.ply"
+    trimesh.Trimesh(vertices, faces, process=False).export(mesh_path)
+    n = 50
+    rng = np.random.default_rng(5)
+    means = np.column_stack([rng.uniform(-0.9, 0.9, (n, 2)), np.full(n, 0.02)])
+    logits = np.where(np.arange(n) < 10, -5.0, 5.0)  # 10 nearly transparent Gaussians
+    write_gaussians_ply(tmp_path / "g.ply", GaussianPly(
+        means=means, normals=np.zeros((n, 3)), sh_dc=np.zeros((n, 3)), sh_rest=np.zeros((n, 0, 3)),
+        opacity_logit=logits, log_scales=np.zeros((n, 3)), quats_wxyz=np.tile([1.0, 0, 0, 0], (n, 1))))
+    out = tmp_path / "report" / "compare.json"
+    code = main(["compare", str(tmp_path / "g.ply"), str(mesh_path), "--threshold", "0.03", "--samples", "1000",
+                 "--out", str(out)])
+    assert code == 0
+    report = json.loads(out.read_text())
+    assert report["gaussians_to_mesh"]["mean"] == pytest.approx(0.02, abs=1e-6)
+    assert report["n_gaussians_filtered"] == 40 and report["precision"] == 1.0
+    assert json.loads(capsys.readouterr().out) == report
+    assert main(["compare", str(mesh_path), str(mesh_path)]) == 2  # a mesh is not a Gaussian PLY
