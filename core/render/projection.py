@@ -66,7 +66,12 @@ def project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, heig
     effective_opacity = opacities.expand_as(z)
     if antialiased:
         det_before = (cov_xx * cov_yy - cov_xy * cov_xy).clamp_min(0.0)
-        effective_opacity = effective_opacity * torch.sqrt(det_before / det.clamp_min(1e-30))
+        ratio = det_before / det.clamp_min(1e-30)
+        # sqrt has an infinite slope at 0 (flat or point Gaussians): keep it out of autograd.
+        positive = ratio > 0
+        compensation = torch.where(positive, torch.sqrt(torch.where(positive, ratio, torch.ones_like(ratio))),
+                                   torch.zeros_like(ratio))
+        effective_opacity = effective_opacity * compensation
     valid = valid & (det > 0) & torch.isfinite(det)
     det_safe = torch.where(valid, det, torch.ones_like(det))
     conics = torch.stack([dil_yy / det_safe, -cov_xy / det_safe, dil_xx / det_safe], dim=-1)

@@ -63,7 +63,10 @@ def _camera_splats(means, quats, scales, opacities, viewmat, K_matrix, width, he
     if antialiased:
         det_before = torch.linalg.det(cov).clamp_min(0.0)
         det_after = torch.linalg.det(cov_dilated)
-        opacity = opacities * torch.sqrt(det_before / det_after)
+        ratio = det_before / det_after
+        nonzero = ratio > 0  # sqrt'(0) is infinite: degenerate Gaussians get no gradient through it
+        opacity = opacities * torch.where(nonzero, torch.sqrt(torch.where(nonzero, ratio, torch.ones_like(ratio))),
+                                          torch.zeros_like(ratio))
     precision = torch.linalg.inv(cov_dilated)
     return {
         "points": points, "depth": depth, "in_range": in_range,
