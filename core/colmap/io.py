@@ -231,8 +231,9 @@ def _check_writable(model: ColmapModel) -> None:
     for image in model.images.values():
         if not (np.all(np.isfinite(image.quat_wxyz)) and np.linalg.norm(image.quat_wxyz) > 0):
             raise DatasetError(f"image {image.image_id} ({image.name}) has an invalid rotation quaternion")
-        if not image.name or "\n" in image.name or "\0" in image.name:
-            raise DatasetError(f"image {image.image_id} has an unusable name {image.name!r}")
+        problem = parse.image_name_problem(image.name)
+        if problem:
+            raise DatasetError(f"image {image.image_id} name {image.name!r} {problem}")
     check_references(model)
 
 
@@ -245,6 +246,14 @@ def write_model(model: ColmapModel, path: str | Path, binary: bool = True, *, ov
     Returns ``path``.
     """
     path = Path(path)
+    if not binary:
+        spaced = [image.name for image in model.images.values() if " " in image.name]
+        if spaced:
+            raise DatasetError(
+                f"image names with spaces cannot be stored in COLMAP text files: {spaced[:5]}",
+                path=path,
+                hint="write the binary format or rename the images",
+            )
     reconstruction = to_pycolmap(model)
     if path.is_dir() and not any(path.iterdir()):
         path.rmdir()

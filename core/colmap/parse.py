@@ -123,13 +123,31 @@ class _Reader:
             )
 
 
+def image_name_problem(name: str) -> str | None:
+    """Why ``name`` cannot be an image name of a scene folder, or None when it can.
+
+    Names are paths relative to the image folder; an absolute path or a ``..`` component
+    would make readers and writers (undistortion, dataset export) leave that folder.
+    """
+    if not name:
+        return "is empty"
+    if any(ord(char) < 32 or ord(char) == 127 for char in name):
+        return "holds control characters"
+    if name.startswith(("/", "\\")) or re.match(r"[A-Za-z]:", name):
+        return "is an absolute path"
+    if ".." in re.split(r"[/\\]", name):
+        return "climbs out of the image folder ('..')"
+    return None
+
+
 def _check_name(raw: bytes, path: Path, what: str) -> str:
     try:
         name = raw.decode("utf-8")
     except UnicodeDecodeError as error:
         raise DatasetError(f"{what} is not valid UTF-8", path=path) from error
-    if not name or any(ord(char) < 32 or ord(char) == 127 for char in name):
-        raise DatasetError(f"{what} {name!r} is empty or holds control characters", path=path)
+    problem = image_name_problem(name)
+    if problem:
+        raise DatasetError(f"{what} {name!r} {problem}", path=path, hint="image names must be relative paths inside the image folder")
     return name
 
 

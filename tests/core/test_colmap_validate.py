@@ -233,3 +233,24 @@ def test_model_without_points_is_fine(text_model: Path, tmp_path: Path) -> None:
         image.point3d_ids = np.full(len(image.point3d_ids), -1, dtype=np.int64)
     again = read_model(write_model(model, tmp_path / "empty_points", binary=True))
     assert len(again.images) == 4 and not again.points
+
+
+@pytest.mark.parametrize("name", ["../outside.jpg", "/etc/passwd", "a/../../b.jpg", "C:evil.jpg"])
+def test_names_leaving_the_image_folder_are_refused(text_model: Path, name: str) -> None:
+    text = (text_model / "images.txt").read_text()
+    (text_model / "images.txt").write_text(text.replace(" 1 02.jpg", f" 1 {name}"))
+    with pytest.raises(DatasetError, match="absolute path|climbs out") as info:
+        read_model(text_model)
+    assert "images.txt" in str(info.value)
+
+
+def test_write_refuses_unsafe_or_unstorable_names(binary_model: Path, tmp_path: Path) -> None:
+    model = read_model(binary_model)
+    model.images[2].name = "../x.jpg"
+    with pytest.raises(DatasetError, match="climbs out"):
+        write_model(model, tmp_path / "a")
+    model.images[2].name = "with space.jpg"
+    with pytest.raises(DatasetError, match="spaces"):
+        write_model(model, tmp_path / "b", binary=False)
+    again = read_model(write_model(model, tmp_path / "c", binary=True))  # binary can hold it
+    assert again.images[2].name == "with space.jpg"
