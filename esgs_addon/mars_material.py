@@ -1,0 +1,198 @@
+"""Procedural Mars materials for Cycles: reddish regolith, sand, bedrock and dusty rocks.
+
+Everything is built from Blender's procedural nodes (noise, colour ramps, a vertex
+attribute), so nothing is downloaded and the result is the same on every machine.
+
+The materials never perturb the shading normal (no bump or normal map): the Cycles Normal
+pass must stay the geometric normal of the mesh, because the exported normal maps are
+ground truth.
+"""
+from __future__ import annotations
+
+import bpy
+
+#: Name of the per-vertex float attribute (0 = bedrock, 1 = loose sand) on the terrain mesh.
+SAND_ATTRIBUTE = "esgs_sand"
+
+# Linear-space albedos, chosen to look like Mars rover imagery under a white sun
+_SAND_DARK = (0.32, 0.14, 0.06, 1.0)
+_SAND_LIGHT = (0.52, 0.26, 0.12, 1.0)
+_BEDROCK_DARK = (0.20, 0.11, 0.07, 1.0)
+_BEDROCK_LIGHT = (0.40, 0.22, 0.12, 1.0)
+_DUST = (0.60, 0.36, 0.20, 1.0)
+_ROCK_DARK = (0.06, 0.045, 0.04, 1.0)
+_ROCK_LIGHT = (0.20, 0.13, 0.09, 1.0)
+
+
+def _socket(sockets: bpy.types.NodeInputs | bpy.types.NodeOutputs, name: str, kind: str | None = None):
+    """The enabled socket called ``name`` (optionally of type ``kind``, e.g. 'RGBA').
+
+    Mix nodes carry one socket per data type under the same name; only the one matching
+    the node's data type is enabled.
+    """
+    for socket in sockets:
+        if socket.name == name and socket.enabled and (kind is None or socket.type == kind):
+            return socket
+    raise KeyError(f"no enabled socket {name!r} ({kind})")
+
+
+def _color_ramp(nodes: bpy.types.Nodes, low: tuple, high: tuple, low_pos: float = 0.3, high_pos: float = 0.7):
+    ramp = nodes.new("ShaderNodeValToRGB")
+    elements = ramp.color_ramp.elements
+    elements[0].position, elements[0].color = low_pos, low
+    elements[1].position, elements[1].color = high_pos, high
+    return ramp
+
+
+def _noise(nodes: bpy.types.Nodes, scale: float, detail: float, roughness: float = 0.55):
+    noise = nodes.new("ShaderNodeTexNoise")
+    noise.noise_dimensions = "3D"
+    noise.inputs["Scale"].default_value = scale
+    noise.inputs["Detail"].default_value = detail
+    noise.inputs["Roughness"].default_value = roughness
+    return noise
+
+
+def _mix_color(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, factor, color_a, color_b):
+    """A Mix (colour) node blending two colour outputs by a float output; returns its result."""
+    mix = nodes.new("ShaderNodeMix")
+    mix.data_type = "RGBA"
+    links.new(factor, _socket(mix.inputs, "Factor", "VALUE"))
+    links.new(color_a, _socket(mix.inputs, "A", "RGBA"))
+    links.new(color_b, _socket(mix.inputs, "B", "RGBA"))
+    return _socket(mix.outputs, "Result", "RGBA")
+
+
+def _new_material(name: str) -> tuple[bpy.types.Material, bpy.types.Nodes, bpy.types.NodeLinks, bpy.types.Node]:
+    material = bpy.data.materials.new(name)
+    material.use_nodes = True
+    nodes, links = material.node_tree.nodes, material.node_tree.links
+    nodes.clear()
+    output = nodes.new("ShaderNodeOutputMaterial")
+    shader = nodes.new("ShaderNodeBsdfPrincipled")
+    shader.inputs["Roughness"].default_value = 0.95
+    # regolith is almost perfectly diffuse; a little specular keeps rocks from looking flat
+    shader.inputs["Specular IOR Level"].default_value = 0.15
+    links.new(shader.outputs["BSDF"], output.inputs["Surface"])
+    return material, nodes, links, shader
+
+
+def make_terrain_material(name: str = "ESGS Mars terrain") -> bpy.types.Material:
+    """Regolith material: sand vs bedrock from the ``esgs_sand`` vertex attribute, noise variation, dust.
+
+    Texture coordinates are object-space (metres for the terrain, which is not scaled), so
+    the pattern keeps its size whatever the terrain resolution.
+    """
+    material, nodes, links, shader = _new_material(name)
+    coords = nodes.new("ShaderNodeTexCoord")
+
+    fine = _noise(nodes, scale=2.5, detail=4.0, roughness=0.6)  # pebbles and clods, ~0.4 m
+    coarse = _noise(nodes, scale=0.08, detail=3.0)  # albedo patches, ~10 m
+    grain = _noise(nodes, scale=40.0, detail=2.0, roughness=0.5)  # granules, ~2.5 cm: texture for matching
+    for noise in (fine, coarse, grain):
+        links.new(coords.outputs["Object"], noise.inputs["Vector"])
+
+    sand_ramp = _color_ramp(nodes, _SAND_DARK, _SAND_LIGHT, 0.35, 0.65)
+    bedrock_ramp = _color_ramp(nodes, _BEDROCK_DARK, _BEDROCK_LIGHT, 0.3, 0.7)
+    links.new(fine.outputs["Fac"], sand_ramp.inputs["Fac"])
+    links.new(fine.outputs["Fac"], bedrock_ramp.inputs["Fac"])
+
+    sand = nodes.new("ShaderNodeAttribute")
+    sand.attribute_type = "GEOMETRY"
+    sand.attribute_name = SAND_ATTRIBUTE
+    ground = _mix_color(nodes, links, sand.outputs["Fac"], bedrock_ramp.outputs["Color"], sand_ramp.outputs["Color"])
+
+    # bright dust settles in patches; the coarse noise decides where
+    dust_amount = nodes.new("ShaderNodeMapRange")
+    dust_amount.inputs["From Min"].default_value = 0.45
+    dust_amount.inputs["From Max"].default_value = 0.75
+    dust_amount.inputs["To Min"].default_value = 0.0
+    dust_amount.inputs["To Max"].default_value = 0.45
+    links.new(coarse.outputs["Fac"], dust_amount.inputs["Value"])
+    dust = nodes.new("ShaderNodeRGB")
+    dust.outputs["Color"].default_value = _DUST
+    albedo = _mix_color(nodes, links, dust_amount.outputs["Result"], ground, dust.outputs["Color"])
+    # granules darken or lighten the albedo by up to ~35 %, so close-up views keep texture
+    grain_gain = nodes.new("ShaderNodeMapRange")
+    grain_gain.inputs["From Min"].default_value = 0.3
+    grain_gain.inputs["From Max"].default_value = 0.7
+    grain_gain.inputs["To Min"].default_value = 0.65
+    grain_gain.inputs["To Max"].default_value = 1.3
+    links.new(grain.outputs["Fac"], grain_gain.inputs["Value"])
+    textured = nodes.new("ShaderNodeVectorMath")
+    textured.operation = "SCALE"
+    links.new(albedo, textured.inputs[0])
+    links.new(grain_gain.outputs["Result"], textured.inputs["Scale"])
+    links.new(textured.outputs["Vector"], shader.inputs["Base Color"])
+    return material
+
+
+def make_rock_material(name: str = "ESGS Mars rock") -> bpy.types.Material:
+    """Dark basaltic rock with mottled albedo and dust on its upward-facing parts."""
+    material, nodes, links, shader = _new_material(name)
+    shader.inputs["Roughness"].default_value = 0.8
+    coords = nodes.new("ShaderNodeTexCoord")
+    mottling = _noise(nodes, scale=6.0, detail=3.0, roughness=0.65)
+    links.new(coords.outputs["Object"], mottling.inputs["Vector"])
+    rock_ramp = _color_ramp(nodes, _ROCK_DARK, _ROCK_LIGHT, 0.3, 0.75)
+    links.new(mottling.outputs["Fac"], rock_ramp.inputs["Fac"])
+
+    # dust on faces that look up: the geometric normal's z, read but never used for shading
+    geometry = nodes.new("ShaderNodeNewGeometry")
+    up = nodes.new("ShaderNodeSeparateXYZ")
+    links.new(geometry.outputs["Normal"], up.inputs["Vector"])
+    dust_amount = nodes.new("ShaderNodeMapRange")
+    dust_amount.inputs["From Min"].default_value = 0.75
+    dust_amount.inputs["From Max"].default_value = 1.0
+    dust_amount.inputs["To Min"].default_value = 0.0
+    dust_amount.inputs["To Max"].default_value = 0.35
+    links.new(up.outputs["Z"], dust_amount.inputs["Value"])
+    dust = nodes.new("ShaderNodeRGB")
+    dust.outputs["Color"].default_value = _DUST
+    albedo = _mix_color(nodes, links, dust_amount.outputs["Result"], rock_ramp.outputs["Color"], dust.outputs["Color"])
+    links.new(albedo, shader.inputs["Base Color"])
+    return material
+
+
+def make_sky_world(name: str, *, sky: bool, sun_elevation_deg: float = 30.0) -> bpy.types.World:
+    """World shader: a Mars sky gradient with a dusty horizon; black to the camera when ``sky`` is False.
+
+    With ``sky`` False the world still lights the scene (the dusty Martian sky is a strong
+    ambient source: without it every shadow would be pitch black), but camera rays see
+    black, so a view past the terrain's edge shows no sky. The gradient depends on the view direction's elevation only: butterscotch near the
+    horizon, darker brown towards the zenith, and a ground-coloured band below the horizon
+    so views that look past the terrain's edge see a plausible distant plain. These pixels
+    have no surface, so they are masked out of the priors (mask 0). The sky's strength
+    follows the sun's elevation so a low sun gives a dimmer sky.
+    """
+    import math
+
+    world = bpy.data.worlds.new(name)
+    world.use_nodes = True
+    nodes, links = world.node_tree.nodes, world.node_tree.links
+    nodes.clear()
+    output = nodes.new("ShaderNodeOutputWorld")
+    background = nodes.new("ShaderNodeBackground")
+    links.new(background.outputs["Background"], output.inputs["Surface"])
+    world.cycles_visibility.camera = bool(sky)
+    coords = nodes.new("ShaderNodeTexCoord")
+    direction = nodes.new("ShaderNodeSeparateXYZ")
+    links.new(coords.outputs["Generated"], direction.inputs["Vector"])
+    # elevation z in [-1, 1] -> ramp position in [0, 1]; horizon at 0.5
+    to_ramp = nodes.new("ShaderNodeMapRange")
+    to_ramp.inputs["From Min"].default_value = -1.0
+    to_ramp.inputs["From Max"].default_value = 1.0
+    links.new(direction.outputs["Z"], to_ramp.inputs["Value"])
+    ramp = nodes.new("ShaderNodeValToRGB")
+    elements = ramp.color_ramp.elements
+    elements[0].position, elements[0].color = 0.0, (0.16, 0.08, 0.04, 1.0)  # distant ground
+    elements[1].position, elements[1].color = 1.0, (0.20, 0.12, 0.07, 1.0)  # zenith
+    for position, color in ((0.495, (0.30, 0.16, 0.08, 1.0)),  # ground just below the horizon
+                            (0.505, (0.72, 0.50, 0.32, 1.0)),  # bright dusty horizon
+                            (0.62, (0.45, 0.28, 0.16, 1.0))):
+        element = elements.new(position)
+        element.color = color
+    links.new(to_ramp.outputs["Result"], ramp.inputs["Fac"])
+    links.new(ramp.outputs["Color"], background.inputs["Color"])
+    background.inputs["Strength"].default_value = 0.15 + 0.35 * max(0.0, math.sin(math.radians(sun_elevation_deg)))
+    return world
