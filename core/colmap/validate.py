@@ -127,9 +127,15 @@ def validate_images(model: ColmapModel, images_dir: str | Path) -> list[Path]:
 
     Raises one DatasetError listing (up to ten of) the missing files.
     """
+    from .parse import image_name_problem
+
     images_dir = Path(images_dir)
     if not images_dir.is_dir():
         raise DatasetError("image folder does not exist", path=images_dir, hint="point at the folder holding the images")
+    for image in model.images.values():
+        problem = image_name_problem(image.name)
+        if problem:
+            raise DatasetError(f"image {image.image_id} name {image.name!r} {problem}", path=images_dir)
     paths = [images_dir / image.name for image in model.sorted_images()]
     missing = [path for path in paths if not path.is_file()]
     if missing:

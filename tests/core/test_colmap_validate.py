@@ -205,6 +205,9 @@ def test_missing_images_listed(tmp_path: Path) -> None:
         load_scene(scene)
     with pytest.raises(DatasetError, match="image folder does not exist"):
         validate_images(model, scene / "nothing")
+    model.images[1].name = "/work/shared/data/colmap_maupertuis/images/00.jpg"  # exists, but elsewhere
+    with pytest.raises(DatasetError, match="absolute path"):
+        validate_images(model, scene / "images")
 
 
 def test_image_sizes_checked(tmp_path: Path) -> None:
