@@ -1,0 +1,175 @@
+"""TrainConfig: every setting of a training run, with the paper's defaults.
+
+All step counts below are given for the paper's 30,000-step schedule. When
+``iterations`` differs they are scaled in proportion (:meth:`TrainConfig.scaled_step`),
+so a 2,000-step run still warms up its SH degree, densifies, stops densifying and
+finishes its learning-rate decay at the same fractions of the run.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+from ..errors import ConfigError
+
+#: The schedule every step count of :class:`TrainConfig` is written for.
+REFERENCE_ITERATIONS = 30_000
+
+BACKENDS = ("auto", "cpu", "reference", "cuda")
+
+
+def _help(text: str, **extra) -> dict:
+    return {"help": text, **extra}
+
+
+@dataclass
+class TrainConfig:
+    """Settings of one training run (3DGS baseline; ESGS modules add their own through hooks)."""
+
+    # --- input / output -------------------------------------------------------------
+    scene: Optional[Path] = field(default=None, metadata=_help("COLMAP scene folder (images/ + sparse/0)"))
+    out: Optional[Path] = field(default=None, metadata=_help("run folder to write (RUN/ layout of DESIGN.md)"))
+    images_dir: str = field(default="images", metadata=_help("image folder inside the scene"))
+    resolution: int = field(default=1, metadata=_help("downscale factor of the images (1 = full size)"))
+    width: int = field(default=0, metadata=_help("target image width in pixels; overrides --resolution when > 0"))
+    test_every: int = field(default=8, metadata=_help("every Nth image (sorted by name, index %% N == 0) is held out; 0 = no test split"))
+    mask_source: str = field(default="auto", metadata=_help(
+        "priors/<source>/mask/ to use as sky masks: a source name, 'auto' (first found of gt, labels, ndn, sfm) or 'none'"))
+    background: tuple[float, ...] = field(default=(0.0, 0.0, 0.0), metadata=_help("background colour, RGB in [0, 1]"))
+
+    # --- run control ----------------------------------------------------------------
+    iterations: int = field(default=30_000, metadata=_help("training steps"))
+    max_minutes: float = field(default=0.0, metadata=_help("safety stop: end training after this many minutes and evaluate (0 = none)"))
+    seed: int = field(default=0, metadata=_help("random seed (same seed, same result on the CPU)"))
+    threads: int = field(default=0, metadata=_help("CPU threads for torch and the rasterizer (0 = library default)"))
+    backend: str = field(default="auto", metadata=_help("rasterizer backend", choices=BACKENDS))
+    resume: bool = field(default=False, metadata=_help("continue from the last checkpoint in --out"))
+    events: Optional[Path] = field(default=None, metadata=_help("also append progress events to this JSON-lines file"))
+    checkpoint_every: int = field(default=1000, metadata=_help("steps between checkpoints (not scaled; 0 = only at the end)"))
+    keep_checkpoints: int = field(default=2, metadata=_help("checkpoints kept in RUN/checkpoints"))
+    progress_every: int = field(default=10, metadata=_help("steps between progress events"))
+    evaluate: bool = field(default=True, metadata=_help("evaluate on the held-out views at the end"))
+    save_renders: bool = field(default=True, metadata=_help("write renders/test/<name>.png beside <name>_gt.png"))
+    lpips: bool = field(default=True, metadata=_help("compute LPIPS when its weights are available"))
+
+    # --- model ----------------------------------------------------------------------
+    sh_degree: int = field(default=3, metadata=_help("maximum spherical-harmonics degree"))
+    sh_increase_every: int = field(default=1000, metadata=_help("steps between SH degree increases (scaled)"))
+    init_opacity: float = field(default=0.1, metadata=_help("opacity of the initial Gaussians"))
+    random_init_points: int = field(default=10_000, metadata=_help("random Gaussians when the model has no 3D points"))
+    init_scale_neighbours: int = field(default=3, metadata=_help("initial scale = mean distance to this many nearest points"))
+
+    # --- optimiser (Adam; lr per parameter group) -------------------------------------
+    position_lr_init: float = field(default=1.6e-4, metadata=_help("position lr at the start, times the scene extent"))
+    position_lr_final: float = field(default=1.6e-6, metadata=_help("position lr at the end, times the scene extent"))
+    position_lr_delay_mult: float = field(default=0.01, metadata=_help("position lr warm-up multiplier (3DGS delay_mult)"))
+    position_lr_delay_steps: int = field(default=0, metadata=_help("position lr warm-up length in steps (scaled)"))
+    feature_lr: float = field(default=2.5e-3, metadata=_help("lr of the SH DC colour; the higher SH bands use feature_lr / 20"))
+    opacity_lr: float = field(default=0.05, metadata=_help("opacity lr (the paper's 3DGS version; newer 3DGS uses 0.025)"))
+    scaling_lr: float = field(default=5e-3, metadata=_help("log-scale lr"))
+    rotation_lr: float = field(default=1e-3, metadata=_help("quaternion lr"))
+
+    # --- loss -----------------------------------------------------------------------
+    lambda_dssim: float = field(default=0.2, metadata=_help("weight of (1 - SSIM); L1 gets 1 - lambda_dssim"))
+
+    # --- densification (3DGS) -------------------------------------------------------
+    densify: bool = field(default=True, metadata=_help("adaptive density control: clone, split, prune and opacity resets"))
+    densify_from: int = field(default=500, metadata=_help("first densification step (scaled)"))
+    densify_until: int = field(default=15_000, metadata=_help("no densification from this step on (scaled)"))
+    densify_every: int = field(default=100, metadata=_help("steps between densifications (scaled)"))
+    densify_grad_threshold: float = field(default=2e-4, metadata=_help(
+        "mean screen-space gradient norm, in 3DGS's NDC units, above which a Gaussian is cloned or split"))
+    percent_dense: float = field(default=0.01, metadata=_help("Gaussians larger than this fraction of the extent are split, smaller ones cloned"))
+    prune_opacity: float = field(default=0.005, metadata=_help("prune Gaussians whose opacity is below this"))
+    prune_screen_size_px: float = field(default=20.0, metadata=_help("after the first opacity reset, prune Gaussians whose screen radius exceeds this"))
+    prune_world_size: float = field(default=0.1, metadata=_help("after the first opacity reset, prune Gaussians larger than this fraction of the extent"))
+    opacity_reset_every: int = field(default=3000, metadata=_help("steps between opacity resets (scaled; 0 = never)"))
+    opacity_reset_value: float = field(default=0.01, metadata=_help("opacities are clamped to at most this at a reset"))
+    max_gaussians: int = field(default=3_000_000, metadata=_help("growth stops (with one warning) at this many Gaussians"))
+
+    def validate(self) -> None:
+        """Raise ConfigError for out-of-range or inconsistent settings."""
+        def positive(name: str, allow_zero: bool = False) -> None:
+            value = getattr(self, name)
+            if value < 0 or (value == 0 and not allow_zero):
+                raise ConfigError(f"{name} must be {'>= 0' if allow_zero else '> 0'}, got {value}")
+
+        for name in ("iterations", "resolution", "sh_increase_every", "densify_every", "keep_checkpoints",
+                     "progress_every", "random_init_points", "init_scale_neighbours", "max_gaussians"):
+            positive(name)
+        for name in ("width", "test_every", "max_minutes", "threads", "checkpoint_every", "opacity_reset_every",
+                     "densify_from", "densify_until", "position_lr_delay_steps", "sh_degree", "lambda_dssim",
+                     "prune_opacity", "densify_grad_threshold"):
+            positive(name, allow_zero=True)
+        if self.backend not in BACKENDS:
+            raise ConfigError(f"backend must be one of {', '.join(BACKENDS)}, got {self.backend!r}")
+        if self.sh_degree > 3:
+            raise ConfigError(f"sh_degree must be at most 3, got {self.sh_degree}")
+        if not 0.0 < self.init_opacity < 1.0:
+            raise ConfigError(f"init_opacity must be in (0, 1), got {self.init_opacity}")
+        if not 0.0 <= self.lambda_dssim <= 1.0:
+            raise ConfigError(f"lambda_dssim must be in [0, 1], got {self.lambda_dssim}")
+        if len(self.background) != 3:
+            raise ConfigError(f"background must have 3 values (RGB), got {len(self.background)}")
+        if self.test_every == 1:
+            raise ConfigError("test_every = 1 would hold out every image", hint="use 0 for no test split, or >= 2")
+
+    # --- schedules ------------------------------------------------------------------
+    @property
+    def schedule_scale(self) -> float:
+        """iterations / 30000: the factor every step-based schedule is multiplied by."""
+        return self.iterations / REFERENCE_ITERATIONS
+
+    def scaled_step(self, reference_step: int, *, minimum: int = 0) -> int:
+        """A step of the 30,000-step schedule, moved to this run's length (rounded)."""
+        return max(minimum, int(round(reference_step * self.schedule_scale)))
+
+    def schedule(self) -> "Schedule":
+        """The step-based schedule of this run, scaled to ``iterations``."""
+        return Schedule(
+            iterations=self.iterations,
+            sh_increase_every=self.scaled_step(self.sh_increase_every, minimum=1),
+            densify_from=self.scaled_step(self.densify_from),
+            # no densification also means no opacity resets: both live in the same window
+            densify_until=self.scaled_step(self.densify_until) if self.densify else 0,
+            densify_every=self.scaled_step(self.densify_every, minimum=1),
+            opacity_reset_every=self.scaled_step(self.opacity_reset_every, minimum=1) if self.opacity_reset_every else 0,
+            position_lr_delay_steps=self.scaled_step(self.position_lr_delay_steps),
+        )
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """Step-based schedule of one run, already scaled (see :meth:`TrainConfig.schedule`).
+
+    Steps count from 1 to ``iterations`` like 3DGS's iterations.
+    """
+
+    iterations: int
+    sh_increase_every: int
+    densify_from: int
+    densify_until: int
+    densify_every: int
+    opacity_reset_every: int
+    position_lr_delay_steps: int
+
+    def sh_degree_at(self, step: int, max_degree: int) -> int:
+        """Active SH degree at ``step``: one more band every ``sh_increase_every`` steps."""
+        return min(max_degree, (step - 1) // self.sh_increase_every) if step > 0 else 0
+
+    def is_densify_step(self, step: int) -> bool:
+        """Clone/split/prune after this step (3DGS: after densify_from, every densify_every, before densify_until)."""
+        return self.densify_from < step < self.densify_until and step % self.densify_every == 0
+
+    def accumulates_gradients(self, step: int) -> bool:
+        """Screen-space gradients are collected for densification while densification runs."""
+        return step < self.densify_until
+
+    def is_opacity_reset_step(self, step: int) -> bool:
+        """Opacities are clamped after this step (only while densifying, as 3DGS)."""
+        return bool(self.opacity_reset_every) and step < self.densify_until and step % self.opacity_reset_every == 0
+
+    def prunes_large(self, step: int) -> bool:
+        """Screen- and world-size pruning starts after the first opacity reset."""
+        return bool(self.opacity_reset_every) and step > self.opacity_reset_every

@@ -1,0 +1,226 @@
+"""Training views from a COLMAP scene folder (``images/`` + ``sparse/0``).
+
+- images are read once, downscaled (``resolution`` factor or target ``width``, area
+  filter) and kept as uint8 to save memory; intrinsics are scaled with them (pixel centres
+  at +0.5, so scaling fx, fy, cx, cy by the size ratio is exact);
+- cameras with distortion are undistorted to PINHOLE first (:mod:`esgs.core.colmap.undistort`);
+- the split is 3DGS's: images sorted by name, index % test_every == 0 are held out;
+- the scene extent is 3DGS's: 1.1 x the largest distance of a training camera centre from
+  their mean (``radius``), which scales position learning rates and size thresholds;
+- optional sky masks from ``priors/<source>/mask/<stem>.png`` (255 = valid surface).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+
+from ..errors import DatasetError
+
+MASK_SOURCES = ("gt", "labels", "ndn", "sfm")
+
+
+@dataclass
+class View:
+    """One posed image.
+
+    K: [3, 3] float32; viewmat: [4, 4] float32 world-to-camera (OpenCV axes); image:
+    [H, W, 3] uint8; mask: [H, W, 1] bool (True = counts in the loss) or None;
+    center: [3] camera centre in world coordinates (float64).
+    """
+
+    index: int
+    name: str
+    K: torch.Tensor
+    viewmat: torch.Tensor
+    width: int
+    height: int
+    image: torch.Tensor
+    mask: Optional[torch.Tensor] = None
+    center: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @property
+    def stem(self) -> str:
+        return Path(self.name).stem
+
+    def image_float(self, device: torch.device | str = "cpu") -> torch.Tensor:
+        """[H, W, 3] float32 in [0, 1]."""
+        return self.image.to(device=device, dtype=torch.float32) / 255.0
+
+
+@dataclass
+class SceneData:
+    """Views of a scene split into train and test, the SfM points and the scene extent."""
+
+    train: list[View]
+    test: list[View]
+    points_xyz: np.ndarray  # [P, 3] float64
+    points_rgb: np.ndarray  # [P, 3] float in [0, 1]
+    extent: float
+    center: np.ndarray  # [3] mean of the training camera centres
+    mask_source: Optional[str] = None
+    source: Optional[Path] = None
+
+
+def split_indices(count: int, test_every: int) -> tuple[list[int], list[int]]:
+    """(train, test) indices of images sorted by name: index % test_every == 0 is test (3DGS)."""
+    if test_every <= 0:
+        return list(range(count)), []
+    test = [i for i in range(count) if i % test_every == 0]
+    train = [i for i in range(count) if i % test_every != 0]
+    return train, test
+
+
+def scene_extent(centers: np.ndarray) -> tuple[float, np.ndarray]:
+    """3DGS's scene radius: 1.1 x max distance of the camera centres [M, 3] from their mean."""
+    centers = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+    mean = centers.mean(axis=0)
+    radius = float(np.linalg.norm(centers - mean, axis=1).max()) if len(centers) else 0.0
+    # a single camera (or cameras at one spot) would give a zero extent and zero learning rates
+    return 1.1 * (radius if radius > 0 else 1.0), mean
+
+
+def target_size(width: int, height: int, resolution: int, target_width: int) -> tuple[int, int]:
+    """Image size after downscaling by ``resolution`` or to ``target_width`` (aspect kept)."""
+    if target_width > 0:
+        scale = target_width / width
+    else:
+        scale = 1.0 / resolution
+    return max(1, int(round(width * scale))), max(1, int(round(height * scale)))
+
+
+def _read_rgb(path: Path) -> np.ndarray:
+    """[H, W, 3] uint8 RGB (alpha dropped, 16-bit reduced, grey expanded)."""
+    try:
+        from ..imageio import read_image
+    except ImportError:  # the shared reader is optional; OpenCV reads every format we expect
+        read_image = None
+    if read_image is not None:
+        image = np.asarray(read_image(path))
+    else:
+        import cv2
+
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise DatasetError("cannot read image", path=path, hint="is it a valid PNG/JPEG file?")
+        if raw.ndim == 3 and raw.shape[2] == 4:
+            raw = cv2.cvtColor(raw, cv2.COLOR_BGRA2RGBA)
+        elif raw.ndim == 3:
+            raw = cv2.cvtColor(raw, cv2.COLOR_BGR2RGB)
+        image = raw
+    if image.ndim == 2:
+        image = np.repeat(image[:, :, None], 3, axis=2)
+    image = image[:, :, :3]
+    if image.dtype == np.uint16:
+        image = (image.astype(np.float32) / 257.0).round().astype(np.uint8)
+    elif image.dtype != np.uint8:
+        scaled = np.asarray(image, dtype=np.float32)
+        if scaled.max(initial=0.0) <= 1.0:
+            scaled = scaled * 255.0
+        image = np.clip(scaled, 0, 255).round().astype(np.uint8)
+    return np.ascontiguousarray(image)
+
+
+def _resize(image: np.ndarray, size: tuple[int, int], nearest: bool = False) -> np.ndarray:
+    import cv2
+
+    if (image.shape[1], image.shape[0]) == size:
+        return image
+    interpolation = cv2.INTER_NEAREST if nearest else cv2.INTER_AREA
+    return cv2.resize(image, size, interpolation=interpolation)
+
+
+def find_mask_source(scene: Path, requested: str) -> Optional[str]:
+    """The priors source whose mask/ folder to use: requested name, first found for 'auto', None for 'none'."""
+    if requested == "none":
+        return None
+    if requested == "auto":
+        for source in MASK_SOURCES:
+            if (scene / "priors" / source / "mask").is_dir():
+                return source
+        return None
+    if not (scene / "priors" / requested / "mask").is_dir():
+        raise DatasetError(f"no mask folder for prior source {requested!r}", path=scene / "priors" / requested / "mask",
+                           hint="use --mask-source auto or none")
+    return requested
+
+
+def _read_mask(path: Path, size: tuple[int, int]) -> torch.Tensor:
+    import cv2
+
+    raw = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if raw is None:
+        raise DatasetError("cannot read mask image", path=path, hint="masks are 8-bit PNGs, 255 = valid surface")
+    # area-average then threshold, so a downscaled pixel counts when mostly valid
+    resized = _resize(raw.astype(np.float32), size)
+    return torch.from_numpy(resized >= 127.5)[:, :, None]
+
+
+def _undistorted(model, images_dir: Path):
+    """The model and images folder with every camera PINHOLE (undistorting when needed)."""
+    if all(camera.is_pinhole for camera in model.cameras.values()):
+        return model, images_dir
+    try:
+        from ..colmap.undistort import undistort_scene_cached
+    except ImportError as err:
+        raise DatasetError("the scene has distorted cameras and undistortion is not available",
+                           path=images_dir.parent, hint="undistort it first (COLMAP image_undistorter)") from err
+    return undistort_scene_cached(model, images_dir)
+
+
+def load_scene_data(scene: str | Path, *, images_dir: str = "images", resolution: int = 1, width: int = 0,
+                    test_every: int = 8, mask_source: str = "auto") -> SceneData:
+    """Read a COLMAP scene folder into train/test :class:`View` lists (see the module docstring)."""
+    from ..colmap.io import read_model
+
+    scene = Path(scene)
+    if not scene.is_dir():
+        raise DatasetError("scene folder not found", path=scene, hint="pass a folder holding images/ and sparse/0")
+    folder = scene / images_dir
+    if not folder.is_dir():
+        raise DatasetError("scene has no image folder", path=folder, hint="COLMAP scenes keep their images in images/")
+    model = read_model(scene)
+    model, folder = _undistorted(model, folder)
+    images = model.sorted_images()
+    if not images:
+        raise DatasetError("the COLMAP model has no registered images", path=scene / "sparse")
+    source = find_mask_source(scene, mask_source)
+
+    views = []
+    for index, entry in enumerate(images):
+        path = folder / entry.name
+        if not path.is_file():
+            raise DatasetError(f"image {entry.name} of the COLMAP model is missing", path=path)
+        camera = model.cameras[entry.camera_id]
+        pixels = _read_rgb(path)
+        height, width_px = pixels.shape[:2]
+        if (width_px, height) != (camera.width, camera.height):
+            raise DatasetError(f"image is {width_px}x{height} but its camera {camera.camera_id} is "
+                               f"{camera.width}x{camera.height}", path=path, hint="re-export the images or the model")
+        size = target_size(camera.width, camera.height, resolution, width)
+        pixels = _resize(pixels, size)
+        fx, fy, cx, cy = camera.intrinsics()
+        sx, sy = size[0] / camera.width, size[1] / camera.height
+        K = torch.tensor([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]], dtype=torch.float32)
+        mask = None
+        if source is not None:
+            mask_path = scene / "priors" / source / "mask" / f"{Path(entry.name).stem}.png"
+            if mask_path.is_file():
+                mask = _read_mask(mask_path, size)
+        views.append(View(index=index, name=entry.name, K=K,
+                          viewmat=torch.from_numpy(entry.world_to_camera()).float(), width=size[0], height=size[1],
+                          image=torch.from_numpy(pixels), mask=mask, center=entry.camera_center()))
+
+    train_idx, test_idx = split_indices(len(views), test_every)
+    if not train_idx:
+        raise DatasetError("no training images left after the test split", path=scene,
+                           hint="use more images or --test-every 0")
+    train = [views[i] for i in train_idx]
+    test = [views[i] for i in test_idx]
+    extent, center = scene_extent(np.stack([v.center for v in train]))
+    xyz, rgb, _, _ = model.points_arrays()
+    return SceneData(train=train, test=test, points_xyz=xyz, points_rgb=rgb.astype(np.float64) / 255.0,
+                     extent=extent, center=center, mask_source=source, source=scene)

@@ -1,0 +1,151 @@
+"""Held-out evaluation: PSNR, SSIM and LPIPS per view and their means, renders beside ground truth.
+
+``metrics.json`` (see docs/training.md)::
+
+    {"split": "test", "views_count": 3, "psnr": 24.1, "ssim": 0.81, "lpips": 0.21 | null,
+     "lpips_unavailable": null | "why", "views": [{"name": ..., "psnr": ..., "ssim": ..., "lpips": ...}],
+     "n_gaussians": ..., "step": ...}
+
+Metrics are computed on the whole image (masks are a training aid only), on renders
+clamped to [0, 1], with :mod:`esgs.core.metrics`. When a scene has no test split
+(``test_every = 0``) the training views are evaluated and ``split`` says "train".
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+import torch
+
+from ..errors import CheckpointError
+from ..progress import ProgressCallback, ProgressEvent
+from .gaussians import GaussianModel
+
+
+def _to_uint8(image: torch.Tensor) -> np.ndarray:
+    return (image.detach().clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+
+
+def _lpips_model(use_lpips: bool) -> tuple[Any, Optional[str]]:
+    if not use_lpips:
+        return None, "disabled (lpips = false)"
+    try:
+        from ..metrics.lpips import LPIPS
+
+        # never download during a run: evaluation uses cached weights or reports why not
+        return LPIPS(download=False), None
+    except ImportError as err:
+        return None, f"LPIPS module not available: {err}"
+    except Exception as err:  # noqa: BLE001 - LPIPSUnavailableError and damaged caches alike
+        return None, str(err)
+
+
+def evaluate_model(model: GaussianModel, data: Any, *, backend: str, background: torch.Tensor, sh_degree: int,
+                   renders_dir: Optional[Path] = None, use_lpips: bool = True, num_threads: Optional[int] = None,
+                   progress: Optional[ProgressCallback] = None, views: Optional[list] = None) -> dict:
+    """Render every held-out view of ``data`` (or ``views``) and measure it against its image."""
+    from ..imageio import write_png
+    from ..metrics.image import psnr, ssim
+    from .rendering import render_view
+
+    split = "test"
+    if views is None:
+        views = data.test
+        if not views:
+            views, split = data.train, "train"
+    lpips_model, lpips_reason = _lpips_model(use_lpips)
+    device = background.device
+    if lpips_model is not None:
+        lpips_model = lpips_model.to(device)
+    rows = []
+    with torch.no_grad():
+        params = model.render_params(sh_degree)
+        for number, view in enumerate(views):
+            output = render_view(params, view.viewmat.to(device), view.K.to(device), view.width, view.height,
+                                 background=background, backend=backend, num_threads=num_threads)
+            image = output.image.clamp(0.0, 1.0).permute(2, 0, 1)[None]
+            target = view.image_float(device).permute(2, 0, 1)[None]
+            row = {"name": view.name, "psnr": float(psnr(image, target)), "ssim": float(ssim(image, target)),
+                   "lpips": None}
+            if lpips_model is not None:
+                try:
+                    row["lpips"] = float(lpips_model(image, target)[0])
+                except Exception as err:  # noqa: BLE001 - e.g. images smaller than AlexNet's minimum
+                    lpips_model, lpips_reason = None, str(err)
+            rows.append(row)
+            if renders_dir is not None:
+                write_png(Path(renders_dir) / f"{view.stem}.png", _to_uint8(output.image))
+                write_png(Path(renders_dir) / f"{view.stem}_gt.png", view.image.cpu().numpy())
+            if progress is not None:
+                progress(ProgressEvent(step=number + 1, total=len(views), stage="eval",
+                                       metrics={"psnr": row["psnr"], "ssim": row["ssim"]}))
+    if lpips_model is None:
+        for row in rows:
+            row["lpips"] = None
+    metrics = {
+        "split": split,
+        "views_count": len(rows),
+        "psnr": float(np.mean([r["psnr"] for r in rows])) if rows else None,
+        "ssim": float(np.mean([r["ssim"] for r in rows])) if rows else None,
+        "lpips": float(np.mean([r["lpips"] for r in rows])) if rows and lpips_model is not None else None,
+        "lpips_unavailable": None if lpips_model is not None else lpips_reason,
+        "n_gaussians": len(model),
+        "sh_degree": sh_degree,
+        "views": rows,
+    }
+    return metrics
+
+
+def load_run_model(run_dir: str | Path) -> GaussianModel:
+    """The trained Gaussians of a run: ``point_cloud.ply``, or the newest checkpoint if no PLY yet."""
+    from ..ply import read_gaussians_ply
+    from .checkpoint import latest_checkpoint, load_checkpoint
+    from .run_dir import RunDir
+
+    run = RunDir(Path(run_dir))
+    if run.point_cloud.is_file():
+        return GaussianModel.from_ply(read_gaussians_ply(run.point_cloud))
+    latest = latest_checkpoint(run.checkpoints)
+    if latest is None:
+        raise CheckpointError("the run has neither point_cloud.ply nor a checkpoint", path=run.root,
+                              hint="train it first (esgs train SCENE --out RUN)")
+    return GaussianModel.from_state_dict(load_checkpoint(latest)["gaussians"])
+
+
+def load_run(run_dir: str | Path, *, backend: Optional[str] = None):
+    """(config, scene data, model, backend, device) of a finished or interrupted run."""
+    from ..config import load_config
+    from .config import TrainConfig
+    from .dataset import load_scene_data
+    from .rendering import backend_device, resolve_backend
+    from .run_dir import RunDir
+
+    run = RunDir(Path(run_dir))
+    if not run.config.is_file():
+        raise CheckpointError("not a run folder (no config.json)", path=run.root, hint="pass the --out folder of esgs train")
+    config = load_config(TrainConfig, run.config)
+    data = load_scene_data(config.scene, images_dir=config.images_dir, resolution=config.resolution,
+                           width=config.width, test_every=config.test_every, mask_source=config.mask_source)
+    name = resolve_backend(backend or config.backend)
+    device = backend_device(name)
+    model = load_run_model(run.root).to(device)
+    return config, data, model, name, device
+
+
+def evaluate_run(run_dir: str | Path, *, backend: Optional[str] = None, save_renders: bool = True,
+                 use_lpips: bool = True, progress: Optional[ProgressCallback] = None) -> dict:
+    """Evaluate a run folder on its held-out views; writes and returns ``metrics.json``'s content."""
+    from ..io_utils import atomic_write_json
+    from .run_dir import RunDir
+
+    run = RunDir(Path(run_dir))
+    config, data, model, name, device = load_run(run.root, backend=backend)
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    background = torch.tensor(config.background, dtype=torch.float32, device=device)
+    metrics = evaluate_model(model, data, backend=name, background=background, sh_degree=model.max_sh_degree,
+                             renders_dir=run.test_renders if save_renders else None, use_lpips=use_lpips,
+                             num_threads=config.threads or None, progress=progress)
+    atomic_write_json(run.metrics, metrics)
+    return metrics

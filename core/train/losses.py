@@ -1,0 +1,119 @@
+"""Training losses as a list of named, weighted terms with start (and end) steps.
+
+The 3DGS baseline is ``(1 - lambda) L1 + lambda (1 - SSIM)`` (:func:`photometric_terms`).
+ESGS modules append their own :class:`LossTerm` (depth prior, normal prior...) from a
+hook's ``setup``; a term that needs depth or normal maps says so in ``needs`` and the
+trainer renders those channels only on the steps where such a term is active.
+
+Masks: where ``mask`` is False (sky, no surface) the rendered colour is replaced by the
+ground truth before the photometric terms, so those pixels contribute neither loss nor
+gradient; the mean still runs over all pixels, which keeps the loss scale independent of
+how much of the image is masked only up to that constant factor.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, Optional
+
+import torch
+
+from ..metrics.image import ssim_map
+
+
+@dataclass
+class LossContext:
+    """Everything a loss term may look at for one step.
+
+    image: [H, W, 3] rendered colour; target: [H, W, 3] ground truth in [0, 1]; mask:
+    [H, W, 1] bool (True = valid) or None; alpha: [H, W, 1]; depth: [H, W, 1] or None;
+    normals: [H, W, 3] or None (camera frame); view: the :class:`~.dataset.View`;
+    output: the :class:`~.rendering.RenderOutput`; params: the
+    :class:`~.gaussians.RenderParams` that were rendered; trainer: the running trainer
+    (for terms that need scene-level data such as prior maps).
+    """
+
+    step: int
+    image: torch.Tensor
+    target: torch.Tensor
+    mask: Optional[torch.Tensor]
+    alpha: torch.Tensor
+    depth: Optional[torch.Tensor] = None
+    normals: Optional[torch.Tensor] = None
+    view: Any = None
+    output: Any = None
+    params: Any = None
+    trainer: Any = None
+    cache: dict = field(default_factory=dict)
+
+    def masked_image(self) -> torch.Tensor:
+        """The rendered colour with invalid pixels replaced by the target (no loss, no gradient there)."""
+        if self.mask is None:
+            return self.image
+        key = "masked_image"
+        if key not in self.cache:
+            self.cache[key] = torch.where(self.mask, self.image, self.target)
+        return self.cache[key]
+
+
+LossFunction = Callable[[LossContext], torch.Tensor]
+
+
+@dataclass
+class LossTerm:
+    """A named loss term ``weight * function(context)``, active for start_step <= step < end_step.
+
+    ``needs``: render channels the term reads ("depth", "normals"). Step numbers are
+    this run's steps (scale 30,000-step values with ``TrainConfig.scaled_step``).
+    """
+
+    name: str
+    weight: float
+    function: LossFunction
+    start_step: int = 0
+    end_step: Optional[int] = None
+    needs: frozenset = frozenset()
+
+    def active(self, step: int) -> bool:
+        return self.weight != 0.0 and step >= self.start_step and (self.end_step is None or step < self.end_step)
+
+
+def l1_loss(context: LossContext) -> torch.Tensor:
+    """Mean absolute colour error."""
+    return (context.masked_image() - context.target).abs().mean()
+
+
+def dssim_loss(context: LossContext) -> torch.Tensor:
+    """1 - SSIM (11x11 Gaussian window, 3DGS convention; see :mod:`esgs.core.metrics.image`)."""
+    image = context.masked_image().permute(2, 0, 1)[None]
+    target = context.target.permute(2, 0, 1)[None]
+    return 1.0 - ssim_map(image, target).mean()
+
+
+def photometric_terms(lambda_dssim: float) -> list[LossTerm]:
+    """The 3DGS photometric loss as two terms: "l1" (1 - lambda) and "dssim" (lambda)."""
+    return [LossTerm("l1", 1.0 - lambda_dssim, l1_loss), LossTerm("dssim", lambda_dssim, dssim_loss)]
+
+
+def needed_channels(terms: list[LossTerm], step: int) -> set[str]:
+    """Union of ``needs`` of the terms active at ``step``."""
+    needs: set[str] = set()
+    for term in terms:
+        if term.active(step):
+            needs |= set(term.needs)
+    return needs
+
+
+def total_loss(terms: list[LossTerm], context: LossContext) -> tuple[torch.Tensor, dict[str, float]]:
+    """Weighted sum of the active terms, and each term's unweighted value (for logging)."""
+    total: Optional[torch.Tensor] = None
+    values: dict[str, float] = {}
+    for term in terms:
+        if not term.active(context.step):
+            continue
+        value = term.function(context)
+        values[term.name] = float(value.detach())
+        weighted = term.weight * value
+        total = weighted if total is None else total + weighted
+    if total is None:
+        total = context.image.sum() * 0.0
+    return total, values

@@ -1,0 +1,51 @@
+"""Paths of a run folder (RUN/ layout of docs/training.md and DESIGN.md)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class RunDir:
+    """The files of one training run under ``root``."""
+
+    root: Path
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "root", Path(self.root))
+
+    @property
+    def config(self) -> Path:
+        return self.root / "config.json"
+
+    @property
+    def checkpoints(self) -> Path:
+        return self.root / "checkpoints"
+
+    @property
+    def point_cloud(self) -> Path:
+        return self.root / "point_cloud.ply"
+
+    @property
+    def metrics(self) -> Path:
+        return self.root / "metrics.json"
+
+    @property
+    def renders(self) -> Path:
+        return self.root / "renders"
+
+    @property
+    def test_renders(self) -> Path:
+        return self.root / "renders" / "test"
+
+    @property
+    def events(self) -> Path:
+        return self.root / "events.jsonl"
+
+    @property
+    def result(self) -> Path:
+        """Summary of the last training invocation (status, steps, timings)."""
+        return self.root / "train_result.json"
+
+    def exists(self) -> bool:
+        return self.config.is_file()

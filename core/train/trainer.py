@@ -1,0 +1,522 @@
+"""The training loop: 3DGS on a COLMAP scene, with hooks for the ESGS modules.
+
+Public entry point: :func:`train`. One step:
+
+1. pick a training view (a shuffled pass over the views, as 3DGS), update learning rates;
+2. build the rendering parameters, let hooks modify them (``before_render``);
+3. render colour (plus depth/normals when an active loss term or a hook asks);
+4. total loss = weighted active terms (L1 + D-SSIM for the baseline); stop on NaN/Inf;
+5. backward, ``after_backward`` hooks, densification statistics, Adam step;
+6. densify / prune / reset opacity on schedule, then ``on_densify`` hooks;
+7. parameters checked finite; checkpoint, progress event, stop requests.
+
+Stops: SIGTERM (and Ctrl-C) finish the current step, save a checkpoint and return with
+status "interrupted"; ``max_minutes`` saves, writes the PLY and evaluates (status
+"time_limit"). A NaN/Inf raises :class:`TrainingDivergedError` and leaves the last good
+checkpoint as the newest one.
+"""
+from __future__ import annotations
+
+import math
+import signal
+import threading
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Optional, Sequence
+
+import numpy as np
+import torch
+
+from ..config import config_from_dict, config_to_dict, save_config
+from ..errors import CheckpointError, ConfigError, ESGSError
+from ..io_utils import atomic_write_json
+from ..progress import JsonLinesProgress, ProgressCallback, ProgressEvent, combine
+from .checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint, save_checkpoint
+from .config import TrainConfig
+from .dataset import SceneData, load_scene_data
+from .densify import DensifyReport, DensifySettings, DensifyState, densify_and_prune, reset_opacity
+from .gaussians import GaussianModel, RenderParams
+from .hooks import StepContext, TrainHook
+from .losses import LossContext, LossTerm, needed_channels, photometric_terms, total_loss
+from .optim import ExponentialDecay, TrainOptimizer
+from .rendering import backend_device, render_view, resolve_backend
+from .run_dir import RunDir
+
+#: Settings that may change when a run is resumed (they do not change what is computed).
+RESUMABLE_SETTINGS = frozenset({
+    "scene", "out", "resume", "max_minutes", "threads", "events", "checkpoint_every", "keep_checkpoints",
+    "progress_every", "evaluate", "save_renders", "lpips", "backend",
+})
+
+CHECKPOINT_FORMAT = 1
+
+
+class TrainingDivergedError(ESGSError):
+    """The loss or a parameter became NaN/Inf; the last good checkpoint is kept."""
+
+
+@dataclass
+class TrainResult:
+    """What :func:`train` did.
+
+    status: "completed", "time_limit" (max_minutes reached; evaluated) or "interrupted"
+    (SIGTERM/Ctrl-C; checkpoint saved, resume with ``resume=True``).
+    """
+
+    run_dir: Path
+    status: str
+    step: int
+    iterations: int
+    n_gaussians: int
+    elapsed_s: float
+    metrics: Optional[dict] = None
+    point_cloud: Optional[Path] = None
+    checkpoint: Optional[Path] = None
+
+    def to_dict(self) -> dict:
+        return {"run_dir": str(self.run_dir), "status": self.status, "step": self.step,
+                "iterations": self.iterations, "n_gaussians": self.n_gaussians, "elapsed_s": self.elapsed_s,
+                "point_cloud": str(self.point_cloud) if self.point_cloud else None,
+                "checkpoint": str(self.checkpoint) if self.checkpoint else None}
+
+
+class ViewSampler:
+    """3DGS's view order: every view once per pass, in a fresh random order each pass."""
+
+    def __init__(self, count: int, seed: int):
+        self.count = count
+        self.rng = np.random.default_rng(seed)
+        self.order: list[int] = []
+
+    def next(self) -> int:
+        if not self.order:
+            self.order = [int(i) for i in self.rng.permutation(self.count)]
+        return self.order.pop()
+
+    def state_dict(self) -> dict:
+        return {"rng": self.rng.bit_generator.state, "order": list(self.order)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.rng.bit_generator.state = state["rng"]
+        self.order = [int(i) for i in state["order"]]
+
+
+class _StopRequests:
+    """Turns SIGTERM/SIGINT into a flag checked between steps (main thread only)."""
+
+    def __init__(self) -> None:
+        self.signal_name: Optional[str] = None
+        self._previous: dict[int, Any] = {}
+
+    def __enter__(self) -> "_StopRequests":
+        if threading.current_thread() is threading.main_thread():
+            for number in (signal.SIGTERM, signal.SIGINT):
+                self._previous[number] = signal.signal(number, self._handle)
+        return self
+
+    def _handle(self, number: int, frame: Any) -> None:
+        if self.signal_name is not None and number == signal.SIGINT:
+            raise KeyboardInterrupt  # a second Ctrl-C stops at once
+        self.signal_name = signal.Signals(number).name
+
+    def __exit__(self, *exc: Any) -> None:
+        for number, handler in self._previous.items():
+            signal.signal(number, handler)
+
+
+class Trainer:
+    """A training run. Use :func:`train`; hooks receive the trainer and may use its API:
+
+    ``add_loss_term(term)``, ``add_parameter_group(name, params, lr, schedule=None)``,
+    ``gaussians`` (:class:`GaussianModel`), ``optimizer`` (:class:`TrainOptimizer`),
+    ``data`` (:class:`SceneData`), ``config``, ``schedule``, ``device``, ``backend``,
+    ``render(params, view, ...)``.
+    """
+
+    def __init__(self, config: TrainConfig, progress: Optional[ProgressCallback] = None,
+                 hooks: Sequence[TrainHook] = ()):
+        config.validate()
+        if config.scene is None or config.out is None:
+            raise ConfigError("both scene and out must be set", hint="esgs train SCENE --out RUN_DIR")
+        names = [getattr(hook, "name", type(hook).__name__) for hook in hooks]
+        if len(set(names)) != len(names):
+            raise ConfigError(f"hook names must be unique, got {names}")
+        self.config = config
+        self.hooks = list(hooks)
+        self.user_progress = progress
+        self.run_dir = RunDir(Path(config.out))
+        self.schedule = config.schedule()
+        self.backend = resolve_backend(config.backend)
+        self.device = backend_device(self.backend)
+        self.loss_terms: list[LossTerm] = photometric_terms(config.lambda_dssim)
+        self.background = torch.tensor(config.background, dtype=torch.float32, device=self.device)
+        self.num_threads = config.threads or None
+        self.step = 0
+        self.loss_ema: Optional[float] = None
+        self.psnr_ema: Optional[float] = None
+        self.elapsed_before_s = 0.0
+        self.data: SceneData
+        self.gaussians: GaussianModel
+        self.optimizer: TrainOptimizer
+        self.densify_state: DensifyState
+        self._progress: ProgressCallback = progress or (lambda event: None)
+        self._events_files: list[JsonLinesProgress] = []
+
+    # --- API for hooks -------------------------------------------------------------
+    def add_loss_term(self, term: LossTerm) -> None:
+        """Add a named term to the total loss (names must be unique)."""
+        if any(existing.name == term.name for existing in self.loss_terms):
+            raise ConfigError(f"a loss term named {term.name!r} exists already")
+        self.loss_terms.append(term)
+
+    def add_parameter_group(self, name: str, params: torch.Tensor | Iterable[torch.Tensor], lr: float, *,
+                            schedule: Any = None) -> None:
+        """Optimise a module's parameters with Adam alongside the Gaussians (not densified)."""
+        self.optimizer.add_group(name, params, lr, schedule=schedule, per_gaussian=False)
+
+    def render(self, params: RenderParams, view: Any, *, render_depth: bool = False,
+               render_normals: bool = False):
+        """Render ``params`` into a :class:`~.dataset.View` with this run's backend and background."""
+        return render_view(params, view.viewmat.to(self.device), view.K.to(self.device), view.width, view.height,
+                           background=self.background, render_depth=render_depth, render_normals=render_normals,
+                           backend=self.backend, num_threads=self.num_threads)
+
+    def message(self, text: str) -> None:
+        """Send a message event (warnings, densification summaries) to the progress callbacks."""
+        self._progress(ProgressEvent(step=self.step, total=self.config.iterations, stage="train",
+                                     kind="message", message=text))
+
+    # --- setup ---------------------------------------------------------------------
+    def _setup_runtime(self) -> None:
+        if self.config.threads:
+            torch.set_num_threads(self.config.threads)
+        torch.manual_seed(self.config.seed)
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(self.config.seed)
+        self.sampler_seed = self.config.seed
+
+    def _initial_gaussians(self) -> GaussianModel:
+        config = self.config
+        kwargs = dict(max_sh_degree=config.sh_degree, init_opacity=config.init_opacity,
+                      neighbours=config.init_scale_neighbours)
+        if len(self.data.points_xyz):
+            return GaussianModel.from_points(self.data.points_xyz, self.data.points_rgb, **kwargs)
+        self.message(f"the COLMAP model has no 3D points: starting from {config.random_init_points} random Gaussians")
+        rng = np.random.default_rng(config.seed)
+        return GaussianModel.random(config.random_init_points, self.data.center, self.data.extent, rng, **kwargs)
+
+    def _build_optimizer(self) -> None:
+        config, extent = self.config, self.data.extent
+        optimizer = TrainOptimizer()
+        params = self.gaussians.params
+        position = ExponentialDecay(config.position_lr_init * extent, config.position_lr_final * extent,
+                                    max_steps=config.iterations, delay_steps=self.schedule.position_lr_delay_steps,
+                                    delay_mult=config.position_lr_delay_mult)
+        optimizer.add_group("means", params["means"], position(0), schedule=position, per_gaussian=True)
+        optimizer.add_group("sh_dc", params["sh_dc"], config.feature_lr, per_gaussian=True)
+        optimizer.add_group("sh_rest", params["sh_rest"], config.feature_lr / 20.0, per_gaussian=True)
+        optimizer.add_group("opacity_logit", params["opacity_logit"], config.opacity_lr, per_gaussian=True)
+        optimizer.add_group("log_scales", params["log_scales"], config.scaling_lr, per_gaussian=True)
+        optimizer.add_group("quats", params["quats"], config.rotation_lr, per_gaussian=True)
+        self.optimizer = optimizer
+
+    def setup(self, checkpoint: Optional[dict] = None) -> None:
+        """Load the scene, build Gaussians, optimizer and hooks (from ``checkpoint`` when given)."""
+        self._setup_runtime()
+        config = self.config
+        self.data = load_scene_data(config.scene, images_dir=config.images_dir, resolution=config.resolution,
+                                    width=config.width, test_every=config.test_every, mask_source=config.mask_source)
+        if checkpoint is not None:
+            self.gaussians = GaussianModel.from_state_dict(checkpoint["gaussians"])
+        else:
+            self.gaussians = self._initial_gaussians()
+        self.gaussians.to(self.device)
+        self._build_optimizer()
+        self.densify_state = DensifyState.zeros(len(self.gaussians), self.device)
+        self.sampler = ViewSampler(len(self.data.train), config.seed)
+        for hook in self.hooks:
+            hook.setup(self)
+        if checkpoint is not None:
+            self._load_state(checkpoint)
+
+    # --- checkpoints ---------------------------------------------------------------
+    def _state(self) -> dict:
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "step": self.step,
+            "config": config_to_dict(self.config),
+            "gaussians": self.gaussians.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "densify": self.densify_state.state_dict(),
+            "sampler": self.sampler.state_dict(),
+            "torch_rng": torch.get_rng_state(),
+            "generator": self.generator.get_state().cpu(),
+            "hooks": {getattr(h, "name", type(h).__name__): h.state_dict() for h in self.hooks},
+            "loss_ema": self.loss_ema,
+            "psnr_ema": self.psnr_ema,
+            "elapsed_s": self.elapsed_before_s + self._session_elapsed(),
+        }
+
+    def _load_state(self, state: dict) -> None:
+        if state.get("format") != CHECKPOINT_FORMAT:
+            raise CheckpointError(f"checkpoint format {state.get('format')} is not supported (expected {CHECKPOINT_FORMAT})")
+        self.step = int(state["step"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.densify_state.load_state_dict(state["densify"])
+        self.sampler.load_state_dict(state["sampler"])
+        torch.set_rng_state(state["torch_rng"])
+        self.generator.set_state(state["generator"])
+        for hook in self.hooks:
+            name = getattr(hook, "name", type(hook).__name__)
+            if name in state["hooks"]:
+                hook.load_state_dict(state["hooks"][name])
+        self.loss_ema = state.get("loss_ema")
+        self.psnr_ema = state.get("psnr_ema")
+        self.elapsed_before_s = float(state.get("elapsed_s", 0.0))
+
+    def save_checkpoint(self) -> Path:
+        path = save_checkpoint(self.run_dir.checkpoints, self.step, self._state(), keep=self.config.keep_checkpoints)
+        self._last_checkpoint = path
+        return path
+
+    def _session_elapsed(self) -> float:
+        start = getattr(self, "_session_start", None)
+        return 0.0 if start is None else time.monotonic() - start
+
+    # --- one step ------------------------------------------------------------------
+    def train_step(self, step: int) -> StepContext:
+        """Run training step ``step`` (1-based) and return its context."""
+        self.step = step
+        config = self.config
+        view = self.data.train[self.sampler.next()]
+        self.optimizer.update_learning_rates(step)
+        needs = needed_channels(self.loss_terms, step)
+        context = StepContext(step=step, view=view, sh_degree=self.schedule.sh_degree_at(step, config.sh_degree),
+                              render_depth="depth" in needs, render_normals="normals" in needs)
+        params = self.gaussians.render_params(context.sh_degree)
+        for hook in self.hooks:
+            replaced = hook.before_render(self, context, params)
+            params = replaced if replaced is not None else params
+        output = self.render(params, view, render_depth=context.render_depth, render_normals=context.render_normals)
+        context.output = output
+        target = view.image_float(self.device)
+        mask = view.mask.to(self.device) if view.mask is not None else None
+        loss_context = LossContext(step=step, image=output.image, target=target, mask=mask, alpha=output.alpha,
+                                   depth=output.depth, normals=output.normals, view=view, output=output,
+                                   params=params, trainer=self)
+        loss, values = total_loss(self.loss_terms, loss_context)
+        context.loss, context.loss_values = loss, values
+        if not bool(torch.isfinite(loss)):
+            terms = ", ".join(f"{name}={value:.4g}" for name, value in values.items())
+            self._diverged(f"the loss is {float(loss)} at step {step} ({terms})")
+        loss.backward()
+        for hook in self.hooks:
+            hook.after_backward(self, context)
+
+        with torch.no_grad():
+            means2d = output.meta.get("means2d")
+            if self.schedule.accumulates_gradients(step) and means2d is not None and means2d.grad is not None \
+                    and means2d.shape[1] == len(self.gaussians):
+                self.densify_state.accumulate(means2d.grad, output.meta["radii"], view.width, view.height)
+            with torch.no_grad():
+                image = loss_context.masked_image().clamp(0.0, 1.0)
+                mse = float((image - target).pow(2).mean())
+            psnr = -10.0 * math.log10(max(mse, 1e-12))
+        self.optimizer.step()
+        self.optimizer.zero_grad()
+
+        if self.schedule.is_densify_step(step):
+            self._densify(step)
+        if self.schedule.is_opacity_reset_step(step):
+            reset_opacity(self.gaussians, self.optimizer, config.opacity_reset_value)
+            report = DensifyReport(step=step, count_before=len(self.gaussians), count_after=len(self.gaussians),
+                                   reset_opacity=True, source_index=torch.arange(len(self.gaussians), device=self.device))
+            for hook in self.hooks:
+                hook.on_densify(self, report)
+        if not self.gaussians.all_finite():
+            bad = [name for name, p in self.gaussians.params.items() if not bool(torch.isfinite(p).all())]
+            self._diverged(f"Gaussian parameters {', '.join(bad)} are not finite after step {step}")
+
+        loss_value = float(loss.detach())
+        self.loss_ema = loss_value if self.loss_ema is None else 0.4 * loss_value + 0.6 * self.loss_ema
+        self.psnr_ema = psnr if self.psnr_ema is None else 0.4 * psnr + 0.6 * self.psnr_ema
+        context.extras["psnr"] = psnr
+        return context
+
+    def _densify(self, step: int) -> None:
+        config = self.config
+        settings = DensifySettings(
+            grad_threshold=config.densify_grad_threshold, percent_dense=config.percent_dense, extent=self.data.extent,
+            prune_opacity=config.prune_opacity, prune_large=self.schedule.prunes_large(step),
+            max_screen_size_px=config.prune_screen_size_px, max_world_size=config.prune_world_size,
+            max_gaussians=config.max_gaussians)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            report = densify_and_prune(self.gaussians, self.optimizer, self.densify_state, settings, step=step,
+                                       generator=self.generator)
+        for warning in caught:
+            self.message(f"warning: {warning.message}")
+            warnings.warn(warning.message, RuntimeWarning, stacklevel=2)
+        for hook in self.hooks:
+            hook.on_densify(self, report)
+
+    def _diverged(self, what: str) -> None:
+        last = latest_checkpoint(self.run_dir.checkpoints)
+        where = f"the last good checkpoint is {last}" if last else "no checkpoint was written yet"
+        raise TrainingDivergedError(f"training diverged: {what}; {where}",
+                                    path=self.run_dir.root,
+                                    hint="lower the learning rates or check the input images, then resume or restart")
+
+    # --- the loop ------------------------------------------------------------------
+    def _start_run_dir(self, resume_state: Optional[dict]) -> None:
+        run = self.run_dir
+        if resume_state is None:
+            if run.exists() and not self.config.resume:
+                raise ConfigError("the run folder already holds a run", path=run.root,
+                                  hint="pass --resume to continue it, or choose another --out")
+            run.root.mkdir(parents=True, exist_ok=True)
+            for _, path in list_checkpoints(run.checkpoints):
+                path.unlink()  # a fresh start must not resume from an older run's checkpoints later
+        save_config(self.config, run.config)
+
+    def _open_progress(self) -> None:
+        callbacks: list[Optional[ProgressCallback]] = [self.user_progress]
+        paths = {self.run_dir.events.resolve()}
+        self._events_files.append(JsonLinesProgress(self.run_dir.events))
+        if self.config.events is not None and Path(self.config.events).resolve() not in paths:
+            self._events_files.append(JsonLinesProgress(self.config.events))
+        self._progress = combine(*callbacks, *self._events_files)
+
+    def _close_progress(self) -> None:
+        for handle in self._events_files:
+            handle.close()
+        self._events_files = []
+
+    def _report(self, step: int, started_step: int, *, kind: str = "progress") -> None:
+        elapsed = self._session_elapsed()
+        done = step - started_step
+        seconds_per_step = elapsed / done if done > 0 else float("nan")
+        remaining = self.config.iterations - step
+        metrics = {"loss": self.loss_ema if self.loss_ema is not None else float("nan"),
+                   "psnr": self.psnr_ema if self.psnr_ema is not None else float("nan"),
+                   "n_gaussians": len(self.gaussians),
+                   "eta_s": seconds_per_step * remaining if done > 0 else float("nan"),
+                   "s_per_step": seconds_per_step}
+        self._progress(ProgressEvent(step=step, total=self.config.iterations, stage="train", metrics=metrics, kind=kind))
+
+    def run(self) -> TrainResult:
+        """Train (or continue) the run and return its result."""
+        config = self.config
+        checkpoint_state = None
+        if config.resume:
+            checkpoint_state = _resume_state(self.run_dir, config)
+        self._start_run_dir(checkpoint_state)
+        self._open_progress()
+        try:
+            return self._run(checkpoint_state)
+        except ESGSError as err:
+            self._progress(ProgressEvent(step=self.step, total=config.iterations, stage="train", kind="error",
+                                         message=str(err)))
+            raise
+        finally:
+            self._close_progress()
+
+    def _run(self, checkpoint_state: Optional[dict]) -> TrainResult:
+        config = self.config
+        self._last_checkpoint: Optional[Path] = None
+        self.setup(checkpoint_state)
+        if checkpoint_state is not None:
+            self.message(f"resuming from step {self.step} ({len(self.gaussians)} Gaussians)")
+        start_step = self.step
+        self._session_start = time.monotonic()
+        status = "completed"
+        saved_step = self.step if checkpoint_state is not None else -1
+        with _StopRequests() as stop:
+            for step in range(start_step + 1, config.iterations + 1):
+                self.train_step(step)
+                if stop.signal_name is not None:
+                    self.save_checkpoint()
+                    saved_step = step
+                    status = "interrupted"
+                    self.message(f"{stop.signal_name} received: checkpoint saved at step {step}; resume with --resume")
+                    break
+                if config.checkpoint_every and step % config.checkpoint_every == 0:
+                    self.save_checkpoint()
+                    saved_step = step
+                if step % config.progress_every == 0 or step == config.iterations:
+                    self._report(step, start_step)
+                if config.max_minutes and self._session_elapsed() > config.max_minutes * 60.0:
+                    status = "time_limit"
+                    self.message(f"max_minutes ({config.max_minutes:g}) reached at step {step}: stopping and evaluating")
+                    break
+            if saved_step != self.step:
+                self.save_checkpoint()
+            result = self._finish(status)
+        return result
+
+    def _finish(self, status: str) -> TrainResult:
+        from ..ply import write_gaussians_ply
+
+        config = self.config
+        write_gaussians_ply(self.run_dir.point_cloud, self.gaussians.to_ply())
+        metrics = None
+        if status != "interrupted" and config.evaluate:
+            from .evaluate import evaluate_model
+
+            sh_degree = self.schedule.sh_degree_at(self.step, config.sh_degree)
+            metrics = evaluate_model(self.gaussians, self.data, backend=self.backend, background=self.background,
+                                     sh_degree=sh_degree, renders_dir=self.run_dir.test_renders if config.save_renders else None,
+                                     use_lpips=config.lpips, num_threads=self.num_threads,
+                                     progress=self._progress)
+            metrics["step"] = self.step
+            atomic_write_json(self.run_dir.metrics, metrics)
+        elapsed = self.elapsed_before_s + self._session_elapsed()
+        result = TrainResult(run_dir=self.run_dir.root, status=status, step=self.step, iterations=config.iterations,
+                             n_gaussians=len(self.gaussians), elapsed_s=elapsed, metrics=metrics,
+                             point_cloud=self.run_dir.point_cloud, checkpoint=self._last_checkpoint)
+        atomic_write_json(self.run_dir.result, result.to_dict())
+        summary = {"n_gaussians": len(self.gaussians), "elapsed_s": elapsed}
+        if metrics:
+            summary.update({k: metrics[k] for k in ("psnr", "ssim", "lpips") if metrics.get(k) is not None})
+        self._progress(ProgressEvent(step=self.step, total=config.iterations, stage="train", kind="done",
+                                     metrics=summary, message=status))
+        return result
+
+
+def _resume_state(run: RunDir, config: TrainConfig) -> Optional[dict]:
+    """The newest readable checkpoint of ``run`` checked against ``config`` (None: start fresh)."""
+    found = list_checkpoints(run.checkpoints)
+    state = None
+    errors = []
+    for _, path in reversed(found):
+        try:
+            state = load_checkpoint(path)
+            break
+        except CheckpointError as err:  # a damaged newest file falls back to the one before
+            errors.append(str(err))
+    if state is None:
+        if errors:
+            raise CheckpointError("no readable checkpoint: " + "; ".join(errors), path=run.checkpoints)
+        return None
+    stored = config_from_dict(TrainConfig, state["config"])
+    current = config_to_dict(config)
+    previous = config_to_dict(stored)
+    changed = sorted(name for name in current if name not in RESUMABLE_SETTINGS and current[name] != previous.get(name))
+    if changed:
+        details = ", ".join(f"{name}: {previous.get(name)!r} -> {current[name]!r}" for name in changed)
+        raise ConfigError(f"cannot resume with different settings ({details})", path=run.config,
+                          hint="resume with the run's own settings (esgs train reads them from config.json)")
+    return state
+
+
+def train(config: TrainConfig, progress: Optional[ProgressCallback] = None,
+          hooks: Sequence[TrainHook] = ()) -> TrainResult:
+    """Train Gaussians on ``config.scene`` into ``config.out`` (see :class:`TrainConfig`).
+
+    ``progress`` receives :class:`~esgs.core.progress.ProgressEvent`\\ s (also written to
+    RUN/events.jsonl); ``hooks`` are :class:`~.hooks.TrainHook`\\ s (ESGS modules). With
+    ``config.resume`` the newest checkpoint in ``config.out`` is continued.
+    """
+    return Trainer(config, progress=progress, hooks=hooks).run()
