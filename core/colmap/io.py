@@ -2,14 +2,13 @@
 
 Reading is two-staged so that no input, however corrupt, can crash the process:
 :mod:`.parse` reads and checks every byte in Python/numpy, :mod:`.validate` checks the
-references between records, and only then does pycolmap read the same files (from a
-private folder holding just ``cameras``/``images``/``points3D``; pycolmap's optional
-``rigs``/``frames`` records carry nothing our dataclasses keep).
+references between records, and only then does pycolmap read the very same bytes (copied
+into a private folder holding just ``cameras``/``images``/``points3D``; pycolmap 4's
+optional ``rigs``/``frames`` records carry nothing our dataclasses keep: images.bin/txt hold
+the registered images with their poses).
 """
 from __future__ import annotations
 
-import os
-import shutil
 import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -78,10 +77,15 @@ def parse_model(path: str | Path) -> ColmapModel:
     Every structural problem and broken reference is a DatasetError naming the file.
     """
     folder, extension = find_model_dir(path)
+    blobs = {name: parse.read_bytes(folder / f"{name}.{extension}") for name in MODEL_FILES}
+    return _parse_blobs(folder, extension, blobs)
+
+
+def _parse_blobs(folder: Path, extension: str, blobs: dict[str, bytes]) -> ColmapModel:
     readers = _BINARY_READERS if extension == "bin" else _TEXT_READERS
-    cameras = readers["cameras"](folder / f"cameras.{extension}")
-    images = readers["images"](folder / f"images.{extension}")
-    points = readers["points3D"](folder / f"points3D.{extension}")
+    cameras = readers["cameras"](folder / f"cameras.{extension}", blobs["cameras"])
+    images = readers["images"](folder / f"images.{extension}", blobs["images"])
+    points = readers["points3D"](folder / f"points3D.{extension}", blobs["points3D"])
     model = ColmapModel(cameras, images, points, source=str(folder))
     check_references(model, folder)
     return model
@@ -99,17 +103,19 @@ def read_model(path: str | Path, *, use_pycolmap: bool = True) -> ColmapModel:
     show, about twice as fast on large models: pycolmap's per-point Python objects cost
     ~25 us per 3D point to convert).
     """
-    checked = parse_model(path)
-    folder = Path(checked.source)
+    folder, extension = find_model_dir(path)
+    # Read each file once: the bytes checked are the bytes pycolmap gets, even if the
+    # files change meanwhile.
+    blobs = {name: parse.read_bytes(folder / f"{name}.{extension}") for name in MODEL_FILES}
+    checked = _parse_blobs(folder, extension, blobs)
     check_registered(checked)
     if not use_pycolmap:
         return checked
     import pycolmap
 
-    extension = "bin" if (folder / "cameras.bin").is_file() and (folder / "images.bin").is_file() and (folder / "points3D.bin").is_file() else "txt"
     with tempfile.TemporaryDirectory(prefix="esgs_colmap_") as staging:
-        for name in MODEL_FILES:
-            _link_or_copy(folder / f"{name}.{extension}", Path(staging) / f"{name}.{extension}")
+        for name, data in blobs.items():
+            (Path(staging) / f"{name}.{extension}").write_bytes(data)
         reconstruction = pycolmap.Reconstruction()
         try:
             if extension == "bin":
@@ -130,13 +136,6 @@ def read_model(path: str | Path, *, use_pycolmap: bool = True) -> ColmapModel:
             hint="please report this model as a bug",
         )
     return model
-
-
-def _link_or_copy(source: Path, target: Path) -> None:
-    try:
-        os.symlink(source.resolve(), target)
-    except OSError:  # file systems without symlinks
-        shutil.copyfile(source, target)
 
 
 def from_pycolmap(reconstruction: "pycolmap.Reconstruction", source: str = "") -> ColmapModel:

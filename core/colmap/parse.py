@@ -15,7 +15,8 @@ Binary layout (little endian), as COLMAP writes it:
   u64 L, L x (u32 image id, u32 point2D index).
 
 The text files hold the same records, one per line (images take two lines), with ``#``
-comments.
+comments. Every reader takes the file's ``path`` (named in errors) and optionally its
+already-read ``data``, so a caller can check exactly the bytes it hands on.
 """
 from __future__ import annotations
 
@@ -60,15 +61,20 @@ _LINE_TRIM = " \t\r\v\f"
 # binary
 
 
+def read_bytes(path: Path) -> bytes:
+    """A model file's bytes; DatasetError when it cannot be read."""
+    try:
+        return path.read_bytes()
+    except OSError as error:
+        raise DatasetError(f"cannot read file: {error.strerror or error}", path=path) from error
+
+
 class _Reader:
     """Bounds-checked cursor over a file's bytes; every overrun is a DatasetError."""
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, data: bytes | None = None):
         self.path = path
-        try:
-            self.data = path.read_bytes()
-        except OSError as error:
-            raise DatasetError(f"cannot read file: {error.strerror or error}", path=path) from error
+        self.data = read_bytes(path) if data is None else data
         self.pos = 0
 
     def remaining(self) -> int:
@@ -178,9 +184,9 @@ def _check_unique(kind: str, key: int | str, seen: set, path: Path) -> None:
     seen.add(key)
 
 
-def read_cameras_binary(path: Path) -> dict[int, Camera]:
+def read_cameras_binary(path: Path, data: bytes | None = None) -> dict[int, Camera]:
     """Parse and check ``cameras.bin``."""
-    reader = _Reader(path)
+    reader = _Reader(path, data)
     count = reader.count(_CAMERA_HEAD.size, "cameras")
     cameras: dict[int, Camera] = {}
     for _ in range(count):
@@ -198,9 +204,9 @@ def read_cameras_binary(path: Path) -> dict[int, Camera]:
     return cameras
 
 
-def read_images_binary(path: Path) -> dict[int, Image]:
+def read_images_binary(path: Path, data: bytes | None = None) -> dict[int, Image]:
     """Parse and check ``images.bin``; a 2D point without 3D point gets id -1."""
-    reader = _Reader(path)
+    reader = _Reader(path, data)
     count = reader.count(_IMAGE_HEAD.size + 2 + _U64.size, "images")
     images: dict[int, Image] = {}
     names: set[str] = set()
@@ -231,13 +237,13 @@ def read_images_binary(path: Path) -> dict[int, Image]:
     return images
 
 
-def read_points3d_binary(path: Path) -> dict[int, Point3D]:
+def read_points3d_binary(path: Path, data: bytes | None = None) -> dict[int, Point3D]:
     """Parse and check ``points3D.bin``.
 
     One Python pass finds where each variable-length record starts; the fields are then
     gathered and checked with numpy, which keeps million-point models fast.
     """
-    reader = _Reader(path)
+    reader = _Reader(path, data)
     count = reader.count(_POINT_HEAD.size, "3D points")
     data, size, head = reader.data, len(reader.data), _POINT_HEAD.size
     starts, lengths = [], []
@@ -303,11 +309,8 @@ def read_points3d_binary(path: Path) -> dict[int, Point3D]:
 # text
 
 
-def _text_lines(path: Path) -> list[str]:
-    try:
-        raw = path.read_bytes()
-    except OSError as error:
-        raise DatasetError(f"cannot read file: {error.strerror or error}", path=path) from error
+def _text_lines(path: Path, data: bytes | None = None) -> list[str]:
+    raw = read_bytes(path) if data is None else data
     if b"\0" in raw:
         raise _fail(path, "text model file holds NUL bytes (is it a binary file named .txt?)")
     try:
@@ -348,10 +351,10 @@ def _floats(tokens: list[str], path: Path, line_number: int, what: str) -> np.nd
     return values
 
 
-def read_cameras_text(path: Path) -> dict[int, Camera]:
+def read_cameras_text(path: Path, data: bytes | None = None) -> dict[int, Camera]:
     """Parse and check ``cameras.txt`` (``CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]``)."""
     cameras: dict[int, Camera] = {}
-    for number, line in enumerate(_text_lines(path), start=1):
+    for number, line in enumerate(_text_lines(path, data), start=1):
         if _is_skipped(line):
             continue
         tokens = _split(line, path, number)
@@ -373,9 +376,9 @@ def read_cameras_text(path: Path) -> dict[int, Camera]:
     return cameras
 
 
-def read_images_text(path: Path) -> dict[int, Image]:
+def read_images_text(path: Path, data: bytes | None = None) -> dict[int, Image]:
     """Parse and check ``images.txt``: a pose line, then a (possibly empty) 2D-point line."""
-    lines = _text_lines(path)
+    lines = _text_lines(path, data)
     images: dict[int, Image] = {}
     names: set[str] = set()
     index = 0
@@ -415,14 +418,14 @@ _POINT_LINE_RE = re.compile(
 )
 
 
-def read_points3d_text(path: Path) -> dict[int, Point3D]:
+def read_points3d_text(path: Path, data: bytes | None = None) -> dict[int, Point3D]:
     """Parse and check ``points3D.txt`` (``ID X Y Z R G B ERROR TRACK[] as (IMAGE_ID, POINT2D_IDX)``).
 
     Well-formed lines take one regular-expression match; a line that does not match is
     re-read field by field to say exactly what is wrong with it.
     """
     points: dict[int, Point3D] = {}
-    for number, line in enumerate(_text_lines(path), start=1):
+    for number, line in enumerate(_text_lines(path, data), start=1):
         if _is_skipped(line):
             continue
         match = _POINT_LINE_RE.fullmatch(line)
