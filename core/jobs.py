@@ -300,13 +300,20 @@ class TrainingJob:
             raise
         return self.state()
 
-    def cancel(self, timeout: float = 120.0) -> JobState:
-        """Ask the trainer to stop (SIGTERM: it saves a checkpoint), wait, kill if it hangs."""
+    def cancel(self, timeout: float = 120.0, *, wait: bool = True) -> JobState:
+        """Ask the trainer to stop (SIGTERM: it saves a checkpoint); kill it if it hangs.
+
+        With ``wait=False`` (a UI button) this returns at once; the job's status turns to
+        ``"cancelled"`` when the child has exited, and a watchdog kills it after ``timeout``.
+        """
         process = self._process
         if process is None or process.poll() is not None:
             self._finished.wait(5.0)
             return self.state()
         self._cancel_requested = True
+        if not wait:
+            threading.Thread(target=_terminate, args=(process, timeout), name="esgs-job-cancel", daemon=True).start()
+            return self.state()
         _terminate(process, timeout)
         self._finished.wait(timeout)
         return self.state()

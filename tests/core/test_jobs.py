@@ -228,3 +228,13 @@ def test_summary_and_duration():
     state = jobs.JobState(status=jobs.RUNNING, step=3, total=10, loss=0.25, psnr=21.456, n_gaussians=12345, eta_s=3725)
     assert state.summary() == "running  step 3/10  loss 0.25  PSNR 21.46 dB  12,345 Gaussians  ETA 1:02:05"
     assert jobs.format_duration(65) == "1:05"
+
+
+def test_cancel_without_waiting_returns_at_once(tmp_path, fake_trainer, scene):
+    job = jobs.TrainingJob(scene, tmp_path / "run", iterations=400, trainer=fake_trainer + ["--step-s", "0.02"])
+    job.start()
+    while job.state().step < 2:
+        time.sleep(0.02)
+    job.cancel(timeout=30, wait=False)
+    assert job.wait(timeout=30, poll_s=0.05).status == jobs.CANCELLED
+    assert (tmp_path / "run" / "checkpoint.json").exists()

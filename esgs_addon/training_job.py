@@ -1,0 +1,280 @@
+"""Training from Blender: start ``esgs train`` in a separate process and follow it.
+
+Public entry points (the operators in ``operators/train.py`` are thin wrappers):
+
+- :func:`find_scene_dir` - which scene folder to train on;
+- :func:`start_training` - start (or resume) the job of a scene folder, non-blocking;
+- :func:`wait_for_training` - block with console progress (headless: ``blender -b``);
+- :func:`train_scene` - both, plus importing the result: the call a script makes;
+- :func:`start_polling` - the UI path: a timer copies the job's state into
+  ``scene.esgs.training`` and Blender's progress bar, and imports the result at the end.
+
+Under ``blender -b`` and the bpy module timers never fire, so the operator uses the
+blocking path there (see DESIGN.md).
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Callable, Optional, Sequence
+
+import bpy
+import numpy as np
+
+from ..core import jobs
+from ..core.errors import DatasetError
+from ..core.jobs import JobState, TrainingJob
+from . import gaussians_import, preferences
+
+#: collection property naming the scene folder a collection was imported from
+PROP_SCENE_DIR = "esgs_scene_dir"
+#: what the COLMAP import stores: the model folder (SCENE/sparse/0) and the placement
+PROP_COLMAP_SOURCE = "esgs_colmap_source"
+PROP_COLMAP_TRANSFORM = "esgs_world_from_colmap"
+#: object property: the run folder an imported result came from
+PROP_RUN_DIR = "esgs_run_dir"
+
+#: Tests replace the trainer command (``[python, script]``) with a fake one.
+TRAINER_OVERRIDE: Optional[Sequence[str]] = None
+POLL_INTERVAL_S = 0.5
+
+
+# --------------------------------------------------------------------------- scene folder
+
+
+def scene_dir_of_collection(collection: bpy.types.Collection) -> Optional[Path]:
+    """The scene folder a collection was imported from, or None."""
+    if PROP_SCENE_DIR in collection:
+        return Path(collection[PROP_SCENE_DIR])
+    if PROP_COLMAP_SOURCE in collection:
+        model = Path(collection[PROP_COLMAP_SOURCE])
+        # SCENE/sparse/0 -> SCENE, SCENE/sparse -> SCENE, SCENE/<model folder> -> SCENE
+        if model.parent.name == "sparse":
+            return model.parent.parent
+        return model.parent if model.name == "sparse" or (model.parent / "images").is_dir() else model
+    return None
+
+
+def find_scene_dir(scene: bpy.types.Scene, explicit: str = "",
+                   active_object: Optional[bpy.types.Object] = None) -> Path:
+    """The scene folder to train on.
+
+    ``explicit`` (the panel's folder field) wins; then the collection of the active object,
+    then the first collection of the scene that a COLMAP import tagged.
+
+    Raises:
+        DatasetError: none found, or the folder does not exist.
+    """
+    candidates: list[Path] = []
+    if explicit:
+        candidates.append(Path(bpy.path.abspath(explicit)))
+    else:
+        collections = list(active_object.users_collection) if active_object is not None else []
+        collections += [c for c in scene.collection.children_recursive if c not in collections]
+        for collection in collections:
+            folder = scene_dir_of_collection(collection)
+            if folder is not None:
+                candidates.append(folder)
+                break
+    if not candidates:
+        raise DatasetError("no scene folder to train on",
+                           hint="import a COLMAP scene (ESGS > Import COLMAP) or set the scene folder in the panel")
+    folder = candidates[0]
+    if not folder.is_dir():
+        raise DatasetError("the scene folder does not exist", path=folder, hint="choose an existing scene folder")
+    return folder
+
+
+def collection_of_scene_dir(scene: bpy.types.Scene, scene_dir: Path) -> Optional[bpy.types.Collection]:
+    """The collection imported from ``scene_dir`` (for its placement), or None."""
+    target = Path(scene_dir).resolve()
+    for collection in scene.collection.children_recursive:
+        folder = scene_dir_of_collection(collection)
+        if folder is not None and folder.resolve() == target:
+            return collection
+    return None
+
+
+# --------------------------------------------------------------------------- trainer options
+
+
+def supported_options() -> set[str]:
+    """Long options of the installed ``esgs train`` (cached for the session)."""
+    global _SUPPORTED
+    if _SUPPORTED is None:
+        _SUPPORTED = jobs.trainer_options()
+    return _SUPPORTED
+
+
+_SUPPORTED: Optional[set[str]] = None
+
+
+def trainer_arguments(options: dict[str, Any], supported: Optional[set[str]] = None) -> list[str]:
+    """Command-line flags for ``options`` (depth, normal, gpdfn, priors, width, threads...).
+
+    An option the installed trainer does not have is left out, so the UI never sends a
+    flag the trainer would reject. Booleans become ``--name`` / ``--no-name``; zero or
+    empty values are left to the trainer's defaults.
+    """
+    supported = supported_options() if supported is None else supported
+    args: list[str] = []
+    for name, value in options.items():
+        flag = "--" + name.replace("_", "-")
+        if isinstance(value, bool):
+            chosen = flag if value else "--no-" + name.replace("_", "-")
+            if chosen in supported:
+                args.append(chosen)
+        elif value not in (None, "", 0) and flag in supported:
+            args += [flag, str(value)]
+    return args
+
+
+def new_run_dir(scene_dir: Path) -> Path:
+    """A new, empty run folder name: ``<runs folder>/<scene name>-<date>-<time>``."""
+    base = preferences.runs_folder(scene_dir) / f"{Path(scene_dir).name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    candidate, index = base, 1
+    while candidate.exists():
+        index += 1
+        candidate = base.with_name(f"{base.name}-{index}")
+    return candidate
+
+
+# --------------------------------------------------------------------------- jobs
+
+
+def job_key(scene_dir: str | Path) -> str:
+    """One training job per scene folder."""
+    return str(Path(scene_dir).resolve())
+
+
+def start_training(scene_dir: str | Path, run_dir: str | Path | None = None, iterations: int = 30_000, *,
+                   options: Optional[dict[str, Any]] = None, resume: bool = False, python: Optional[str] = None,
+                   threads: Optional[int] = None, on_output: Optional[Callable[[str], None]] = None) -> TrainingJob:
+    """Start the trainer for ``scene_dir`` in a child process and return its job (non-blocking).
+
+    Args:
+        scene_dir: the COLMAP scene folder.
+        run_dir: the run folder (default: :func:`new_run_dir`); with ``resume`` an existing run.
+        iterations: training steps.
+        options: trainer options by name, e.g. ``{"depth": True, "priors": "gt", "width": 480}``;
+            those the installed trainer lacks are left out (:func:`trainer_arguments`).
+        python: interpreter (default: preferences, then :func:`esgs.core.jobs.find_python`).
+        threads: CPU threads for the child (default: the preference).
+
+    Raises:
+        ESGSError: a job is already running for this scene folder, or the trainer cannot start.
+    """
+    scene_dir = Path(scene_dir)
+    run_dir = Path(run_dir) if run_dir else new_run_dir(scene_dir)
+    threads = preferences.trainer_threads() if threads is None else threads
+    options = dict(options or {})
+    if threads:
+        options.setdefault("threads", threads)
+    trainer = list(TRAINER_OVERRIDE) if TRAINER_OVERRIDE else jobs.trainer_command(python or preferences.trainer_python())
+    job = TrainingJob(scene_dir, run_dir, iterations=iterations, extra_args=trainer_arguments(options),
+                      trainer=trainer, threads=threads, on_output=on_output)
+    return jobs.start_job(job_key(scene_dir), job, resume=resume)
+
+
+def wait_for_training(job: TrainingJob, *, report: Callable[[str], None] = print,
+                      interval_s: float = 2.0) -> JobState:
+    """Block until ``job`` ends, reporting its progress (one line every ``interval_s``)."""
+    last = [0.0]
+
+    def show(state: JobState) -> None:
+        now = time.monotonic()
+        if now - last[0] >= interval_s or not state.active:
+            last[0] = now
+            report(f"ESGS train: {state.summary()}")
+
+    return job.wait(on_update=show, poll_s=min(0.5, interval_s))
+
+
+def import_run_result(run_dir: str | Path, scene: Optional[bpy.types.Scene] = None,
+                      scene_dir: str | Path | None = None, **import_options: Any) -> bpy.types.Object:
+    """Import ``RUN/point_cloud.ply``, placed like the COLMAP scene it was trained on."""
+    scene = scene or bpy.context.scene
+    run_dir = Path(run_dir)
+    collection = collection_of_scene_dir(scene, Path(scene_dir)) if scene_dir else None
+    matrix = None
+    if collection is not None and PROP_COLMAP_TRANSFORM in collection:
+        # the trainer works in COLMAP's frame; the imported scene may have been re-oriented
+        matrix = np.array([float(v) for v in collection[PROP_COLMAP_TRANSFORM]]).reshape(4, 4)
+    obj = gaussians_import.import_gaussians(
+        run_dir / "point_cloud.ply", name=f"Gaussians {run_dir.name}", collection=collection or scene.collection,
+        matrix_world=matrix, **import_options)
+    obj[PROP_RUN_DIR] = str(run_dir)
+    return obj
+
+
+def train_scene(scene_dir: str | Path, run_dir: str | Path | None = None, iterations: int = 30_000, *,
+                options: Optional[dict[str, Any]] = None, resume: bool = False, import_result: bool = True,
+                python: Optional[str] = None, threads: Optional[int] = None,
+                report: Callable[[str], None] = print, **import_options: Any) -> dict[str, Any]:
+    """Train ``scene_dir`` blocking (console progress) and import the result.
+
+    Returns ``{"state": JobState, "run_dir": Path, "object": Object | None}``. The object is
+    None when training did not finish or ``import_result`` is False; check ``state.status``
+    and ``state.error``.
+    """
+    job = start_training(scene_dir, run_dir, iterations, options=options, resume=resume, python=python,
+                         threads=threads)
+    state = wait_for_training(job, report=report)
+    obj = None
+    if state.status == jobs.FINISHED and import_result:
+        obj = import_run_result(job.run_dir, scene_dir=scene_dir, **import_options)
+    return {"state": state, "run_dir": job.run_dir, "object": obj}
+
+
+# --------------------------------------------------------------------------- UI state
+
+
+def copy_state(settings: Any, state: JobState) -> None:
+    """Mirror a job state into ``scene.esgs.training`` (unknown numbers as -1)."""
+    settings.status = state.status
+    settings.step = state.step
+    settings.total = state.total
+    settings.progress = state.fraction
+    settings.loss = state.loss if state.loss is not None else -1.0
+    settings.psnr = state.psnr if state.psnr is not None else -1.0
+    settings.n_gaussians = state.n_gaussians if state.n_gaussians is not None else -1
+    settings.eta_s = state.eta_s if state.eta_s is not None else -1.0
+    settings.error = state.error
+
+
+def _redraw_views() -> None:
+    window_manager = bpy.context.window_manager
+    for window in getattr(window_manager, "windows", ()):
+        for area in window.screen.areas:
+            if area.type in ("VIEW_3D", "STATUSBAR"):
+                area.tag_redraw()
+
+
+def start_polling(scene_name: str, key: str, import_result: bool = True) -> None:
+    """Follow the job of ``key`` with a timer: state into the scene's settings, the window
+    manager's progress bar, and the result imported at the end (UI only)."""
+    window_manager = bpy.context.window_manager
+    window_manager.progress_begin(0, 1000)
+
+    def poll() -> Optional[float]:
+        job = jobs.get_job(key)
+        scene = bpy.data.scenes.get(scene_name)
+        if job is None:
+            window_manager.progress_end()
+            return None
+        state = job.state()
+        if scene is not None:
+            copy_state(scene.esgs.training, state)
+        window_manager.progress_update(int(state.fraction * 1000))
+        _redraw_views()
+        if state.active:
+            return POLL_INTERVAL_S
+        window_manager.progress_end()
+        if scene is not None and state.status == jobs.FINISHED and import_result:
+            try:
+                import_run_result(job.run_dir, scene=scene, scene_dir=job.scene_dir)
+            except Exception as error:  # noqa: BLE001 - a timer must not raise; show it instead
+                scene.esgs.training.error = f"training finished but importing failed: {error}"
+        return None
+
+    bpy.app.timers.register(poll, first_interval=POLL_INTERVAL_S, persistent=True)

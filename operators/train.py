@@ -1,0 +1,101 @@
+"""Train the scene's Gaussians in the background: start, cancel, resume (wrappers of training_job)."""
+from __future__ import annotations
+
+import bpy
+
+from ..core import jobs
+from ..core.errors import ESGSError
+from ..esgs_addon import training_job
+
+#: the ESGS switches of the panel, passed only when the installed trainer has them
+SWITCHES = ("depth", "normal", "gpdfn")
+
+
+def options_from_settings(settings) -> dict:
+    """Trainer options from ``scene.esgs.training`` (unsupported ones are dropped later)."""
+    options = {name: bool(getattr(settings, name)) for name in SWITCHES}
+    options["priors"] = settings.priors
+    options["width"] = settings.width
+    return options
+
+
+def _run(operator, context, resume: bool) -> set[str]:
+    settings = context.scene.esgs.training
+    try:
+        if resume:
+            if not settings.last_run_dir or not settings.last_scene_dir:
+                raise ESGSError("there is no earlier run to resume", hint="start a training first")
+            scene_dir, run_dir = settings.last_scene_dir, settings.last_run_dir
+        else:
+            scene_dir = training_job.find_scene_dir(context.scene, settings.scene_dir, context.active_object)
+            run_dir = bpy.path.abspath(settings.run_dir) if settings.run_dir else None
+        job = training_job.start_training(scene_dir, run_dir, settings.iterations,
+                                          options=options_from_settings(settings), resume=resume)
+    except ESGSError as error:
+        operator.report({"ERROR"}, str(error))
+        return {"CANCELLED"}
+    settings.last_scene_dir = str(job.scene_dir)
+    settings.last_run_dir = str(job.run_dir)
+    training_job.copy_state(settings, job.state())
+    key = training_job.job_key(job.scene_dir)
+    if not bpy.app.background:
+        training_job.start_polling(context.scene.name, key, import_result=settings.import_result)
+        operator.report({"INFO"}, f"Training started: {job.run_dir}")
+        return {"FINISHED"}
+    # headless: timers never fire, so follow the job here, printing progress
+    state = training_job.wait_for_training(job)
+    training_job.copy_state(settings, state)
+    if state.status != jobs.FINISHED:
+        operator.report({"ERROR"}, f"Training {state.status}: {state.error or 'see the console'}")
+        return {"CANCELLED"}
+    if settings.import_result:
+        try:
+            obj = training_job.import_run_result(job.run_dir, scene=context.scene, scene_dir=job.scene_dir)
+        except ESGSError as error:
+            operator.report({"ERROR"}, f"Training finished but importing failed: {error}")
+            return {"CANCELLED"}
+        context.view_layer.objects.active = obj
+    operator.report({"INFO"}, f"Training finished: {job.run_dir}")
+    return {"FINISHED"}
+
+
+class ESGS_OT_train(bpy.types.Operator):
+    """Train Gaussians on the scene folder in a separate process (blocking when Blender runs headless)"""
+
+    bl_idname = "esgs.train"
+    bl_label = "Train"
+
+    def execute(self, context):
+        return _run(self, context, resume=False)
+
+
+class ESGS_OT_train_resume(bpy.types.Operator):
+    """Continue the last training run from its latest checkpoint"""
+
+    bl_idname = "esgs.train_resume"
+    bl_label = "Resume Training"
+
+    def execute(self, context):
+        return _run(self, context, resume=True)
+
+
+class ESGS_OT_train_cancel(bpy.types.Operator):
+    """Stop the running training; it saves a checkpoint first, so it can be resumed"""
+
+    bl_idname = "esgs.train_cancel"
+    bl_label = "Cancel Training"
+
+    def execute(self, context):
+        settings = context.scene.esgs.training
+        job = jobs.get_job(training_job.job_key(settings.last_scene_dir)) if settings.last_scene_dir else None
+        if job is None or not job.running:
+            self.report({"WARNING"}, "No training is running")
+            return {"CANCELLED"}
+        # the UI timer sees the job end; a headless caller has nothing to keep responsive
+        state = job.cancel(wait=bool(bpy.app.background))
+        training_job.copy_state(settings, state)
+        self.report({"INFO"}, "Stopping training (saving a checkpoint)")
+        return {"FINISHED"}
+
+
+CLASSES = (ESGS_OT_train, ESGS_OT_train_resume, ESGS_OT_train_cancel)

@@ -1,0 +1,85 @@
+"""Sidebar > ESGS > Training: options, progress of the background job, cancel and resume."""
+from __future__ import annotations
+
+import bpy
+
+from ..core.errors import ESGSError
+from ..core.jobs import format_duration
+from ..esgs_addon import training_job
+
+ORDER = 110  # after the import panel
+
+
+class ESGS_PT_training(bpy.types.Panel):
+    """Train Gaussians on the imported scene in a separate process."""
+
+    bl_label = "Training"
+    bl_idname = "ESGS_PT_training"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "ESGS"
+    bl_parent_id = "ESGS_PT_main"
+
+    def draw(self, context: bpy.types.Context) -> None:
+        layout = self.layout
+        settings = context.scene.esgs.training
+        running = settings.status in ("pending", "running")
+
+        column = layout.column()
+        column.enabled = not running
+        column.prop(settings, "scene_dir")
+        if not settings.scene_dir:
+            try:
+                folder = training_job.find_scene_dir(context.scene, "", context.active_object)
+                column.label(text=f"Scene: {folder.name}", icon="FILE_FOLDER")
+            except ESGSError:
+                column.label(text="Import a COLMAP scene or choose its folder", icon="INFO")
+        column.prop(settings, "run_dir")
+        column.prop(settings, "iterations")
+        supported = training_job.supported_options()
+        if "--width" in supported:
+            column.prop(settings, "width")
+        switches = [name for name in ("depth", "normal", "gpdfn") if f"--{name}" in supported]
+        if switches or "--priors" in supported:
+            box = column.box()
+            box.label(text="ESGS")
+            for name in switches:
+                box.prop(settings, name)
+            if "--priors" in supported:
+                box.prop(settings, "priors")
+        column.prop(settings, "import_result")
+
+        if running:
+            text = f"{settings.step:,} / {settings.total:,}"
+            layout.progress(factor=settings.progress, type="BAR", text=text)
+            grid = layout.grid_flow(columns=2, even_columns=True)
+            if settings.loss >= 0:
+                grid.label(text=f"Loss {settings.loss:.4g}")
+            if settings.psnr >= 0:
+                grid.label(text=f"PSNR {settings.psnr:.2f} dB")
+            if settings.n_gaussians >= 0:
+                grid.label(text=f"{settings.n_gaussians:,} Gaussians")
+            if settings.eta_s >= 0:
+                grid.label(text=f"ETA {format_duration(settings.eta_s)}")
+            layout.operator("esgs.train_cancel", icon="CANCEL")
+            return
+
+        row = layout.row(align=True)
+        row.operator("esgs.train", icon="PLAY")
+        if settings.last_run_dir and settings.status in ("cancelled", "failed"):
+            row.operator("esgs.train_resume", icon="FILE_REFRESH")
+        if settings.status:
+            layout.label(text=f"Last run: {settings.status}", icon="CHECKMARK" if settings.status == "finished" else "INFO")
+        if settings.error:
+            box = layout.box()
+            for index, line in enumerate(_wrap(settings.error, 48)):
+                box.label(text=line, icon="ERROR" if index == 0 else "NONE")
+
+
+def _wrap(text: str, width: int) -> list[str]:
+    import textwrap
+
+    return textwrap.wrap(text, width) or [text]
+
+
+CLASSES = (ESGS_PT_training,)

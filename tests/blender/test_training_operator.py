@@ -1,0 +1,275 @@
+"""Training from Blender (esgs_addon/training_job.py, operators/train.py, the panels).
+
+Headless (the bpy module, like ``blender -b``) the operator blocks until the trainer ends.
+Most tests use a small fake trainer with the CLI's interface; the last one trains for real
+when the engine's trainer is installed.
+"""
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+from esgs.core import jobs  # noqa: E402
+from esgs.core.errors import DatasetError  # noqa: E402
+from esgs.esgs_addon import compare_mesh, gaussians_import, training_job  # noqa: E402
+
+FAKE_TRAINER = textwrap.dedent(
+    """
+    import argparse, json, sys, time
+    from pathlib import Path
+    import numpy as np
+    from esgs.core.ply import GaussianPly, write_gaussians_ply
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("scene")
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--iterations", type=int, required=True)
+    parser.add_argument("--events", required=True)
+    parser.add_argument("--resume", action="store_true")
+    parser.add_argument("--crash", action="store_true")
+    args, unknown = parser.parse_known_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "argv.json").write_text(json.dumps(sys.argv[1:]))
+    with open(args.events, "a") as events:
+        for step in range(1, args.iterations + 1):
+            events.write(json.dumps({"step": step, "total": args.iterations, "stage": "train",
+                                     "metrics": {"loss": 1.0 / step, "psnr": 20.0 + step, "n_gaussians": 16},
+                                     "kind": "progress"}) + "\\n")
+            events.flush()
+    if args.crash:
+        sys.exit("RuntimeError: the fake trainer ran out of memory")
+    # 16 Gaussians on the plane z = 0.01, opaque
+    u = np.linspace(-0.75, 0.75, 4)
+    x, y = np.meshgrid(u, u)
+    means = np.column_stack([x.ravel(), y.ravel(), np.full(16, 0.01)])
+    write_gaussians_ply(out / "point_cloud.ply", GaussianPly(
+        means=means, normals=np.zeros((16, 3)), sh_dc=np.zeros((16, 3)), sh_rest=np.zeros((16, 0, 3)),
+        opacity_logit=np.full(16, 3.0), log_scales=np.full((16, 3), -3.0), quats_wxyz=np.tile([1.0, 0, 0, 0], (16, 1))))
+    with open(args.events, "a") as events:
+        events.write(json.dumps({"step": args.iterations, "total": args.iterations, "stage": "train",
+                                 "metrics": {"n_gaussians": 16}, "kind": "done", "message": "completed"}) + "\\n")
+    """
+)
+
+
+@pytest.fixture
+def fake_trainer(tmp_path, monkeypatch):
+    script = tmp_path / "fake_trainer.py"
+    script.write_text(FAKE_TRAINER)
+    monkeypatch.setattr(training_job, "TRAINER_OVERRIDE", [sys.executable, str(script)])
+    return script
+
+
+@pytest.fixture
+def scene_dir(tmp_path) -> Path:
+    folder = tmp_path / "scene"
+    (folder / "sparse" / "0").mkdir(parents=True)
+    (folder / "images").mkdir()
+    return folder
+
+
+def colmap_collection(folder: Path, name: str = "scene"):
+    """A collection tagged like the COLMAP import tags it."""
+    collection = bpy.data.collections.new(name)
+    bpy.context.scene.collection.children.link(collection)
+    collection[training_job.PROP_COLMAP_SOURCE] = str(folder / "sparse" / "0")
+    return collection
+
+
+def plane_mesh(name: str = "ground truth"):
+    mesh = bpy.data.meshes.new(name)
+    mesh.from_pydata([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)], [], [(0, 1, 2), (0, 2, 3)])
+    obj = bpy.data.objects.new(name, mesh)
+    bpy.context.scene.collection.objects.link(obj)
+    return obj
+
+
+def test_headless_operator_trains_imports_and_compares(tmp_path, fake_trainer, scene_dir):
+    assert bpy.app.background  # the blocking path is the one under test
+    collection = colmap_collection(scene_dir)
+    placement = np.eye(4)
+    placement[:3, 3] = (0.0, 0.0, 5.0)  # the COLMAP import re-oriented the scene: the result must follow
+    collection[training_job.PROP_COLMAP_TRANSFORM] = placement.ravel().tolist()
+    settings = bpy.context.scene.esgs.training
+    settings.iterations = 12
+    settings.run_dir = str(tmp_path / "run")
+
+    assert bpy.ops.esgs.train() == {"FINISHED"}
+    assert settings.status == "finished"
+    assert (settings.step, settings.total) == (12, 12)
+    assert settings.psnr == pytest.approx(32.0)
+    assert settings.last_run_dir == str(tmp_path / "run")
+    argv = json.loads((tmp_path / "run" / "argv.json").read_text())
+    assert argv[:4] == [str(scene_dir), "--out", str(tmp_path / "run"), "--iterations"]
+
+    obj = bpy.context.view_layer.objects.active
+    assert gaussians_import.is_gaussian_object(obj)
+    assert obj.name in collection.objects
+    assert obj[training_job.PROP_RUN_DIR] == str(tmp_path / "run")
+    np.testing.assert_allclose(np.array(obj.matrix_world), placement)
+
+    plane = plane_mesh()
+    plane.location = (0.0, 0.0, 5.0)
+    bpy.context.view_layer.update()
+    summary = compare_mesh.compare_to_mesh(obj, plane, threshold_m=0.05, n_surface_samples=2000)
+    assert summary["gaussians_to_mesh"]["mean"] == pytest.approx(0.01, abs=1e-5)
+    assert summary["precision"] == 1.0
+
+
+def test_failure_shows_the_trainers_message(tmp_path, fake_trainer, scene_dir, monkeypatch):
+    monkeypatch.setattr(training_job, "TRAINER_OVERRIDE", list(training_job.TRAINER_OVERRIDE) + ["--crash"])
+    settings = bpy.context.scene.esgs.training
+    settings.scene_dir = str(scene_dir)
+    settings.run_dir = str(tmp_path / "run")
+    settings.iterations = 3
+    objects_before = len(bpy.data.objects)
+    with pytest.raises(RuntimeError, match="ran out of memory"):
+        bpy.ops.esgs.train()
+    assert settings.status == "failed"
+    assert settings.error == "RuntimeError: the fake trainer ran out of memory"
+    assert len(bpy.data.objects) == objects_before
+    # the failed run can be resumed: same folders, --resume
+    monkeypatch.setattr(training_job, "TRAINER_OVERRIDE", list(training_job.TRAINER_OVERRIDE)[:-1])
+    assert bpy.ops.esgs.train_resume() == {"FINISHED"}
+    assert "--resume" in json.loads((tmp_path / "run" / "argv.json").read_text())
+    assert settings.status == "finished"
+
+
+def test_no_scene_folder_is_a_clear_error():
+    with pytest.raises(RuntimeError, match="no scene folder"):
+        bpy.ops.esgs.train()
+    with pytest.raises(RuntimeError, match="no earlier run"):
+        bpy.ops.esgs.train_resume()
+
+
+def test_scene_folder_from_the_imported_collection(scene_dir, tmp_path):
+    with pytest.raises(DatasetError):
+        training_job.find_scene_dir(bpy.context.scene)
+    colmap_collection(scene_dir)
+    assert training_job.find_scene_dir(bpy.context.scene) == scene_dir
+    other = tmp_path / "other"
+    other.mkdir()
+    assert training_job.find_scene_dir(bpy.context.scene, str(other)) == other
+    with pytest.raises(DatasetError, match="does not exist"):
+        training_job.find_scene_dir(bpy.context.scene, str(tmp_path / "missing"))
+    tagged = bpy.data.collections.new("tagged")
+    tagged[training_job.PROP_SCENE_DIR] = str(other)
+    assert training_job.scene_dir_of_collection(tagged) == other
+
+
+def test_only_supported_switches_are_passed():
+    supported = {"--depth", "--no-depth", "--priors", "--width"}
+    args = training_job.trainer_arguments({"depth": False, "gpdfn": True, "priors": "gt", "width": 0, "normal": True},
+                                          supported)
+    assert args == ["--no-depth", "--priors", "gt"]
+    assert training_job.trainer_arguments({"depth": True, "width": 480}, supported) == ["--depth", "--width", "480"]
+
+
+def test_new_run_folders_do_not_collide(scene_dir):
+    first = training_job.new_run_dir(scene_dir)
+    first.mkdir(parents=True)
+    second = training_job.new_run_dir(scene_dir)
+    assert second != first and second.parent == first.parent == scene_dir.parent / "esgs_runs"
+
+
+class _RecordingLayout:
+    """Stands in for a UILayout: accepts every call, records the texts and properties shown."""
+
+    def __init__(self, record: list):
+        self.record = record
+
+    def __getattr__(self, name):
+        def call(*args, **kwargs):
+            if name == "prop":
+                data, prop = args[0], args[1]
+                if not prop.startswith("["):
+                    assert hasattr(data, prop), prop  # a misspelt property would show an error in Blender
+                self.record.append(("prop", prop))
+            elif name in ("label", "operator", "progress"):
+                self.record.append((name, kwargs.get("text") or (args[0] if args else "")))
+            return self
+
+        return call
+
+    def __setattr__(self, name, value):
+        if name == "record":
+            object.__setattr__(self, name, value)
+
+
+def draw_panel(panel_class) -> list:
+    record: list = []
+    panel = type("PanelStandIn", (), {"layout": _RecordingLayout(record)})()
+    panel_class.draw(panel, bpy.context)
+    return record
+
+
+def test_panels_draw_progress_and_results(tmp_path):
+    from esgs.panels.results_panel import ESGS_PT_results
+    from esgs.panels.training_panel import ESGS_PT_training
+
+    settings = bpy.context.scene.esgs.training
+    state = jobs.JobState(status="running", step=40, total=100, loss=0.05, psnr=21.5, n_gaussians=1234, eta_s=75)
+    training_job.copy_state(settings, state)
+    record = draw_panel(ESGS_PT_training)
+    assert ("progress", "40 / 100") in record
+    assert ("label", "PSNR 21.50 dB") in record and ("label", "ETA 1:15") in record
+    assert ("operator", "esgs.train_cancel") in record
+
+    training_job.copy_state(settings, jobs.JobState(status="failed", error="boom: out of memory"))
+    settings.last_run_dir = str(tmp_path)
+    record = draw_panel(ESGS_PT_training)
+    assert ("operator", "esgs.train_resume") in record
+    assert ("label", "boom: out of memory") in record
+
+    from esgs.core.ply import GaussianPly, write_gaussians_ply
+
+    write_gaussians_ply(tmp_path / "g.ply", GaussianPly(
+        means=np.array([[0.0, 0.0, 0.02]]), normals=np.zeros((1, 3)), sh_dc=np.zeros((1, 3)),
+        sh_rest=np.zeros((1, 0, 3)), opacity_logit=np.ones(1), log_scales=np.zeros((1, 3)),
+        quats_wxyz=np.array([[1.0, 0, 0, 0]])))
+    obj = gaussians_import.import_gaussians(tmp_path / "g.ply")
+    bpy.context.view_layer.objects.active = obj
+    compare_mesh.compare_to_mesh(obj, plane_mesh(), n_surface_samples=200)
+    record = draw_panel(ESGS_PT_results)
+    labels = [text for kind, text in record if kind == "label"]
+    assert "mean 0.02" in labels
+    assert any(text.startswith("At 0.05: precision 1.000") for text in labels)
+    assert sum(1 for kind, text in record if kind == "prop" and text.startswith('["')) == 8  # display + heat map
+
+
+@pytest.mark.slow
+def test_real_trainer_end_to_end(tmp_path):
+    """The installed trainer on a tiny synthetic plane scene: train headless, import, compare."""
+    if importlib.util.find_spec("esgs.core.train") is None or "--iterations" not in jobs.trainer_options():
+        pytest.skip("the engine's trainer (esgs.core.train, esgs train) is not installed")
+    pytest.importorskip("torch")
+    from tests.core.train.scene import make_scene
+
+    scene = make_scene(tmp_path / "scene", views=6, width=32, height=24)
+    settings = bpy.context.scene.esgs.training
+    settings.scene_dir = str(scene)
+    settings.run_dir = str(tmp_path / "run")
+    settings.iterations = 20
+    settings.width = 32
+    assert bpy.ops.esgs.train() == {"FINISHED"}, settings.error
+    assert settings.status == "finished"
+    assert (tmp_path / "run" / "point_cloud.ply").is_file()
+    obj = bpy.context.view_layer.objects.active
+    assert gaussians_import.is_gaussian_object(obj) and len(obj.data.points) > 0
+    # the scene's ground truth is the plane z = 0 over [-1, 1]^2
+    big = bpy.data.meshes.new("plane")
+    big.from_pydata([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)], [], [(0, 1, 2), (0, 2, 3)])
+    plane = bpy.data.objects.new("plane", big)
+    bpy.context.scene.collection.objects.link(plane)
+    summary = compare_mesh.compare_to_mesh(obj, plane, opacity_min=0.0, threshold_m=0.1, n_surface_samples=2000)
+    assert summary["n_gaussians"] == len(obj.data.points)
+    assert 0.0 <= summary["gaussians_to_mesh"]["median"] < 1.0
