@@ -180,3 +180,10 @@ def test_round_trip_synthetic_full_precision(tmp_path: Path, binary: bool) -> No
     for image_id, image in model.images.items():
         np.testing.assert_allclose(again.images[image_id].quat_wxyz, image.quat_wxyz, rtol=0, atol=1e-15)
     assert_models_equal(read_model(tmp_path / "m", use_pycolmap=False), again)
+
+
+def test_windows_line_endings(maupertuis: Path, tmp_path: Path) -> None:
+    for name in ("cameras", "images", "points3D"):
+        text = (maupertuis / "sparse_txt" / f"{name}.txt").read_bytes()
+        (tmp_path / f"{name}.txt").write_bytes(text.replace(b"\n", b"\r\n"))
+    assert_models_equal(read_model(tmp_path), read_model(maupertuis / "sparse_txt"))
