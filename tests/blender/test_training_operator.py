@@ -273,3 +273,27 @@ def test_real_trainer_end_to_end(tmp_path):
     summary = compare_mesh.compare_to_mesh(obj, plane, opacity_min=0.0, threshold_m=0.1, n_surface_samples=2000)
     assert summary["n_gaussians"] == len(obj.data.points)
     assert 0.0 <= summary["gaussians_to_mesh"]["median"] < 1.0
+
+
+def test_ui_polling_updates_settings_and_imports(tmp_path, fake_trainer, scene_dir, monkeypatch):
+    """The timer path of the UI, driven by hand (timers never fire in background mode)."""
+    registered = []
+    monkeypatch.setattr(bpy.app.timers, "register", lambda function, **kwargs: registered.append(function))
+    job = training_job.start_training(scene_dir, tmp_path / "run", 5)
+    training_job.start_polling(bpy.context.scene.name, training_job.job_key(scene_dir))
+    assert len(registered) == 1
+    poll = registered[0]
+    settings = bpy.context.scene.esgs.training
+    for _ in range(600):
+        if poll() is None:
+            break
+        assert settings.status in ("running", "finished")
+        import time
+
+        time.sleep(0.05)
+    else:
+        pytest.fail("the job did not end")
+    assert job.state().status == "finished"
+    assert (settings.status, settings.step, settings.progress) == ("finished", 5, 1.0)
+    imported = [obj for obj in bpy.data.objects if obj.get(training_job.PROP_RUN_DIR) == str(tmp_path / "run")]
+    assert len(imported) == 1 and len(imported[0].data.points) == 16
