@@ -304,7 +304,8 @@ def horizon_problem(rig: RigConfig, render: RenderConfig, terrain_config: Terrai
     bad = views_beyond_terrain(poses, terrain, margin_fraction=0.03)
     if not bad:
         return None
+    pitch = f", rig.pitch_deg={rig.pitch_deg}" if rig.kind in ("rover_traverse", "station_panorama", "aerial_oblique") else ""
     shown = ", ".join(bad[:3]) + (f" and {len(bad) - 3} more" if len(bad) > 3 else "")
     return (f"{len(bad)} of {len(poses)} views ({shown}) would see the sky or past the terrain edge "
-            f"with rig.kind={rig.kind}, rig.pitch_deg={rig.pitch_deg}, a {render.vertical_fov_deg:.1f} deg "
+            f"with rig.kind={rig.kind}{pitch}, a {render.vertical_fov_deg:.1f} deg "
             f"vertical field of view and terrain.extent_m={terrain_config.extent_m}")

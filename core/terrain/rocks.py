@@ -12,7 +12,7 @@ and above every D. Diameters are drawn by stratified inverse-CDF sampling of n(D
 keeps the covered area close to the model even for a few hundred rocks.
 
 Rocks are separate objects (the heightfield does not include them); each sits on the
-surface, a share of its height buried, and prefers bedrock over sand.
+surface, a share of its height buried (more on slopes), and prefers bedrock over sand.
 """
 from __future__ import annotations
 
@@ -73,8 +73,8 @@ def sample_rock_diameters(abundance: float, min_diameter_m: float, max_diameter_
 def place_rocks(config: TerrainConfig, terrain: "Terrain", rng: np.random.Generator) -> np.ndarray:  # noqa: F821
     """Rock table [M, 7]: x, y, z_base, diameter_m, height_m, yaw_rad, shape_seed.
 
-    ``z_base`` is where the rock's bottom sits: the lowest ground under its footprint minus
-    the buried share of its height, so no rock floats on a slope.
+    ``z_base`` is where the rock's bottom sits: ``rock_embed_fraction`` of its height below
+    the ground at its centre, plus half the ground's drop across its footprint on slopes.
     """
     area = config.extent_m ** 2
     diameters = sample_rock_diameters(config.rock_abundance, config.rock_min_diameter_m,
@@ -94,9 +94,13 @@ def place_rocks(config: TerrainConfig, terrain: "Terrain", rng: np.random.Genera
     heights = diameters * config.rock_height_ratio * rng.uniform(0.7, 1.3, count)
     yaw = rng.uniform(0.0, 2.0 * np.pi, count)
     shape_seed = rng.integers(0, 2 ** 31 - 1, count).astype(np.float64)
-    ground = terrain.height_at(x, y)
-    for angle in (0.0, 0.5 * np.pi, np.pi, 1.5 * np.pi):
-        ground = np.minimum(ground, terrain.height_at(x + 0.5 * diameters * np.cos(angle),
+    centre = terrain.height_at(x, y)
+    lowest = centre.copy()
+    for angle in np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False):
+        lowest = np.minimum(lowest, terrain.height_at(x + 0.5 * diameters * np.cos(angle),
                                                       y + 0.5 * diameters * np.sin(angle)))
-    z_base = ground - config.rock_embed_fraction * heights
+    # Bury by the configured share below the centre, plus half the ground's drop across
+    # the footprint: on a slope the rock then neither floats on its downhill side nor
+    # disappears into the uphill side.
+    z_base = centre - config.rock_embed_fraction * heights - 0.5 * (centre - lowest)
     return np.stack([x, y, z_base, diameters, heights, yaw, shape_seed], axis=1)
