@@ -17,6 +17,8 @@ $(STAMP): requirements.txt pyproject.toml setup.py
 	$(PY) -m pip install --disable-pip-version-check -q torch==2.13.0
 	$(PY) -m pip install --disable-pip-version-check -q -r requirements.txt
 	$(PY) -m pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e .
+	# LPIPS weights (offline afterwards); without them metrics say why instead of guessing
+	-$(PY) -m esgs.core.metrics.lpips --fetch
 	@touch $(STAMP)
 
 test: setup

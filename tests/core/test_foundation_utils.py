@@ -121,3 +121,14 @@ def test_console_script_is_installed():
     assert result.returncode == 0, result.stderr
     info = json.loads(result.stdout)
     assert info["numpy"].startswith("1.") and info["esgs"]
+
+
+def test_atomic_files_get_ordinary_permissions(tmp_path):
+    import os
+    import stat
+
+    target = tmp_path / "m.json"
+    atomic_write_json(target, {})
+    mask = os.umask(0)
+    os.umask(mask)
+    assert stat.S_IMODE(target.stat().st_mode) == 0o666 & ~mask
