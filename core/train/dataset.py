@@ -93,34 +93,12 @@ def target_size(width: int, height: int, resolution: int, target_width: int) -> 
 
 
 def _read_rgb(path: Path) -> np.ndarray:
-    """[H, W, 3] uint8 RGB (alpha dropped, 16-bit reduced, grey expanded)."""
-    try:
-        from ..imageio import read_image
-    except ImportError:  # the shared reader is optional; OpenCV reads every format we expect
-        read_image = None
-    if read_image is not None:
-        image = np.asarray(read_image(path))
-    else:
-        import cv2
+    """[H, W, 3] uint8 RGB (grey images expanded; see :func:`esgs.core.imageio.read_image`)."""
+    from ..imageio import read_image
 
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if raw is None:
-            raise DatasetError("cannot read image", path=path, hint="is it a valid PNG/JPEG file?")
-        if raw.ndim == 3 and raw.shape[2] == 4:
-            raw = cv2.cvtColor(raw, cv2.COLOR_BGRA2RGBA)
-        elif raw.ndim == 3:
-            raw = cv2.cvtColor(raw, cv2.COLOR_BGR2RGB)
-        image = raw
+    image = read_image(path)
     if image.ndim == 2:
         image = np.repeat(image[:, :, None], 3, axis=2)
-    image = image[:, :, :3]
-    if image.dtype == np.uint16:
-        image = (image.astype(np.float32) / 257.0).round().astype(np.uint8)
-    elif image.dtype != np.uint8:
-        scaled = np.asarray(image, dtype=np.float32)
-        if scaled.max(initial=0.0) <= 1.0:
-            scaled = scaled * 255.0
-        image = np.clip(scaled, 0, 255).round().astype(np.uint8)
     return np.ascontiguousarray(image)
 
 
@@ -148,27 +126,47 @@ def find_mask_source(scene: Path, requested: str) -> Optional[str]:
     return requested
 
 
-def _read_mask(path: Path, size: tuple[int, int]) -> torch.Tensor:
+def _read_mask(path: Path) -> np.ndarray:
     import cv2
 
     raw = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if raw is None:
         raise DatasetError("cannot read mask image", path=path, hint="masks are 8-bit PNGs, 255 = valid surface")
-    # area-average then threshold, so a downscaled pixel counts when mostly valid
+    return raw
+
+
+def _mask_tensor(raw: np.ndarray, size: tuple[int, int]) -> torch.Tensor:
+    """[H, W, 1] bool: area-average then threshold, so a downscaled pixel counts when mostly valid."""
     resized = _resize(raw.astype(np.float32), size)
     return torch.from_numpy(resized >= 127.5)[:, :, None]
 
 
-def _undistorted(model, images_dir: Path):
-    """The model and images folder with every camera PINHOLE (undistorting when needed)."""
-    if all(camera.is_pinhole for camera in model.cameras.values()):
-        return model, images_dir
-    try:
-        from ..colmap.undistort import undistort_scene_cached
-    except ImportError as err:
-        raise DatasetError("the scene has distorted cameras and undistortion is not available",
-                           path=images_dir.parent, hint="undistort it first (COLMAP image_undistorter)") from err
-    return undistort_scene_cached(model, images_dir)
+class _Undistorter:
+    """Warps images of distorted cameras to their PINHOLE equivalent (COLMAP's choice of size)."""
+
+    def __init__(self) -> None:
+        self._cache: dict[int, tuple] = {}
+
+    def camera(self, camera):
+        if camera.is_pinhole:
+            return camera
+        return self._entry(camera)[0]
+
+    def _entry(self, camera):
+        if camera.camera_id not in self._cache:
+            from ..colmap.undistort import undistorted_camera, undistortion_maps
+
+            pinhole = undistorted_camera(camera)
+            self._cache[camera.camera_id] = (pinhole, undistortion_maps(camera, pinhole))
+        return self._cache[camera.camera_id]
+
+    def image(self, pixels: np.ndarray, camera, *, nearest: bool = False) -> np.ndarray:
+        if camera.is_pinhole:
+            return pixels
+        from ..colmap.undistort import undistort_image
+
+        pinhole, maps = self._entry(camera)
+        return undistort_image(pixels, camera, pinhole, maps=maps, interpolation="nearest" if nearest else "linear")
 
 
 def load_scene_data(scene: str | Path, *, images_dir: str = "images", resolution: int = 1, width: int = 0,
@@ -183,7 +181,7 @@ def load_scene_data(scene: str | Path, *, images_dir: str = "images", resolution
     if not folder.is_dir():
         raise DatasetError("scene has no image folder", path=folder, hint="COLMAP scenes keep their images in images/")
     model = read_model(scene)
-    model, folder = _undistorted(model, folder)
+    undistorter = _Undistorter()
     images = model.sorted_images()
     if not images:
         raise DatasetError("the COLMAP model has no registered images", path=scene / "sparse")
@@ -194,14 +192,15 @@ def load_scene_data(scene: str | Path, *, images_dir: str = "images", resolution
         path = folder / entry.name
         if not path.is_file():
             raise DatasetError(f"image {entry.name} of the COLMAP model is missing", path=path)
-        camera = model.cameras[entry.camera_id]
+        distorted = model.cameras[entry.camera_id]
         pixels = _read_rgb(path)
         height, width_px = pixels.shape[:2]
-        if (width_px, height) != (camera.width, camera.height):
-            raise DatasetError(f"image is {width_px}x{height} but its camera {camera.camera_id} is "
-                               f"{camera.width}x{camera.height}", path=path, hint="re-export the images or the model")
+        if (width_px, height) != (distorted.width, distorted.height):
+            raise DatasetError(f"image is {width_px}x{height} but its camera {distorted.camera_id} is "
+                               f"{distorted.width}x{distorted.height}", path=path, hint="re-export the images or the model")
+        camera = undistorter.camera(distorted)
         size = target_size(camera.width, camera.height, resolution, width)
-        pixels = _resize(pixels, size)
+        pixels = _resize(undistorter.image(pixels, distorted), size)
         fx, fy, cx, cy = camera.intrinsics()
         sx, sy = size[0] / camera.width, size[1] / camera.height
         K = torch.tensor([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]], dtype=torch.float32)
@@ -209,7 +208,11 @@ def load_scene_data(scene: str | Path, *, images_dir: str = "images", resolution
         if source is not None:
             mask_path = scene / "priors" / source / "mask" / f"{Path(entry.name).stem}.png"
             if mask_path.is_file():
-                mask = _read_mask(mask_path, size)
+                raw = _read_mask(mask_path)
+                if raw.shape != (distorted.height, distorted.width):
+                    raise DatasetError(f"mask is {raw.shape[1]}x{raw.shape[0]}, its image is {distorted.width}x"
+                                       f"{distorted.height}", path=mask_path)
+                mask = _mask_tensor(undistorter.image(raw, distorted, nearest=True), size)
         views.append(View(index=index, name=entry.name, K=K,
                           viewmat=torch.from_numpy(entry.world_to_camera()).float(), width=size[0], height=size[1],
                           image=torch.from_numpy(pixels), mask=mask, center=entry.camera_center()))

@@ -1,0 +1,28 @@
+"""Fixtures of the training tests: one tiny synthetic scene per session and a fast config."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from .scene import make_scene
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory) -> Path:
+    """10 views of 32x24 pixels of a textured plane; PINHOLE cameras; 150 SfM points."""
+    return make_scene(tmp_path_factory.mktemp("scene") / "plane")
+
+
+@pytest.fixture
+def fast_config(tiny_scene, tmp_path):
+    """A TrainConfig for quick runs on ``tiny_scene``: cpu backend, one thread, no LPIPS."""
+    from esgs.core.train import TrainConfig
+
+    def build(**overrides) -> TrainConfig:
+        values = dict(scene=tiny_scene, out=tmp_path / "run", iterations=30, backend="cpu", threads=1, lpips=False,
+                      progress_every=5, checkpoint_every=0, save_renders=False)
+        values.update(overrides)
+        return TrainConfig(**values)
+
+    return build
