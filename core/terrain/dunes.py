@@ -53,6 +53,19 @@ def dune_component(config: TerrainConfig, coords_x_m: np.ndarray, coords_y_m: np
     return total
 
 
+def smooth(field: np.ndarray, sigma_cells: float) -> np.ndarray:
+    """Gaussian-like blur [H, W]; wide blurs use three box passes, whose cost does not grow with width."""
+    if sigma_cells < 4.0:
+        return ndimage.gaussian_filter(field, sigma=sigma_cells, mode="nearest")
+    # Three box filters of width w have variance 3 (w^2 - 1) / 12.
+    width = int(round(np.sqrt(4.0 * sigma_cells ** 2 + 1.0)))
+    width += 1 - width % 2
+    result = field
+    for _ in range(3):
+        result = ndimage.uniform_filter(result, size=width, mode="nearest")
+    return result
+
+
 def sand_mask(config: TerrainConfig, heights: np.ndarray, coords_x_m: np.ndarray, coords_y_m: np.ndarray,
               rng: np.random.Generator) -> np.ndarray:
     """Sand cover [H, W] in [0, 1] (1 = sand): low ground and a noise field, ~``sand_fraction`` of the area."""
@@ -65,8 +78,8 @@ def sand_mask(config: TerrainConfig, heights: np.ndarray, coords_x_m: np.ndarray
     # Lowness relative to the neighbourhood (a few metres), so sand pools in craters and
     # troughs even on a regional slope.
     sigma_cells = max(4.0 / cell, 1.0)
-    local = heights - ndimage.gaussian_filter(heights, sigma=sigma_cells * 3, mode="nearest")
-    local = ndimage.gaussian_filter(local, sigma=max(0.5 / cell, 0.5), mode="nearest")
+    local = heights - smooth(heights, sigma_cells * 3)
+    local = smooth(local, max(0.5 / cell, 0.5))
     std = local.std()
     lowness = -local / std if std > 0 else np.zeros(shape)
     patches = fractal_noise(coords_x_m, coords_y_m, rng, wavelength_m=max(config.extent_m / 4, 8 * cell),

@@ -74,3 +74,15 @@ def test_ripples_add_a_short_wavelength():
     terrain = generate_terrain(config, seed=4)
     azimuth, wavelength = dominant_wave_vector(terrain.components["dunes"], terrain.cell_m)
     assert angle_gap(azimuth, 90.0) < 10.0 and wavelength == pytest.approx(2.0, rel=0.2)
+
+
+def test_wide_smoothing_keeps_mass_and_spread():
+    from esgs.core.terrain.dunes import smooth
+    impulse = np.zeros((301, 301))
+    impulse[150, 150] = 1.0
+    for sigma in (2.0, 12.0):
+        blurred = smooth(impulse, sigma)
+        assert blurred.sum() == pytest.approx(1.0)
+        offsets = (np.arange(301) - 150.0) ** 2
+        assert (blurred * offsets[None, :]).sum() == pytest.approx(sigma ** 2, rel=0.12)
+        assert (blurred * offsets[:, None]).sum() == pytest.approx(sigma ** 2, rel=0.12)
