@@ -15,12 +15,14 @@ from __future__ import annotations
 from ..config import config_to_dict
 from .config import CAMERA_PRESETS, RIG_KINDS, RenderConfig, RigConfig, SceneConfig, TerrainConfig, camera_preset
 from .heightfield import Terrain, generate_terrain
+from .mesh import heightfield_mesh, rock_mesh, rocks_mesh, terrain_mesh
 from .presets import list_presets, load_preset, load_scene_config, save_scene_config, scene_config_from_dict
 from .rigs import CameraPose, intrinsics, make_camera_rig, views_beyond_terrain
 
 __all__ = [
     "CAMERA_PRESETS", "RIG_KINDS", "CameraPose", "RenderConfig", "RigConfig", "SceneConfig", "Terrain",
-    "TerrainConfig", "camera_preset", "config_to_dict", "generate_terrain", "intrinsics", "list_presets",
+    "TerrainConfig", "camera_preset", "config_to_dict", "generate_terrain", "heightfield_mesh", "intrinsics",
+    "list_presets", "rock_mesh", "rocks_mesh", "terrain_mesh",
     "load_preset", "load_scene_config", "make_camera_rig", "save_scene_config", "scene_config_from_dict",
     "views_beyond_terrain",
 ]
