@@ -13,5 +13,6 @@ _subpackages = [
 setup(
     packages=["esgs"] + [f"esgs.{p}" for p in _subpackages],
     package_dir={"esgs": "."},
-    package_data={"esgs": ["blender_manifest.toml"], "esgs.core": ["presets/*.toml", "data/*"]},
+    package_data={"esgs": ["blender_manifest.toml"], "esgs.core": ["presets/*.toml", "data/*"],
+                  "esgs.core.terrain": ["presets/*.toml"]},
 )
