@@ -176,3 +176,17 @@ def test_camera_presets_table_is_complete():
         assert camera_preset(name).camera == name
         for key, value in values.items():
             assert getattr(camera_preset(name), key) == value
+
+
+def test_docs_cover_every_setting_and_preset():
+    from pathlib import Path
+    docs = (Path(__file__).resolve().parents[3] / "docs" / "terrain.md").read_text(encoding="utf-8")
+    for cls in (SceneConfig, TerrainConfig, RigConfig, RenderConfig):
+        for fld in dataclasses.fields(cls):
+            assert f"`{fld.name}`" in docs, f"docs/terrain.md does not mention {cls.__name__}.{fld.name}"
+    for name in list_presets():
+        assert f"`{name}`" in docs, f"docs/terrain.md does not mention preset {name}"
+
+
+def test_default_scene_config_is_valid():
+    SceneConfig().validate()
