@@ -32,21 +32,22 @@ class _Plan:
     tile_size: int
     tiles_x: int
     tiles_y: int
-    tile_order: np.ndarray
-    tile_start: np.ndarray
-    pair_gaussian: np.ndarray
-    order: np.ndarray
-    gaussian_pair_start: np.ndarray
-    gaussian_pairs: np.ndarray
-    level: np.ndarray
-    box: tuple
+    tile_order: np.ndarray  # [T] processing order of the tiles
+    tile_start: np.ndarray  # [T + 1] start of each tile's list in pair_rank
+    pair_rank: np.ndarray  # [P] depth rank of each tile-Gaussian pair
+    order: np.ndarray  # [M] Gaussian id of each depth rank
+    rank_pair_start: np.ndarray  # [M + 1]
+    rank_pairs: np.ndarray  # [P] pair positions of each rank
+    splats: np.ndarray  # [M, 8] packed screen-space Gaussians in depth order
+    boxes: np.ndarray  # [M, 4] inclusive pixel bounds in depth order
     centres_x: np.ndarray
     centres_y: np.ndarray
     constants: np.ndarray
+    evaluations: int = 0
 
     @property
     def pairs(self) -> int:
-        return int(self.pair_gaussian.shape[0])
+        return int(self.pair_rank.shape[0])
 
 
 def _tile_order(tiles: int) -> np.ndarray:
@@ -55,37 +56,32 @@ def _tile_order(tiles: int) -> np.ndarray:
     return np.random.default_rng(12345).permutation(tiles).astype(np.int64)
 
 
-def _make_plan(means2d, conics, opacities, depths, valid, cov_diagonal, width, height, tile_size, dtype):
-    """Cull, compute the pixel boxes and bin the Gaussians of one camera into tiles."""
-    np_dtype = np.float32 if dtype == torch.float32 else np.float64
-    opacity = opacities.detach().numpy().astype(np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        exact_level = 2.0 * (np.log(np.maximum(opacity, 1e-300)) + K.LOG_INV_ALPHA_MIN)
-    level = exact_level * (1.0 + _LEVEL_SLACK_RELATIVE) + _LEVEL_SLACK_ABSOLUTE
-    centre = means2d.detach().numpy().astype(np.float64)
-    diagonal = cov_diagonal.numpy().astype(np.float64)
-    keep = valid.numpy() & (opacity >= K.ALPHA_MIN) & np.isfinite(centre).all(-1)
-    safe_level = np.where(keep, level, 0.0)
-    with np.errstate(invalid="ignore", over="ignore"):
-        half_x = np.sqrt(safe_level * diagonal[:, 0])
-        half_y = np.sqrt(safe_level * diagonal[:, 1])
-        # Far outside the image the exact bound does not matter: clip before integer casts.
-        low_x = np.clip(np.ceil(centre[:, 0] - half_x - 0.5), -1, width)
-        high_x = np.clip(np.floor(centre[:, 0] + half_x - 0.5), -1, width)
-        low_y = np.clip(np.ceil(centre[:, 1] - half_y - 0.5), -1, height)
-        high_y = np.clip(np.floor(centre[:, 1] + half_y - 0.5), -1, height)
-    keep &= np.isfinite(half_x) & np.isfinite(half_y)
-    keep &= (high_x >= 0) & (low_x <= width - 1) & (high_y >= 0) & (low_y <= height - 1) & (low_x <= high_x) \
-        & (low_y <= high_y)
-    box = tuple(np.where(keep, np.clip(v, 0, limit - 1), 0).astype(np.int64)
-                for v, limit in ((low_x, width), (high_x, width), (low_y, height), (high_y, height)))
-    index = np.nonzero(keep)[0]
+def _make_plan(means2d, conics, opacities, depths, valid, cov_diagonal, width, height, tile_size):
+    """Cull, bound, depth-sort, pack and bin the Gaussians of one camera.
+
+    Returns the plan and the exact 1/255 level of every Gaussian (for the radii).
+    """
+    means2d = means2d.detach().numpy()
+    np_dtype = means2d.dtype
+    count = means2d.shape[0]
+    keep = np.empty(count, dtype=np.bool_)
+    level = np.empty(count, dtype=np.float64)
+    exact_level = np.empty(count, dtype=np.float64)
+    boxes = np.empty((count, 4), dtype=np.int32)
+    kernels.prepare_splats(means2d, conics.detach().numpy(), opacities.detach().numpy(), cov_diagonal.numpy(),
+                           valid.numpy(), width, height, K.LOG_INV_ALPHA_MIN, _LEVEL_SLACK_RELATIVE,
+                           _LEVEL_SLACK_ABSOLUTE, K.ALPHA_MIN, keep, level, exact_level, boxes)
+    index = np.flatnonzero(keep)
     depth = depths.detach().numpy()
     order = index[np.argsort(depth[index], kind="stable")].astype(np.int64)
+    splats = np.empty((order.shape[0], kernels.SPLAT_COLUMNS), dtype=np_dtype)
+    packed_boxes = np.empty((order.shape[0], 4), dtype=np.int32)
+    kernels.pack_splats(order, means2d, conics.detach().numpy(), opacities.detach().numpy(), level, boxes, splats,
+                        packed_boxes)
     tiles_x = -(-width // tile_size)
     tiles_y = -(-height // tile_size)
-    tile_start, pair_gaussian, gaussian_pair_start, gaussian_pairs = kernels.bin_gaussians(
-        order, box[0], box[1], box[2], box[3], tile_size, tiles_x, tiles_y)
+    tile_start, pair_rank, rank_pair_start, rank_pairs = kernels.bin_gaussians(packed_boxes, tile_size, tiles_x,
+                                                                               tiles_y)
     constants = np.zeros(7, dtype=np_dtype)
     constants[kernels.C_HALF] = 0.5
     constants[kernels.C_ONE] = 1.0
@@ -94,43 +90,39 @@ def _make_plan(means2d, conics, opacities, depths, valid, cov_diagonal, width, h
     constants[kernels.C_ALPHA_MAX] = K.ALPHA_MAX
     constants[kernels.C_T_MIN] = K.TRANSMITTANCE_MIN
     constants[kernels.C_SLACK] = 1e-3
-    return _Plan(
+    plan = _Plan(
         width=width, height=height, tile_size=tile_size, tiles_x=tiles_x, tiles_y=tiles_y,
-        tile_order=_tile_order(tiles_x * tiles_y), tile_start=tile_start, pair_gaussian=pair_gaussian,
-        order=order, gaussian_pair_start=gaussian_pair_start, gaussian_pairs=gaussian_pairs,
-        level=np.where(keep, level, 0.0).astype(np_dtype), box=box,
+        tile_order=_tile_order(tiles_x * tiles_y), tile_start=tile_start, pair_rank=pair_rank, order=order,
+        rank_pair_start=rank_pair_start, rank_pairs=rank_pairs, splats=splats, boxes=packed_boxes,
         centres_x=(np.arange(width) + 0.5).astype(np_dtype), centres_y=(np.arange(height) + 0.5).astype(np_dtype),
         constants=constants,
-    ), exact_level
-
-
-def _soa(means2d, conics, opacities, features):
-    """Contiguous numpy views in structure-of-arrays layout."""
-    m = means2d.detach().numpy()
-    c = conics.detach().numpy()
-    return (np.ascontiguousarray(m[:, 0]), np.ascontiguousarray(m[:, 1]), np.ascontiguousarray(c[:, 0]),
-            np.ascontiguousarray(c[:, 1]), np.ascontiguousarray(c[:, 2]),
-            np.ascontiguousarray(opacities.detach().numpy()), np.ascontiguousarray(features.detach().numpy()))
+    )
+    return plan, exact_level
 
 
 class _Composite(torch.autograd.Function):
-    """(means2d [N, 2], conics [N, 3], opacities [N], features [N, F]) -> image [H, W, F], alpha [H, W, 1]."""
+    """(means2d [N, 2], conics [N, 3], opacities [N], features [N, F]) -> image [H, W, F], alpha [H, W, 1].
+
+    The screen-space values were already packed into ``plan`` (same numbers); the tensors
+    are inputs so that autograd routes their gradients.
+    """
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, features, plan: _Plan):
-        arrays = _soa(means2d, conics, opacities, features)
-        channels = features.shape[1]
-        np_dtype = arrays[0].dtype
-        image = np.zeros((plan.height, plan.width, channels), dtype=np_dtype)
+        features_np = features.detach().numpy()
+        np_dtype = features_np.dtype
+        packed = np.empty((plan.order.shape[0], features_np.shape[1]), dtype=np_dtype)
+        kernels.pack_features(plan.order, features_np, packed)
+        image = np.zeros((plan.height, plan.width, features_np.shape[1]), dtype=np_dtype)
         transmittance = np.empty((plan.height, plan.width), dtype=np_dtype)
         stop = np.empty((plan.height, plan.width), dtype=np.int64)
         evaluations = np.zeros(plan.tiles_x * plan.tiles_y, dtype=np.int64)
-        kernels.composite_forward(plan.tile_order, plan.tile_start, plan.pair_gaussian, plan.tiles_x, plan.tile_size,
-                                  plan.centres_x, plan.centres_y, *arrays[:6], plan.level, *plan.box, arrays[6],
-                                  plan.constants, image, transmittance, stop, evaluations)
+        kernels.composite_forward(plan.tile_order, plan.tile_start, plan.pair_rank, plan.tiles_x, plan.tile_size,
+                                  plan.centres_x, plan.centres_y, plan.splats, plan.boxes, packed, plan.constants,
+                                  image, transmittance, stop, evaluations)
         plan.evaluations = int(evaluations.sum())
         ctx.plan = plan
-        ctx.arrays = arrays
+        ctx.packed = packed
         ctx.transmittance = transmittance
         ctx.stop = stop
         ctx.count = means2d.shape[0]
@@ -140,25 +132,23 @@ class _Composite(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_image, grad_alpha):
         plan: _Plan = ctx.plan
-        arrays = ctx.arrays
-        np_dtype = arrays[0].dtype
-        channels = arrays[6].shape[1]
+        packed = ctx.packed
+        np_dtype = packed.dtype
+        channels = packed.shape[1]
         height, width = plan.height, plan.width
-        if grad_image is None:
-            grad_image = torch.zeros(height, width, channels, dtype=torch.from_numpy(arrays[0]).dtype)
-        if grad_alpha is None:
-            grad_alpha = torch.zeros(height, width, 1, dtype=torch.from_numpy(arrays[0]).dtype)
+        grad_image = (np.zeros((height, width, channels), dtype=np_dtype) if grad_image is None
+                      else np.ascontiguousarray(grad_image.detach().numpy(), dtype=np_dtype))
+        grad_alpha = (np.zeros((height, width), dtype=np_dtype) if grad_alpha is None
+                      else np.ascontiguousarray(grad_alpha.detach().numpy()[..., 0], dtype=np_dtype))
         records = np.empty((plan.pairs, kernels.RECORD_FIXED + channels), dtype=np_dtype)
         kernels.composite_backward(
-            plan.tile_order, plan.tile_start, plan.pair_gaussian, plan.tiles_x, plan.tile_size,
-            plan.centres_x, plan.centres_y, *arrays[:6], plan.level, *plan.box, arrays[6], plan.constants,
-            ctx.transmittance, ctx.stop,
-            np.ascontiguousarray(grad_image.detach().numpy(), dtype=np_dtype),
-            np.ascontiguousarray(grad_alpha.detach().numpy()[..., 0], dtype=np_dtype),
+            plan.tile_order, plan.tile_start, plan.pair_rank, plan.tiles_x, plan.tile_size,
+            plan.centres_x, plan.centres_y, plan.splats, plan.boxes, packed, plan.constants,
+            ctx.transmittance, ctx.stop, grad_image, grad_alpha,
             np.empty((height, width), dtype=np_dtype), np.empty((height, width, channels), dtype=np_dtype),
             records)
         totals = np.zeros((ctx.count, kernels.RECORD_FIXED + channels), dtype=np_dtype)
-        kernels.reduce_records(plan.order, plan.gaussian_pair_start, plan.gaussian_pairs, records, totals)
+        kernels.reduce_records(plan.order, plan.rank_pair_start, plan.rank_pairs, records, totals)
         totals = torch.from_numpy(totals)
         grad_means2d = totals[:, kernels.R_MEAN_X:kernels.R_MEAN_Y + 1]
         grad_conics = totals[:, kernels.R_CONIC_A:kernels.R_CONIC_C + 1]
@@ -193,7 +183,7 @@ def rasterize_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, 
     for cam in range(cameras):
         plan, exact_level = _make_plan(means2d[cam], projected["conics"][cam], projected["opacities"][cam],
                                        projected["depths"][cam], projected["valid"][cam],
-                                       projected["cov_diagonal"][cam], width, height, tile_size, dtype)
+                                       projected["cov_diagonal"][cam], width, height, tile_size)
         channels = [evaluate_colors(cam)]
         color_dims = channels[0].shape[1]
         if render_depth:
@@ -217,15 +207,14 @@ def rasterize_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, 
         pieces.append(image[..., cursor:])
         renders.append(torch.cat(pieces, dim=-1))
         alphas.append(alpha)
-        with np.errstate(invalid="ignore"):
-            diagonal = projected["cov_diagonal"][cam].numpy().astype(np.float64)
-            extent = np.sqrt(np.maximum(exact_level, 0.0)[:, None] * diagonal).max(-1)
-        in_plan = np.zeros(means.shape[0], dtype=bool)
-        in_plan[plan.order] = True
-        radius = np.where(in_plan, np.ceil(np.minimum(extent, 2.0**30)), 0).astype(np.int32)
+        radius = np.zeros(means.shape[0], dtype=np.int32)
+        if plan.order.size:
+            diagonal = projected["cov_diagonal"][cam].numpy()[plan.order].astype(np.float64)
+            extent = np.sqrt(exact_level[plan.order, None] * diagonal).max(-1)
+            radius[plan.order] = np.ceil(np.minimum(extent, 2.0**30)).astype(np.int32)
         radii.append(torch.from_numpy(radius))
         intersections.append(plan.pairs)
-        evaluations.append(getattr(plan, "evaluations", 0))
+        evaluations.append(plan.evaluations)
     meta = {
         "means2d": means2d,
         "radii": torch.stack(radii),

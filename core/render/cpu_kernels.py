@@ -1,7 +1,10 @@
 """Numba kernels of the CPU backend: tile binning, alpha compositing and its backward.
 
-Layout: per-Gaussian screen data as separate contiguous arrays (structure of arrays),
-features as one [N, F] row per Gaussian, images as [H, W, F]. The same kernels serve
+Layout: the visible Gaussians are packed in depth order (rank 0 = nearest), one row per
+Gaussian: ``splats [M, 8]`` (mean x, mean y, conic a, b, c, opacity, level, unused),
+``boxes [M, 4]`` inclusive pixel bounds (x0, x1, y0, y1) and ``features [M, F]``. Tile lists
+hold ranks, so a tile walks these rows forwards in memory (one cache line per Gaussian
+instead of one per attribute). Images are [H, W, F]. The same kernels serve
 float32 and float64 inputs (Numba compiles one version per dtype and caches both); all
 arithmetic constants come in through ``constants`` so float32 data stays in float32.
 
@@ -30,49 +33,123 @@ R_MEAN_X, R_MEAN_Y, R_CONIC_A, R_CONIC_B, R_CONIC_C, R_OPACITY = range(6)
 RECORD_FIXED = 6
 
 
-@njit(cache=True)
-def bin_gaussians(order, box_x0, box_x1, box_y0, box_y1, tile_size, tiles_x, tiles_y):
-    """Tile lists by counting sort over Gaussians taken in depth order.
+S_MEAN_X, S_MEAN_Y, S_CONIC_A, S_CONIC_B, S_CONIC_C, S_OPACITY, S_LEVEL = range(7)
+SPLAT_COLUMNS = 8
 
-    order: [M] Gaussian ids sorted front to back; box_*: [N] inclusive pixel bounds.
-    Returns tile_start [T + 1], pair_gaussian [P] (per tile, depth order),
-    gaussian_pair_start [M + 1] and gaussian_pairs [P] (the pair positions of each
-    Gaussian of ``order``, for the gradient reduction).
+
+@njit(cache=True, parallel=True)
+def prepare_splats(means2d, conics, opacities, cov_diagonal, valid, width, height, log_inv_alpha_min,
+                   slack_relative, slack_absolute, alpha_min, keep, level, exact_level, boxes):
+    """Cull and bound every Gaussian of one camera (float64 arithmetic).
+
+    means2d [N, 2], conics [N, 3], opacities [N], cov_diagonal [N, 2] (dilated covariance
+    diagonal), valid [N] (in front of the camera, invertible). Writes keep [N] (visible),
+    exact_level [N] = 2 (log opacity + log 255) (the Mahalanobis level of alpha = 1/255),
+    level [N] = that level widened a little for the exp-free skip test, and boxes [N, 4]
+    the inclusive pixel bounds of the level ellipse clipped to the image.
+    """
+    for g in prange(means2d.shape[0]):
+        keep[g] = False
+        level[g] = 0.0
+        exact_level[g] = 0.0
+        boxes[g, 0] = 0
+        boxes[g, 1] = -1
+        boxes[g, 2] = 0
+        boxes[g, 3] = -1
+        opacity = np.float64(opacities[g])
+        if not valid[g] or not opacity >= alpha_min:
+            continue
+        exact = 2.0 * (math.log(opacity) + log_inv_alpha_min)
+        widened = exact * (1.0 + slack_relative) + slack_absolute
+        half_x = math.sqrt(widened * np.float64(cov_diagonal[g, 0]))
+        half_y = math.sqrt(widened * np.float64(cov_diagonal[g, 1]))
+        mx = np.float64(means2d[g, 0])
+        my = np.float64(means2d[g, 1])
+        if not (math.isfinite(half_x) and math.isfinite(half_y) and math.isfinite(mx) and math.isfinite(my)):
+            continue
+        # Pixel j is inside when |j + 1/2 - mean| <= half; clip to the image before int casts.
+        low_x = min(max(np.ceil(mx - half_x - 0.5), -1.0), np.float64(width))
+        high_x = min(max(np.floor(mx + half_x - 0.5), -1.0), np.float64(width))
+        low_y = min(max(np.ceil(my - half_y - 0.5), -1.0), np.float64(height))
+        high_y = min(max(np.floor(my + half_y - 0.5), -1.0), np.float64(height))
+        if high_x < 0 or low_x > width - 1 or high_y < 0 or low_y > height - 1 or low_x > high_x or low_y > high_y:
+            continue
+        keep[g] = True
+        exact_level[g] = exact
+        level[g] = widened
+        boxes[g, 0] = max(int(low_x), 0)
+        boxes[g, 1] = min(int(high_x), width - 1)
+        boxes[g, 2] = max(int(low_y), 0)
+        boxes[g, 3] = min(int(high_y), height - 1)
+
+
+@njit(cache=True, parallel=True)
+def pack_splats(order, means2d, conics, opacities, level, boxes, splats, packed_boxes):
+    """Gather the visible Gaussians into depth order: splats [M, 8], packed_boxes [M, 4]."""
+    for i in prange(order.shape[0]):
+        g = order[i]
+        splats[i, S_MEAN_X] = means2d[g, 0]
+        splats[i, S_MEAN_Y] = means2d[g, 1]
+        splats[i, S_CONIC_A] = conics[g, 0]
+        splats[i, S_CONIC_B] = conics[g, 1]
+        splats[i, S_CONIC_C] = conics[g, 2]
+        splats[i, S_OPACITY] = opacities[g]
+        splats[i, S_LEVEL] = level[g]
+        splats[i, 7] = 0
+        for j in range(4):
+            packed_boxes[i, j] = boxes[g, j]
+
+
+@njit(cache=True, parallel=True)
+def pack_features(order, features, packed):
+    """packed[i] = features[order[i]] ([M, F])."""
+    for i in prange(order.shape[0]):
+        g = order[i]
+        for j in range(features.shape[1]):
+            packed[i, j] = features[g, j]
+
+
+@njit(cache=True)
+def bin_gaussians(boxes, tile_size, tiles_x, tiles_y):
+    """Tile lists by counting sort over the depth-ordered Gaussians.
+
+    boxes: [M, 4] inclusive pixel bounds in depth order. Returns tile_start [T + 1],
+    pair_rank [P] (per tile, front to back), rank_pair_start [M + 1] and rank_pairs [P]
+    (the pair positions of each rank, for the gradient reduction).
     """
     tiles = tiles_x * tiles_y
+    count = boxes.shape[0]
     counts = np.zeros(tiles + 1, dtype=np.int64)
-    gaussian_pair_start = np.zeros(order.shape[0] + 1, dtype=np.int64)
-    for i in range(order.shape[0]):
-        g = order[i]
-        tx0 = box_x0[g] // tile_size
-        tx1 = box_x1[g] // tile_size
-        ty0 = box_y0[g] // tile_size
-        ty1 = box_y1[g] // tile_size
+    rank_pair_start = np.zeros(count + 1, dtype=np.int64)
+    for i in range(count):
+        tx0 = boxes[i, 0] // tile_size
+        tx1 = boxes[i, 1] // tile_size
+        ty0 = boxes[i, 2] // tile_size
+        ty1 = boxes[i, 3] // tile_size
         for ty in range(ty0, ty1 + 1):
             for tx in range(tx0, tx1 + 1):
                 counts[ty * tiles_x + tx + 1] += 1
-        gaussian_pair_start[i + 1] = gaussian_pair_start[i] + (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+        rank_pair_start[i + 1] = rank_pair_start[i] + (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
     tile_start = np.cumsum(counts)
     pairs = tile_start[tiles]
     cursor = tile_start[:tiles].copy()
-    pair_gaussian = np.empty(pairs, dtype=np.int32)
-    gaussian_pairs = np.empty(pairs, dtype=np.int64)
-    for i in range(order.shape[0]):
-        g = order[i]
-        tx0 = box_x0[g] // tile_size
-        tx1 = box_x1[g] // tile_size
-        ty0 = box_y0[g] // tile_size
-        ty1 = box_y1[g] // tile_size
-        slot = gaussian_pair_start[i]
+    pair_rank = np.empty(pairs, dtype=np.int32)
+    rank_pairs = np.empty(pairs, dtype=np.int64)
+    for i in range(count):
+        tx0 = boxes[i, 0] // tile_size
+        tx1 = boxes[i, 1] // tile_size
+        ty0 = boxes[i, 2] // tile_size
+        ty1 = boxes[i, 3] // tile_size
+        slot = rank_pair_start[i]
         for ty in range(ty0, ty1 + 1):
             for tx in range(tx0, tx1 + 1):
                 tile = ty * tiles_x + tx
                 position = cursor[tile]
                 cursor[tile] = position + 1
-                pair_gaussian[position] = g
-                gaussian_pairs[slot] = position
+                pair_rank[position] = i
+                rank_pairs[slot] = position
                 slot += 1
-    return tile_start, pair_gaussian, gaussian_pair_start, gaussian_pairs
+    return tile_start, pair_rank, rank_pair_start, rank_pairs
 
 
 @njit(cache=True, inline="always")
@@ -99,9 +176,8 @@ def _row_span(dy, a, b, c, level, mean_x, x_first, x_stop, half, slack):
 
 
 @njit(cache=True, parallel=True)
-def composite_forward(tile_order, tile_start, pair_gaussian, tiles_x, tile_size, centres_x, centres_y,
-                      mean_x, mean_y, conic_a, conic_b, conic_c, opacity, level,
-                      box_x0, box_x1, box_y0, box_y1, features, constants,
+def composite_forward(tile_order, tile_start, pair_rank, tiles_x, tile_size, centres_x, centres_y,
+                      splats, boxes, features, constants,
                       out_features, out_transmittance, out_stop, tile_evaluations):
     """Front-to-back compositing of every tile.
 
@@ -136,18 +212,18 @@ def composite_forward(tile_order, tile_start, pair_gaussian, tiles_x, tile_size,
         active = (x1 - x0) * (y1 - y0)
         evaluations = 0
         for k in range(start, end):
-            g = pair_gaussian[k]
-            row_first = max(box_y0[g], y0)
-            row_stop = min(box_y1[g] + 1, y1)
-            col_first = max(box_x0[g], x0)
-            col_stop = min(box_x1[g] + 1, x1)
-            mx = mean_x[g]
-            my = mean_y[g]
-            a = conic_a[g]
-            b = conic_b[g]
-            c = conic_c[g]
-            o = opacity[g]
-            q_max = level[g]
+            g = pair_rank[k]
+            row_first = max(boxes[g, 2], y0)
+            row_stop = min(boxes[g, 3] + 1, y1)
+            col_first = max(boxes[g, 0], x0)
+            col_stop = min(boxes[g, 1] + 1, x1)
+            mx = splats[g, S_MEAN_X]
+            my = splats[g, S_MEAN_Y]
+            a = splats[g, S_CONIC_A]
+            b = splats[g, S_CONIC_B]
+            c = splats[g, S_CONIC_C]
+            o = splats[g, S_OPACITY]
+            q_max = splats[g, S_LEVEL]
             for y in range(row_first, row_stop):
                 dy = centres_y[y] - my
                 xa, xb = _row_span(dy, a, b, c, q_max, mx, col_first, col_stop, half, slack)
@@ -180,9 +256,8 @@ def composite_forward(tile_order, tile_start, pair_gaussian, tiles_x, tile_size,
 
 
 @njit(cache=True, parallel=True)
-def composite_backward(tile_order, tile_start, pair_gaussian, tiles_x, tile_size, centres_x, centres_y,
-                       mean_x, mean_y, conic_a, conic_b, conic_c, opacity, level,
-                       box_x0, box_x1, box_y0, box_y1, features, constants,
+def composite_backward(tile_order, tile_start, pair_rank, tiles_x, tile_size, centres_x, centres_y,
+                       splats, boxes, features, constants,
                        final_transmittance, stop, grad_features, grad_alpha,
                        scratch_transmittance, scratch_behind, records):
     """Per-pair gradient records, walking each tile's Gaussians back to front.
@@ -219,18 +294,18 @@ def composite_backward(tile_order, tile_start, pair_gaussian, tiles_x, tile_size
                     scratch_behind[y, x, ch] = zero
         grad_feature_sum = np.zeros(channels, dtype=features.dtype)
         for k in range(end - 1, start - 1, -1):
-            g = pair_gaussian[k]
-            row_first = max(box_y0[g], y0)
-            row_stop = min(box_y1[g] + 1, y1)
-            col_first = max(box_x0[g], x0)
-            col_stop = min(box_x1[g] + 1, x1)
-            mx = mean_x[g]
-            my = mean_y[g]
-            a = conic_a[g]
-            b = conic_b[g]
-            c = conic_c[g]
-            o = opacity[g]
-            q_max = level[g]
+            g = pair_rank[k]
+            row_first = max(boxes[g, 2], y0)
+            row_stop = min(boxes[g, 3] + 1, y1)
+            col_first = max(boxes[g, 0], x0)
+            col_stop = min(boxes[g, 1] + 1, x1)
+            mx = splats[g, S_MEAN_X]
+            my = splats[g, S_MEAN_Y]
+            a = splats[g, S_CONIC_A]
+            b = splats[g, S_CONIC_B]
+            c = splats[g, S_CONIC_C]
+            o = splats[g, S_OPACITY]
+            q_max = splats[g, S_LEVEL]
             g_mx = zero
             g_my = zero
             g_a = zero
@@ -286,15 +361,15 @@ def composite_backward(tile_order, tile_start, pair_gaussian, tiles_x, tile_size
 
 
 @njit(cache=True, parallel=True)
-def reduce_records(order, gaussian_pair_start, gaussian_pairs, records, out):
-    """out[order[i]] = sum of the records of Gaussian order[i]'s pairs, in a fixed order.
+def reduce_records(order, rank_pair_start, rank_pairs, records, out):
+    """out[order[i]] = sum of the records of rank i's pairs, always in the same order.
 
     out: [N, 6 + F], zero on entry.
     """
     columns = records.shape[1]
     for i in prange(order.shape[0]):
         g = order[i]
-        for r in range(gaussian_pair_start[i], gaussian_pair_start[i + 1]):
-            position = gaussian_pairs[r]
+        for r in range(rank_pair_start[i], rank_pair_start[i + 1]):
+            position = rank_pairs[r]
             for j in range(columns):
                 out[g, j] += records[position, j]
