@@ -65,7 +65,8 @@ def _mix_color(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, factor, color
 
 def _new_material(name: str) -> tuple[bpy.types.Material, bpy.types.Nodes, bpy.types.NodeLinks, bpy.types.Node]:
     material = bpy.data.materials.new(name)
-    material.use_nodes = True
+    if material.node_tree is None:  # Blender < 5 made node-less materials by default
+        material.use_nodes = True
     nodes, links = material.node_tree.nodes, material.node_tree.links
     nodes.clear()
     output = nodes.new("ShaderNodeOutputMaterial")
@@ -88,7 +89,7 @@ def make_terrain_material(name: str = "ESGS Mars terrain") -> bpy.types.Material
 
     fine = _noise(nodes, scale=2.5, detail=4.0, roughness=0.6)  # pebbles and clods, ~0.4 m
     coarse = _noise(nodes, scale=0.08, detail=3.0)  # albedo patches, ~10 m
-    grain = _noise(nodes, scale=40.0, detail=2.0, roughness=0.5)  # granules, ~2.5 cm: texture for matching
+    grain = _noise(nodes, scale=20.0, detail=2.0, roughness=0.5)  # granules, ~5 cm: texture for matching
     for noise in (fine, coarse, grain):
         links.new(coords.outputs["Object"], noise.inputs["Vector"])
 
@@ -112,19 +113,52 @@ def make_terrain_material(name: str = "ESGS Mars terrain") -> bpy.types.Material
     dust = nodes.new("ShaderNodeRGB")
     dust.outputs["Color"].default_value = _DUST
     albedo = _mix_color(nodes, links, dust_amount.outputs["Result"], ground, dust.outputs["Color"])
-    # granules darken or lighten the albedo by up to ~35 %, so close-up views keep texture
+    # granules darken or lighten the albedo by up to ~50 %, so close-up views keep texture
     grain_gain = nodes.new("ShaderNodeMapRange")
     grain_gain.inputs["From Min"].default_value = 0.3
     grain_gain.inputs["From Max"].default_value = 0.7
-    grain_gain.inputs["To Min"].default_value = 0.65
-    grain_gain.inputs["To Max"].default_value = 1.3
+    grain_gain.inputs["To Min"].default_value = 0.5
+    grain_gain.inputs["To Max"].default_value = 1.45
     links.new(grain.outputs["Fac"], grain_gain.inputs["Value"])
     textured = nodes.new("ShaderNodeVectorMath")
     textured.operation = "SCALE"
     links.new(albedo, textured.inputs[0])
     links.new(grain_gain.outputs["Result"], textured.inputs["Scale"])
-    links.new(textured.outputs["Vector"], shader.inputs["Base Color"])
+    pebbled = _add_pebbles(nodes, links, coords.outputs["Object"], textured.outputs["Vector"], scale=9.0)
+    pebbled = _add_pebbles(nodes, links, coords.outputs["Object"], pebbled, scale=2.5)
+    links.new(pebbled, shader.inputs["Base Color"])
     return material
+
+
+def _add_pebbles(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, coordinates, albedo, scale: float):
+    """Scatter pebbles (dark or light, one per Voronoi cell for ~70 % of the cells) over ``albedo``.
+
+    ``scale`` cells per metre; pebbles are about half a cell across. Distinct
+    blobs give feature matchers (SIFT) something to hold on to, as real regolith does.
+    """
+    cells = nodes.new("ShaderNodeTexVoronoi")
+    cells.voronoi_dimensions = "3D"
+    cells.feature = "F1"
+    cells.inputs["Scale"].default_value = scale
+    links.new(coordinates, cells.inputs["Vector"])
+    # inside the pebble: distance to the cell's point below ~0.25 cell
+    edge = nodes.new("ShaderNodeMapRange")
+    edge.inputs["From Min"].default_value = 0.3
+    edge.inputs["From Max"].default_value = 0.22
+    links.new(cells.outputs["Distance"], edge.inputs["Value"])
+    cell_random = nodes.new("ShaderNodeSeparateColor")
+    links.new(cells.outputs["Color"], cell_random.inputs["Color"])
+    present = nodes.new("ShaderNodeMath")
+    present.operation = "GREATER_THAN"
+    present.inputs[1].default_value = 0.3
+    links.new(cell_random.outputs["Red"], present.inputs[0])
+    amount = nodes.new("ShaderNodeMath")
+    amount.operation = "MULTIPLY"
+    links.new(edge.outputs["Result"], amount.inputs[0])
+    links.new(present.outputs["Value"], amount.inputs[1])
+    shade = _color_ramp(nodes, _ROCK_DARK, _DUST, 0.0, 1.0)
+    links.new(cell_random.outputs["Green"], shade.inputs["Fac"])
+    return _mix_color(nodes, links, amount.outputs["Value"], albedo, shade.outputs["Color"])
 
 
 def make_rock_material(name: str = "ESGS Mars rock") -> bpy.types.Material:
@@ -168,13 +202,15 @@ def make_sky_world(name: str, *, sky: bool, sun_elevation_deg: float = 30.0) -> 
     import math
 
     world = bpy.data.worlds.new(name)
-    world.use_nodes = True
+    if world.node_tree is None:
+        world.use_nodes = True
     nodes, links = world.node_tree.nodes, world.node_tree.links
     nodes.clear()
     output = nodes.new("ShaderNodeOutputWorld")
     background = nodes.new("ShaderNodeBackground")
     links.new(background.outputs["Background"], output.inputs["Surface"])
-    world.cycles_visibility.camera = bool(sky)
+    # item assignment skips Cycles' update callback, which fails while no scene uses this world
+    world.cycles_visibility["camera"] = bool(sky)
     coords = nodes.new("ShaderNodeTexCoord")
     direction = nodes.new("ShaderNodeSeparateXYZ")
     links.new(coords.outputs["Generated"], direction.inputs["Vector"])

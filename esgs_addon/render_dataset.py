@@ -34,8 +34,10 @@ from ..core.progress import ProgressEvent
 
 #: Cycles writes this depth where a pixel sees no surface.
 _BACKGROUND_DEPTH = 1e9
-#: A point is visible in a view when its depth agrees with the rendered depth this well.
+#: A point is visible in a view when its depth agrees with the rendered depth (bilinear) this well...
 VISIBILITY_RELATIVE_TOLERANCE = 0.01
+#: ...and each of the four pixels around its projection within this: no depth edge between them.
+NEIGHBOUR_RELATIVE_TOLERANCE = 0.05
 _PASSES = (("Depth", "BW", "FLOAT"), ("Normal", "RGB", "VECTOR"))
 
 
@@ -158,11 +160,11 @@ def _local_mesh_arrays(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray, np
             np.repeat(face_normals, 3, axis=0))
 
 
-def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Bilinear samples of ``image`` [H, W] at COLMAP pixel coordinates (centres at +0.5).
 
-    Returns (values [N], ok [N]): ok is False outside the image or when one of the four
-    neighbours is 0 (no surface), so samples never blend a surface with the sky.
+    Returns (values [N], ok [N], corners [4, N]): ok is False outside the image or when one
+    of the four neighbours is 0 (no surface), so samples never blend a surface with the sky.
     """
     height, width = image.shape
     x, y = u - 0.5, v - 0.5
@@ -175,7 +177,7 @@ def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarr
         ok &= corner > 0
     value = (corners[0] * (1 - fx) * (1 - fy) + corners[1] * fx * (1 - fy)
              + corners[2] * (1 - fx) * fy + corners[3] * fx * fy)
-    return value, ok
+    return value, ok, np.stack(corners)
 
 
 def sample_surface_points(depths: list[np.ndarray], images: list[np.ndarray],
@@ -188,8 +190,9 @@ def sample_surface_points(depths: list[np.ndarray], images: list[np.ndarray],
     ``points_per_view`` pixels with a surface are drawn at random in each view and lifted
     to 3D with the rendered depth (so they lie on the surface), coloured from that pixel.
     A point's track holds every view where it projects inside the image onto a pixel
-    whose rendered depth agrees within :data:`VISIBILITY_RELATIVE_TOLERANCE` (a depth test,
-    so occluded views are left out). Points seen in fewer than ``min_track_length`` views
+    whose rendered depth agrees within :data:`VISIBILITY_RELATIVE_TOLERANCE` (bilinear) and
+    :data:`NEIGHBOUR_RELATIVE_TOLERANCE` (each of the four pixels around it): a depth test,
+    so occluded views and projections straddling a depth edge are left out. Points seen in fewer than ``min_track_length`` views
     are dropped, as SfM would never have triangulated them.
 
     Returns xyz [P, 3], rgb [P, 3] uint8, and tracks: per view (point indices [T], uv [T, 2]).
@@ -222,8 +225,9 @@ def sample_surface_points(depths: list[np.ndarray], images: list[np.ndarray],
         safe_z = np.where(in_front, z, 1.0)
         u = K[0, 0] * camera_points[:, 0] / safe_z + K[0, 2]
         v = K[1, 1] * camera_points[:, 1] / safe_z + K[1, 2]
-        rendered, ok = _bilinear(depth, u, v)
-        seen = in_front & ok & (np.abs(rendered - z) <= VISIBILITY_RELATIVE_TOLERANCE * z)
+        rendered, ok, corners = _bilinear(depth, u, v)
+        seen = (in_front & ok & (np.abs(rendered - z) <= VISIBILITY_RELATIVE_TOLERANCE * z)
+                & np.all(np.abs(corners - z) <= NEIGHBOUR_RELATIVE_TOLERANCE * z, axis=0))
         visible.append((seen, np.stack([u, v], axis=1)))
     count = np.sum([seen for seen, _ in visible], axis=0)
     keep = np.nonzero(count >= min_track_length)[0]
@@ -270,11 +274,15 @@ def build_colmap_model(names: list[str], cameras: list[tuple[np.ndarray, np.ndar
     return ColmapModel(colmap_cameras, images, colmap_points)
 
 
-def run_sfm(images_dir: Path, output_dir: Path, work_dir: Path, single_camera: bool = True) -> dict[str, Any]:
+def run_sfm(images_dir: Path, output_dir: Path, work_dir: Path,
+            pinhole: tuple[float, float, float, float] | None = None) -> dict[str, Any]:
     """pycolmap SfM (SIFT, exhaustive matching, incremental mapping) on the CPU.
 
-    Writes the largest reconstruction to ``output_dir`` (binary) and returns
-    ``{"registered": k, "total": n, "ratio": k / n, "points": p}``.
+    ``pinhole`` (fx, fy, cx, cy) fixes the intrinsics, as for a calibrated rover camera;
+    without it COLMAP estimates one shared PINHOLE camera. Rover sequences move forward
+    with short baselines, so the initial pair may have a small triangulation angle (4 deg
+    instead of COLMAP's 16) and mostly forward motion. Writes the largest reconstruction
+    to ``output_dir`` (binary) and returns ``{"registered", "total", "ratio", "points"}``.
     """
     import pycolmap
 
@@ -282,13 +290,22 @@ def run_sfm(images_dir: Path, output_dir: Path, work_dir: Path, single_camera: b
     total = len(list(images_dir.glob("*.png")))
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"
-    pycolmap.extract_features(database, images_dir,
-                              camera_mode=pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO,
+    if pinhole is not None:
+        reader.camera_params = ",".join(repr(float(value)) for value in pinhole)
+    pycolmap.extract_features(database, images_dir, camera_mode=pycolmap.CameraMode.SINGLE,
                               reader_options=reader, device=pycolmap.Device.cpu)
     pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
+    options = pycolmap.IncrementalPipelineOptions()
+    options.mapper.init_min_tri_angle = 4.0
+    options.mapper.init_min_num_inliers = 50
+    options.mapper.init_max_forward_motion = 1.0
+    options.min_model_size = 3
+    if pinhole is not None:
+        options.ba_refine_focal_length = False
+        options.ba_refine_principal_point = False
     maps_dir = work_dir / "sfm_maps"
     maps_dir.mkdir(parents=True, exist_ok=True)
-    reconstructions = pycolmap.incremental_mapping(database, images_dir, maps_dir)
+    reconstructions = pycolmap.incremental_mapping(database, images_dir, maps_dir, options)
     if not reconstructions:
         return {"registered": 0, "total": total, "ratio": 0.0, "points": 0}
     best = max(reconstructions.values(), key=lambda r: r.num_reg_images())
@@ -296,7 +313,7 @@ def run_sfm(images_dir: Path, output_dir: Path, work_dir: Path, single_camera: b
     best.write_binary(str(output_dir))
     registered = int(best.num_reg_images())
     return {"registered": registered, "total": total, "ratio": registered / max(total, 1),
-            "points": int(best.num_points3D())}
+            "points": int(best.num_points3D()), "intrinsics": "fixed" if pinhole is not None else "estimated"}
 
 
 def render_dataset(objects: dict[str, Any], out_dir: str | Path, *, progress: Callable[[ProgressEvent], None] | None = None,
@@ -406,7 +423,9 @@ def render_dataset(objects: dict[str, Any], out_dir: str | Path, *, progress: Ca
 
         sfm_summary = None
         if sfm:
-            sfm_summary = run_sfm(staging / "images", staging / "sparse_sfm" / "0", scratch)
+            shared_intrinsics = {tuple(np.round(K[[0, 1, 0, 1], [0, 1, 2, 2]], 9)) for K, _, _, _ in opencv}
+            pinhole = tuple(opencv[0][0][[0, 1, 0, 1], [0, 1, 2, 2]]) if len(shared_intrinsics) == 1 else None
+            sfm_summary = run_sfm(staging / "images", staging / "sparse_sfm" / "0", scratch, pinhole)
             report(ProgressEvent(len(cameras) + 3, total, "sfm", metrics={"registration_ratio": sfm_summary["ratio"]},
                                  message=f"SfM registered {sfm_summary['registered']}/{sfm_summary['total']} views"))
 

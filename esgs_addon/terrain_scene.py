@@ -145,9 +145,9 @@ def add_sun(name: str, direction_to_sun: tuple[float, float, float], collection:
     light.angle = math.radians(SUN_ANGULAR_DIAMETER_DEG)
     sun = bpy.data.objects.new(name, light)
     # a sun lamp emits along its local -Z: point local +Z at the sun
-    sun.rotation_mode = "QUATERNION"
-    sun.rotation_quaternion = Vector(direction_to_sun).to_track_quat("Z", "Y")
-    sun.location = Vector(direction_to_sun) * 50.0  # placement only matters for display
+    rotation = Vector(direction_to_sun).to_track_quat("Z", "Y")
+    # placement only matters for display; matrix_world (not location/rotation) is up to date at once
+    sun.matrix_world = Matrix.LocRotScale(Vector(direction_to_sun) * 50.0, rotation, None)
     collection.objects.link(sun)
     return sun
 
@@ -304,12 +304,15 @@ def _add_rocks(rocks: np.ndarray, seed: int, collection: bpy.types.Collection,
     # prototypes depend on the scene seed only, so the same seed gives the same rocks
     rng = np.random.default_rng([int(seed), 0x526F636B])
     material = created.add(bpy.data.materials, make_rock_material())
-    meshes = []
+    used = set((rocks[:, 6].astype(np.int64) % ROCK_PROTOTYPES).tolist())
+    meshes: dict[int, bpy.types.Mesh] = {}
     for index in range(ROCK_PROTOTYPES):
+        # always draw every shape so a shape's geometry does not depend on which are used
         vertices, triangles = rock_prototype_geometry(rng)
-        mesh = created.add(bpy.data.meshes, mesh_from_arrays(f"ESGS rock shape {index}", vertices, triangles))
-        mesh.materials.append(material)
-        meshes.append(mesh)
+        if index in used:
+            mesh = created.add(bpy.data.meshes, mesh_from_arrays(f"ESGS rock shape {index}", vertices, triangles))
+            mesh.materials.append(material)
+            meshes[index] = mesh
     objects = []
     for row, (x, y, z_base, diameter, height, yaw, shape_seed) in enumerate(rocks):
         rock = created.add(bpy.data.objects, bpy.data.objects.new(f"ESGS rock {row}",
@@ -319,7 +322,7 @@ def _add_rocks(rocks: np.ndarray, seed: int, collection: bpy.types.Collection,
         rock[PROP_ROLE] = "rock"
         collection.objects.link(rock)
         objects.append(rock)
-    return objects, meshes
+    return objects, list(meshes.values())
 
 
 def remove_terrain_scene(objects: dict[str, Any]) -> None:

@@ -1,0 +1,174 @@
+"""``esgs scene``: generate, render and export a synthetic Mars scene folder.
+
+Rendering needs Blender (the ``bpy`` module or a Blender binary), which ``core`` never
+imports. This command checks the request here (bad settings fail at once, before any
+work), then runs ``python -m esgs.esgs_addon.make_scene`` with the same arguments in a
+child process and relays its progress events to the console.
+
+The child writes one line ``ESGS_EVENT <json>`` per progress event and, on a handled
+failure, one line ``ESGS_ERROR <json>`` before exiting with status 2; every other line it
+prints (Blender's own log) is shown only with ``--verbose``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+HELP = "generate a synthetic Mars scene (terrain, rocks, cameras), render it with Cycles and export a scene folder"
+
+EVENT_PREFIX = "ESGS_EVENT "
+ERROR_PREFIX = "ESGS_ERROR "
+
+
+@dataclass
+class SceneJob:
+    """What to generate and where. Zero for views/width/height/samples keeps the preset's value."""
+
+    preset: str = field(default="cratered_plain", metadata={"help": "scene preset (see --list-presets)"})
+    config: str = field(default="", metadata={"help": "scene config file (.toml preset format or saved .json) instead of a preset"})
+    seed: int = field(default=-1, metadata={"help": "random seed; the same seed and settings give the same scene (-1 = the preset's or file's)"})
+    views: int = field(default=0, metadata={"help": "number of camera views (0 = the preset's)"})
+    width: int = field(default=0, metadata={"help": "image width in pixels (0 = the preset's)"})
+    height: int = field(default=0, metadata={"help": "image height in pixels (0 = the preset's)"})
+    samples: int = field(default=0, metadata={"help": "Cycles samples per pixel (0 = the preset's)"})
+    points_per_view: int = field(default=2000, metadata={"help": "surface pixels per view lifted to COLMAP points3D"})
+    sfm: bool = field(default=False, metadata={"help": "also run pycolmap SfM on the renders into sparse_sfm/0"})
+    overwrite: bool = field(default=False, metadata={"help": "replace an existing output folder (only once the new one is complete)"})
+
+    def validate(self) -> None:
+        from ..errors import ConfigError
+
+        for name in ("views", "width", "height", "samples"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name} must not be negative (0 keeps the preset's), got {getattr(self, name)}")
+        if self.seed < -1:
+            raise ConfigError(f"seed must be a non-negative integer (or -1 for the preset's), got {self.seed}")
+        if (self.width == 0) != (self.height == 0):
+            raise ConfigError(f"set both width and height (or neither), got {self.width}x{self.height}")
+        if self.points_per_view < 1:
+            raise ConfigError(f"points_per_view must be positive, got {self.points_per_view}")
+
+    def scene_config(self) -> Any:
+        """The validated SceneConfig this job renders (raises ConfigError for bad settings)."""
+        from ..config import config_to_dict
+        from ..terrain import load_preset, load_scene_config, scene_config_from_dict
+
+        self.validate()
+        if not self.config:
+            return load_preset(self.preset, seed=self.seed if self.seed >= 0 else None, views=self.views or None,
+                               resolution=(self.width, self.height) if self.width else None,
+                               samples=self.samples or None)
+        data = config_to_dict(load_scene_config(self.config))
+        if self.seed >= 0:
+            data["seed"] = self.seed
+        if self.views:
+            data["rig"]["views"] = self.views
+        if self.width:
+            data["render"]["width"], data["render"]["height"] = self.width, self.height
+        if self.samples:
+            data["render"]["samples"] = self.samples
+        return scene_config_from_dict(data, source=self.config)
+
+
+def parse_resolution(text: str) -> tuple[int, int]:
+    """``"480x270"`` -> (480, 270)."""
+    match = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if not match:
+        raise argparse.ArgumentTypeError(f"resolution must look like 480x270, got {text!r}")
+    return int(match.group(1)), int(match.group(2))
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ..config import add_dataclass_arguments
+
+    add_dataclass_arguments(parser, SceneJob, skip=("width", "height"))
+    parser.add_argument("--resolution", type=parse_resolution, default=None, metavar="WxH",
+                        help="image size in pixels, e.g. 480x270 (default: the preset's)")
+    parser.add_argument("--out", type=Path, default=None, help="scene folder to create (required unless --list-presets)")
+    parser.add_argument("--list-presets", action="store_true", help="print the preset names and exit")
+    parser.add_argument("--events", type=Path, default=None, help="also append progress events to this JSON-lines file")
+    parser.add_argument("--verbose", action="store_true", help="show Blender's own log")
+
+
+def job_from_args(args: argparse.Namespace) -> SceneJob:
+    """The SceneJob of parsed arguments (``--resolution`` fills width and height)."""
+    from ..config import dataclass_from_args
+
+    job = dataclass_from_args(SceneJob, args)
+    if getattr(args, "resolution", None):
+        job.width, job.height = args.resolution
+    job.validate()
+    return job
+
+
+def child_arguments(job: SceneJob, out: Path) -> list[str]:
+    """Command-line arguments reproducing ``job`` for :mod:`esgs.esgs_addon.make_scene`."""
+    arguments = ["--preset", job.preset, "--seed", str(job.seed), "--views", str(job.views),
+                 "--samples", str(job.samples), "--points-per-view", str(job.points_per_view), "--out", str(out)]
+    if job.config:
+        arguments += ["--config", job.config]
+    if job.width:
+        arguments += ["--resolution", f"{job.width}x{job.height}"]
+    arguments.append("--sfm" if job.sfm else "--no-sfm")
+    arguments.append("--overwrite" if job.overwrite else "--no-overwrite")
+    return arguments
+
+
+def run(args: argparse.Namespace) -> int:
+    import importlib.util
+    import subprocess
+    import sys
+
+    from ..errors import ConfigError, DatasetError, ESGSError
+    from ..progress import ConsoleProgress, JsonLinesProgress, ProgressEvent, combine
+
+    if args.list_presets:
+        from ..terrain import list_presets, load_preset
+
+        for name in list_presets():
+            print(f"{name:<22} {load_preset(name).description}")
+        return 0
+    if args.out is None:
+        raise ConfigError("--out is required", hint="e.g. esgs scene --preset cratered_plain --out scenes/plain")
+    job = job_from_args(args)
+    config = job.scene_config()  # bad settings fail here, before Blender starts
+    out = Path(args.out)
+    if out.exists() and not job.overwrite:
+        raise ConfigError("output folder already exists", path=out, hint="choose another folder or pass --overwrite")
+    if importlib.util.find_spec("bpy") is None:
+        raise ConfigError("rendering needs Blender's bpy module, which this Python does not have",
+                          hint="pip install bpy==5.0.1, or run: blender -b --python examples/make_mars_scene.py -- "
+                               "--preset ... --out DIR")
+    console = ConsoleProgress()
+    events = JsonLinesProgress(args.events) if args.events else None
+    progress = combine(console, events)
+    print(f"esgs scene: {config.name}, seed {config.seed}, {config.rig.views} views at "
+          f"{config.render.width}x{config.render.height}, {config.render.samples} samples -> {out}", file=sys.stderr)
+    command = [sys.executable, "-m", "esgs.esgs_addon.make_scene", *child_arguments(job, out), "--events-stdout"]
+    error: dict[str, str] | None = None
+    try:
+        with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1) as child:
+            assert child.stdout is not None
+            for line in child.stdout:
+                if line.startswith(EVENT_PREFIX):
+                    progress(ProgressEvent.from_json(line[len(EVENT_PREFIX):]))
+                elif line.startswith(ERROR_PREFIX):
+                    error = json.loads(line[len(ERROR_PREFIX):])
+                elif args.verbose:
+                    print(line, end="", file=sys.stderr)
+            status = child.wait()
+    finally:
+        console.close()
+        if events is not None:
+            events.close()
+    if error is not None:
+        kinds = {"ConfigError": ConfigError, "DatasetError": DatasetError}
+        raise kinds.get(error.get("type", ""), ESGSError)(error.get("message", "scene generation failed"))
+    if status != 0:
+        raise ESGSError(f"scene generation failed (exit status {status})", hint="run again with --verbose to see Blender's log")
+    print(f"esgs scene: wrote {out}", file=sys.stderr)
+    return 0

@@ -1,0 +1,57 @@
+"""ESGS > Synthetic Mars scene > Render dataset: a thin operator around ``render_dataset``."""
+from __future__ import annotations
+
+import bpy
+
+from ..core.errors import ConfigError, ESGSError
+
+
+def find_scene_collection(context: bpy.types.Context) -> bpy.types.Collection:
+    """The synthetic scene to render: the active collection if it is one, else the newest one."""
+    from ..esgs_addon.terrain_scene import PROP_CONFIG
+
+    layer = getattr(context, "view_layer", None)
+    active = layer.active_layer_collection.collection if layer is not None else None
+    if active is not None and PROP_CONFIG in active:
+        return active
+    candidates = [c for c in bpy.data.collections if PROP_CONFIG in c and context.scene.user_of_id(c)]
+    if not candidates:
+        raise ConfigError("there is no synthetic Mars scene to render", hint="press Generate first")
+    return candidates[-1]
+
+
+class ESGS_OT_render_dataset(bpy.types.Operator):
+    """Render every camera of the synthetic scene with Cycles (CPU) and write the scene folder
+    (images, COLMAP model, depth/normal/mask priors, ground-truth mesh). Blocks until done"""
+
+    bl_idname = "esgs.render_dataset"
+    bl_label = "Render Dataset"
+    bl_options = {"REGISTER"}
+
+    def execute(self, context):
+        from ..esgs_addon.render_dataset import render_dataset
+        from ..esgs_addon.terrain_scene import scene_objects_from_collection
+        from .generate_terrain import blender_progress
+
+        settings = context.scene.esgs.terrain
+        report, window_manager = blender_progress(context)
+        if window_manager is not None:
+            window_manager.progress_begin(0, 100)
+        try:
+            if not settings.output_dir:
+                raise ConfigError("choose an output folder first")
+            objects = scene_objects_from_collection(find_scene_collection(context))
+            out = render_dataset(objects, bpy.path.abspath(settings.output_dir), progress=report,
+                                 sfm=settings.sfm, overwrite=settings.overwrite,
+                                 points_per_view=settings.points_per_view, scene=context.scene)
+        except ESGSError as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        finally:
+            if window_manager is not None:
+                window_manager.progress_end()
+        self.report({"INFO"}, f"Wrote scene folder {out}")
+        return {"FINISHED"}
+
+
+CLASSES = (ESGS_OT_render_dataset,)
