@@ -287,11 +287,12 @@ class SceneConfig:
         if not self.sky:
             from .rigs import horizon_problem
 
-            problem = horizon_problem(self.rig, self.render, self.terrain)
+            problem = horizon_problem(self.rig, self.render, self.terrain, seed=self.seed)
             if problem:
                 raise ConfigError(f"sky is false but {problem}",
-                                  hint="set sky = true, or look further down (rig.pitch_deg), "
-                                       "or shrink rig.radius_m / rig.spacing_m, or enlarge terrain.extent_m")
+                                  hint="set sky = true, or look further down (rig.pitch_deg; for an orbit raise "
+                                       "rig.height_m), or shrink rig.radius_m / rig.spacing_m, or enlarge "
+                                       "terrain.extent_m")
 
     def sun_direction(self) -> tuple[float, float, float]:
         """Unit vector from the ground toward the sun, world frame ``[3]``."""
