@@ -12,8 +12,10 @@ Shape of one crater, as a function of s = r / R (R = D / 2), added to the surfac
 * degradation g in [0, 1] makes the crater shallower (depth * (1 - 0.8 g)), lowers the
   rim (rim * (1 - 0.85 g)) and rounds the crest (the radial profile is smoothed more).
 
-Craters are added in local windows (3 R around the centre), which keeps hundreds of
-craters on a 513 x 513 grid well under a second.
+Craters are stamped oldest (most degraded) first; a crater's bowl replaces the older
+surface inside it (fully for a fresh crater, less for degraded ones), so young craters
+wipe out older small ones. Each crater touches only its local window (3 R around the
+centre), which keeps hundreds of craters on a 513 x 513 grid well under a second.
 """
 from __future__ import annotations
 
@@ -101,11 +103,19 @@ def crater_profile(s: np.ndarray, depth: float, rim: float, degradation: float) 
 
 
 def apply_craters(heights: np.ndarray, craters: np.ndarray, extent_m: float, rim_ratio: float) -> None:
-    """Add every crater of ``craters`` [K, 5] to ``heights`` [R, R] in place (metres)."""
+    """Stamp every crater of ``craters`` [K, 5] into ``heights`` [R, R] in place (metres).
+
+    Craters are stamped oldest (most degraded) first. Inside its bowl a crater replaces what
+    was there with its own floor: the older surface is blended toward a plane fitted
+    around the rim (which keeps a regional tilt) with weight (1 - degradation), so a fresh
+    crater wipes out older small craters inside it, and an old degraded one has since been
+    roughened again like its surroundings.
+    """
     resolution = heights.shape[0]
     cell = extent_m / (resolution - 1)
     origin = -extent_m / 2
-    for x, y, diameter, depth, degradation in craters:
+    order = np.argsort(-craters[:, 4], kind="stable") if len(craters) else np.zeros(0, dtype=np.int64)
+    for x, y, diameter, depth, degradation in craters[order]:
         radius = diameter / 2
         reach = EJECTA_EXTENT * radius
         col0 = max(int(np.floor((x - reach - origin) / cell)), 0)
@@ -117,5 +127,24 @@ def apply_craters(heights: np.ndarray, craters: np.ndarray, extent_m: float, rim
         xs = origin + np.arange(col0, col1) * cell - x
         ys = origin + np.arange(row0, row1) * cell - y
         s = np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2) / radius
+        window = heights[row0:row1, col0:col1]
+        erase = 1.0 - degradation
+        if erase > 0:
+            _erase_interior(window, xs, ys, s, erase)
         rim = rim_ratio * diameter * (1.0 - 0.85 * degradation)
-        heights[row0:row1, col0:col1] += crater_profile(s, depth, rim, degradation)
+        window += crater_profile(s, depth, rim, degradation)
+
+
+def _erase_interior(window: np.ndarray, xs: np.ndarray, ys: np.ndarray, s: np.ndarray, strength: float) -> None:
+    """Blend the surface inside s < 1 toward a plane fitted on the ring 0.9 < s < 1.3, in place."""
+    ring = (s > 0.9) & (s < 1.3)
+    if ring.sum() < 6:
+        return  # crater too small for the grid (or cut off at the edge): nothing to fit
+    x_grid, y_grid = np.broadcast_to(xs[None, :], s.shape), np.broadcast_to(ys[:, None], s.shape)
+    design = np.stack([np.ones(int(ring.sum())), x_grid[ring], y_grid[ring]], axis=1)
+    coefficients, *_ = np.linalg.lstsq(design, window[ring], rcond=None)
+    plane = coefficients[0] + coefficients[1] * x_grid + coefficients[2] * y_grid
+    # Full replacement well inside the bowl, fading out toward the rim crest.
+    fade = np.clip((1.0 - s) / 0.4, 0.0, 1.0)
+    weight = strength * fade * fade * (3.0 - 2.0 * fade)
+    window += weight * (plane - window)

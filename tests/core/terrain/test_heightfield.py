@@ -191,3 +191,34 @@ def test_every_preset_generates():
         config = load_preset(name)
         terrain = generate_terrain(config.terrain, seed=config.seed)
         assert np.isfinite(terrain.heights).all()
+
+
+def test_young_crater_erases_older_ones_inside_it():
+    resolution, extent = 257, 40.0
+    big = [0.0, 0.0, 16.0, 3.2, 0.0]       # fresh
+    small = [2.0, 1.0, 3.0, 0.1, 1.0]      # degraded: older
+    def stamp(*craters):
+        heights = np.zeros((resolution, resolution))
+        apply_craters(heights, np.array(craters), extent, rim_ratio=0.04)
+        return heights
+    alone, both = stamp(big), stamp(big, small)
+    # The fresh crater formed later: the old small one inside its bowl is gone.
+    # (Only a trace of its outer ejecta, beyond the fully replaced floor, remains.)
+    assert np.abs(both - alone).max() < 0.01 * np.abs(stamp(small)).max()
+    # Made younger than the big one, the small crater survives inside the bowl.
+    young_small = [2.0, 1.0, 3.0, 0.6, 0.0]
+    old_big = [0.0, 0.0, 16.0, 0.64, 1.0]
+    survives = stamp(old_big, young_small) - stamp(old_big)
+    assert survives.min() < -0.5
+
+
+def test_crater_floor_keeps_the_regional_tilt():
+    resolution, extent = 129, 40.0
+    axis = np.linspace(-20, 20, resolution)
+    tilt = 0.2 * axis[None, :] + np.zeros((resolution, 1))
+    heights = tilt.copy()
+    apply_craters(heights, np.array([[0.0, 0.0, 12.0, 2.4, 0.0]]), extent, rim_ratio=0.04)
+    flat = np.zeros((resolution, resolution))
+    apply_craters(flat, np.array([[0.0, 0.0, 12.0, 2.4, 0.0]]), extent, rim_ratio=0.04)
+    # On a tilted plane the crater is the same shape, just riding on the tilt.
+    np.testing.assert_allclose(heights - tilt, flat, atol=1e-6)
