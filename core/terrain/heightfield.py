@@ -239,3 +239,55 @@ def generate_terrain(config: TerrainConfig, seed: int = 0, *, progress: Progress
 def replace_terrain(terrain: Terrain, **changes) -> Terrain:
     """A copy of ``terrain`` with some fields replaced (cached gradients are dropped)."""
     return dataclasses.replace(terrain, _gradient=None, **changes)
+
+
+_SAVED_ARRAYS = ("heights", "sand_mask", "craters", "rocks")
+
+
+def save_terrain(terrain: Terrain, path, *, include_components: bool = False) -> None:
+    """Write a terrain to a ``.npz`` file atomically (arrays exactly as generated).
+
+    Regenerating from the scene config and seed gives the same arrays; the file is for
+    tools that want the ground truth without this package's generator.
+    """
+    import io
+
+    from ..io_utils import atomic_write_bytes
+
+    arrays = {name: getattr(terrain, name) for name in _SAVED_ARRAYS}
+    arrays["extent_m"] = np.float64(terrain.extent_m)
+    if include_components:
+        arrays.update({f"component_{name}": layer for name, layer in terrain.components.items()})
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def load_terrain(path) -> Terrain:
+    """Read a terrain written by :func:`save_terrain`; FormatError when the file is not one."""
+    from pathlib import Path
+
+    from ..errors import DatasetError, FormatError
+
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError("terrain file not found", path=path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            missing = [name for name in (*_SAVED_ARRAYS, "extent_m") if name not in data]
+            if missing:
+                raise FormatError(f"not a terrain file: missing {', '.join(missing)}", path=path,
+                                  hint="write it with esgs.core.terrain.save_terrain")
+            arrays = {name: data[name] for name in _SAVED_ARRAYS}
+            extent = float(data["extent_m"])
+            components = {name[len("component_"):]: data[name] for name in data.files if name.startswith("component_")}
+    except (OSError, ValueError) as err:
+        raise FormatError(f"cannot read terrain file: {err}", path=path) from err
+    heights = arrays["heights"]
+    if heights.ndim != 2 or heights.shape[0] != heights.shape[1] or heights.shape[0] < 2 or arrays["sand_mask"].shape != heights.shape:
+        raise FormatError(f"heights/sand_mask must be square and equal in shape, got {heights.shape} and "
+                          f"{arrays['sand_mask'].shape}", path=path)
+    if arrays["craters"].ndim != 2 or arrays["craters"].shape[1] != 5 or arrays["rocks"].ndim != 2 or arrays["rocks"].shape[1] != 7:
+        raise FormatError("craters must be [K, 5] and rocks [M, 7]", path=path)
+    return Terrain(heights=heights, extent_m=extent, sand_mask=arrays["sand_mask"], craters=arrays["craters"],
+                   rocks=arrays["rocks"], components=components)

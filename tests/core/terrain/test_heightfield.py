@@ -222,3 +222,27 @@ def test_crater_floor_keeps_the_regional_tilt():
     apply_craters(flat, np.array([[0.0, 0.0, 12.0, 2.4, 0.0]]), extent, rim_ratio=0.04)
     # On a tilted plane the crater is the same shape, just riding on the tilt.
     np.testing.assert_allclose(heights - tilt, flat, atol=1e-6)
+
+
+def test_save_and_load_terrain_round_trip(tmp_path):
+    from esgs.core.errors import DatasetError, FormatError
+    from esgs.core.terrain import load_terrain, save_terrain
+    terrain = generate_terrain(small_config(), seed=6)
+    path = tmp_path / "terrain.npz"
+    save_terrain(terrain, path, include_components=True)
+    loaded = load_terrain(path)
+    for name in ("heights", "sand_mask", "craters", "rocks"):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(terrain, name))
+        assert getattr(loaded, name).dtype == getattr(terrain, name).dtype
+    assert loaded.extent_m == terrain.extent_m
+    assert set(loaded.components) == set(terrain.components)
+    assert loaded.height_at(1.3, -2.2) == terrain.height_at(1.3, -2.2)
+    assert [p.name for p in tmp_path.iterdir()] == ["terrain.npz"]  # no temporary left behind
+    np.savez(tmp_path / "other.npz", heights=np.zeros((3, 3)))
+    with pytest.raises(FormatError, match="missing"):
+        load_terrain(tmp_path / "other.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(FormatError):
+        load_terrain(tmp_path / "junk.npz")
+    with pytest.raises(DatasetError, match="not found"):
+        load_terrain(tmp_path / "absent.npz")
