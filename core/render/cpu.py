@@ -15,7 +15,7 @@ import torch
 
 from . import constants as K
 from . import cpu_kernels as kernels
-from .projection import project_gaussians
+from . import projection_kernels
 
 #: Added to the exact level 2 log(255 opacity) so that a pixel skipped without ``exp`` is
 #: certainly below alpha 1/255 despite rounding (relative, then absolute).
@@ -144,9 +144,7 @@ class _Composite(torch.autograd.Function):
         kernels.composite_backward(
             plan.tile_order, plan.tile_start, plan.pair_rank, plan.tiles_x, plan.tile_size,
             plan.centres_x, plan.centres_y, plan.splats, plan.boxes, packed, plan.constants,
-            ctx.transmittance, ctx.stop, grad_image, grad_alpha,
-            np.empty((height, width), dtype=np_dtype), np.empty((height, width, channels), dtype=np_dtype),
-            records)
+            ctx.transmittance, ctx.stop, grad_image, grad_alpha, records)
         totals = np.zeros((ctx.count, kernels.RECORD_FIXED + channels), dtype=np_dtype)
         kernels.reduce_records(plan.order, plan.rank_pair_start, plan.rank_pairs, records, totals)
         totals = torch.from_numpy(totals)
@@ -155,6 +153,73 @@ class _Composite(torch.autograd.Function):
         grad_opacity = totals[:, kernels.R_OPACITY]
         grad_features = totals[:, kernels.RECORD_FIXED:]
         return grad_means2d, grad_conics, grad_opacity, grad_features, None
+
+
+class _Project(torch.autograd.Function):
+    """Gaussians -> screen space for C cameras (Numba forward and backward).
+
+    Inputs means [N, 3], quats [N, 4], scales [N, 3], opacities [N]; ``cameras`` holds
+    viewmats [C, 4, 4], Ks [C, 3, 3] and the settings (no gradient flows to the cameras).
+    Outputs means2d [C, N, 2], conics [C, N, 3], opacities [C, N], depths [C, N],
+    normals [C, N, 3] (zeros unless requested), and without grad valid [C, N] and the
+    dilated covariance diagonal [C, N, 2].
+    """
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, cameras):
+        viewmats, Ks, settings = cameras
+        arrays = [t.detach().contiguous().numpy() for t in (means, quats, scales, opacities)]
+        views = viewmats.detach().to(means.dtype).contiguous().numpy()
+        intrinsics = Ks.detach().to(means.dtype).contiguous().numpy()
+        count, cams = means.shape[0], views.shape[0]
+        dtype = arrays[0].dtype
+        means2d = np.empty((cams, count, 2), dtype=dtype)
+        conics = np.empty((cams, count, 3), dtype=dtype)
+        effective = np.empty((cams, count), dtype=dtype)
+        depths = np.empty((cams, count), dtype=dtype)
+        normals = np.zeros((cams, count, 3), dtype=dtype)
+        valid = np.empty((cams, count), dtype=np.bool_)
+        cov_diagonal = np.empty((cams, count, 2), dtype=dtype)
+        projection_kernels.project_forward(*arrays, views, intrinsics, *settings, means2d, conics, effective,
+                                           depths, normals, valid, cov_diagonal)
+        ctx.arrays = arrays
+        ctx.cameras = (views, intrinsics, settings)
+        valid_t, cov_t = torch.from_numpy(valid), torch.from_numpy(cov_diagonal)
+        ctx.mark_non_differentiable(valid_t, cov_t)
+        return (torch.from_numpy(means2d), torch.from_numpy(conics), torch.from_numpy(effective),
+                torch.from_numpy(depths), torch.from_numpy(normals), valid_t, cov_t)
+
+    @staticmethod
+    def backward(ctx, grad_means2d, grad_conics, grad_opacities, grad_depths, grad_normals, _valid, _cov):
+        arrays = ctx.arrays
+        views, intrinsics, settings = ctx.cameras
+        count, cams = arrays[0].shape[0], views.shape[0]
+        dtype = arrays[0].dtype
+
+        def prepared(gradient, shape):
+            if gradient is None:
+                return np.zeros(shape, dtype=dtype)
+            return np.ascontiguousarray(gradient.detach().numpy(), dtype=dtype)
+
+        out = [np.empty((count, 3), dtype=dtype), np.empty((count, 4), dtype=dtype),
+               np.empty((count, 3), dtype=dtype), np.empty(count, dtype=dtype)]
+        projection_kernels.project_backward(
+            *arrays, views, intrinsics, *settings, prepared(grad_means2d, (cams, count, 2)),
+            prepared(grad_conics, (cams, count, 3)), prepared(grad_opacities, (cams, count)),
+            prepared(grad_depths, (cams, count)), prepared(grad_normals, (cams, count, 3)), *out)
+        return (*(torch.from_numpy(g) for g in out), None)
+
+
+def project(means, quats, scales, opacities, viewmats, Ks, width, height, *, near_plane, far_plane, antialiased,
+            eps2d, need_normals) -> dict:
+    """Numba version of :func:`.projection.project_gaussians` (same outputs)."""
+    settings = (int(width), int(height), float(near_plane), float(far_plane),
+                float(eps2d if antialiased else K.CLASSIC_DILATION), bool(antialiased), float(K.JACOBIAN_MARGIN),
+                bool(need_normals))
+    means2d, conics, effective, depths, normals, valid, cov_diagonal = _Project.apply(
+        means, quats, scales, opacities, (viewmats, Ks, settings))
+    return {"means2d": means2d, "conics": conics, "opacities": effective, "depths": depths,
+            "normals": normals if need_normals else None, "valid": valid, "cov_diagonal": cov_diagonal}
 
 
 def _set_threads(num_threads: int | None) -> None:
@@ -174,9 +239,8 @@ def rasterize_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, 
             t.float() for t in (means, quats, scales, opacities, colors, viewmats, Ks))
     _set_threads(num_threads)
     dtype = means.dtype
-    projected = project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height,
-                                  near_plane=near_plane, far_plane=far_plane, antialiased=antialiased,
-                                  eps2d=eps2d, need_normals=render_normals)
+    projected = project(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane=near_plane,
+                        far_plane=far_plane, antialiased=antialiased, eps2d=eps2d, need_normals=render_normals)
     means2d = projected["means2d"]
     cameras = viewmats.shape[0]
     renders, alphas, radii, intersections, evaluations = [], [], [], [], []

@@ -181,20 +181,23 @@ def composite_forward(tile_order, tile_start, pair_rank, tiles_x, tile_size, cen
                       out_features, out_transmittance, out_stop, tile_evaluations):
     """Front-to-back compositing of every tile.
 
-    out_features [H, W, F] must be zero; out_transmittance [H, W] receives the final T;
+    out_features [H, W, F] receives sum w f; out_transmittance [H, W] the final T;
     out_stop [H, W] the pair position at which the pixel stopped (its tile's end if it
-    never did); tile_evaluations [T] the Gaussian-pixel evaluations per tile.
+    never did); tile_evaluations [T] the Gaussian-pixel evaluations per tile. Each tile
+    works in small local buffers (one flat index per pixel) and writes back at the end.
     """
     half = constants[C_HALF]
     one = constants[C_ONE]
+    two = constants[C_TWO]
     alpha_min = constants[C_ALPHA_MIN]
     alpha_max = constants[C_ALPHA_MAX]
     t_min = constants[C_T_MIN]
     slack = constants[C_SLACK]
-    two = constants[C_TWO]
+    zero = one - one
     height = out_features.shape[0]
     width = out_features.shape[1]
     channels = out_features.shape[2]
+    tile_pixels = tile_size * tile_size
     for i in prange(tile_order.shape[0]):
         tile = tile_order[i]
         tile_y = tile // tiles_x
@@ -205,10 +208,9 @@ def composite_forward(tile_order, tile_start, pair_rank, tiles_x, tile_size, cen
         y1 = min(y0 + tile_size, height)
         start = tile_start[tile]
         end = tile_start[tile + 1]
-        for y in range(y0, y1):
-            for x in range(x0, x1):
-                out_transmittance[y, x] = one
-                out_stop[y, x] = end
+        transmittance = np.ones(tile_pixels, dtype=features.dtype)
+        stop = np.full(tile_pixels, end, dtype=np.int64)
+        accumulated = np.zeros((tile_pixels, channels), dtype=features.dtype)
         active = (x1 - x0) * (y1 - y0)
         evaluations = 0
         for k in range(start, end):
@@ -227,11 +229,15 @@ def composite_forward(tile_order, tile_start, pair_rank, tiles_x, tile_size, cen
             for y in range(row_first, row_stop):
                 dy = centres_y[y] - my
                 xa, xb = _row_span(dy, a, b, c, q_max, mx, col_first, col_stop, half, slack)
+                cross = two * b * dy
+                row_term = c * dy * dy
+                base = (y - y0) * tile_size - x0
                 for x in range(xa, xb):
-                    if out_stop[y, x] != end:
+                    p = base + x
+                    if stop[p] != end:
                         continue
                     dx = centres_x[x] - mx
-                    q = a * dx * dx + two * b * dx * dy + c * dy * dy
+                    q = (a * dx + cross) * dx + row_term
                     evaluations += 1
                     if q > q_max:
                         continue
@@ -240,32 +246,37 @@ def composite_forward(tile_order, tile_start, pair_rank, tiles_x, tile_size, cen
                         alpha = alpha_max
                     if alpha < alpha_min:
                         continue
-                    transmittance = out_transmittance[y, x]
-                    after = transmittance * (one - alpha)
+                    before = transmittance[p]
+                    after = before * (one - alpha)
                     if after < t_min:
-                        out_stop[y, x] = k
+                        stop[p] = k
                         active -= 1
                         continue
-                    weight = alpha * transmittance
+                    weight = alpha * before
                     for ch in range(channels):
-                        out_features[y, x, ch] += weight * features[g, ch]
-                    out_transmittance[y, x] = after
+                        accumulated[p, ch] += weight * features[g, ch]
+                    transmittance[p] = after
             if active == 0:
                 break
+        for y in range(y0, y1):
+            for x in range(x0, x1):
+                p = (y - y0) * tile_size + (x - x0)
+                out_transmittance[y, x] = transmittance[p]
+                out_stop[y, x] = stop[p]
+                for ch in range(channels):
+                    out_features[y, x, ch] = accumulated[p, ch]
         tile_evaluations[tile] = evaluations
 
 
 @njit(cache=True, parallel=True)
 def composite_backward(tile_order, tile_start, pair_rank, tiles_x, tile_size, centres_x, centres_y,
                        splats, boxes, features, constants,
-                       final_transmittance, stop, grad_features, grad_alpha,
-                       scratch_transmittance, scratch_behind, records):
+                       final_transmittance, final_stop, grad_features, grad_alpha, records):
     """Per-pair gradient records, walking each tile's Gaussians back to front.
 
     grad_features [H, W, F], grad_alpha [H, W]: gradients of the composited features and of
-    alpha = 1 - final T. scratch_transmittance [H, W] and scratch_behind [H, W, F] are work
-    arrays (overwritten). records [P, 6 + F] receives, per pair, the gradients w.r.t.
-    mean x, mean y, conic a, b, c, opacity and the F features.
+    alpha = 1 - final T. records [P, 6 + F] receives, per pair, the gradients w.r.t. mean x,
+    mean y, conic a, b, c, opacity and the F features (summed over the tile's pixels).
     """
     half = constants[C_HALF]
     one = constants[C_ONE]
@@ -277,6 +288,7 @@ def composite_backward(tile_order, tile_start, pair_rank, tiles_x, tile_size, ce
     height = grad_features.shape[0]
     width = grad_features.shape[1]
     channels = grad_features.shape[2]
+    tile_pixels = tile_size * tile_size
     for i in prange(tile_order.shape[0]):
         tile = tile_order[i]
         tile_y = tile // tiles_x
@@ -287,11 +299,24 @@ def composite_backward(tile_order, tile_start, pair_rank, tiles_x, tile_size, ce
         y1 = min(y0 + tile_size, height)
         start = tile_start[tile]
         end = tile_start[tile + 1]
+        if end == start:
+            continue
+        # Local copies: T after the current Gaussian, the sum of w f behind it, and the
+        # per-pixel inputs, all with one flat index per pixel.
+        transmittance = np.zeros(tile_pixels, dtype=features.dtype)
+        alpha_term = np.zeros(tile_pixels, dtype=features.dtype)
+        stop = np.zeros(tile_pixels, dtype=np.int64)
+        behind = np.zeros((tile_pixels, channels), dtype=features.dtype)
+        upstream = np.zeros((tile_pixels, channels), dtype=features.dtype)
         for y in range(y0, y1):
             for x in range(x0, x1):
-                scratch_transmittance[y, x] = final_transmittance[y, x]
+                p = (y - y0) * tile_size + (x - x0)
+                transmittance[p] = final_transmittance[y, x]
+                # d alpha_out / d alpha_i = T_final / (1 - alpha_i): keep the numerator.
+                alpha_term[p] = grad_alpha[y, x] * final_transmittance[y, x]
+                stop[p] = final_stop[y, x]
                 for ch in range(channels):
-                    scratch_behind[y, x, ch] = zero
+                    upstream[p, ch] = grad_features[y, x, ch]
         grad_feature_sum = np.zeros(channels, dtype=features.dtype)
         for k in range(end - 1, start - 1, -1):
             g = pair_rank[k]
@@ -317,11 +342,15 @@ def composite_backward(tile_order, tile_start, pair_rank, tiles_x, tile_size, ce
             for y in range(row_first, row_stop):
                 dy = centres_y[y] - my
                 xa, xb = _row_span(dy, a, b, c, q_max, mx, col_first, col_stop, half, slack)
+                cross = two * b * dy
+                row_term = c * dy * dy
+                base = (y - y0) * tile_size - x0
                 for x in range(xa, xb):
-                    if k >= stop[y, x]:
+                    p = base + x
+                    if k >= stop[p]:
                         continue
                     dx = centres_x[x] - mx
-                    q = a * dx * dx + two * b * dx * dy + c * dy * dy
+                    q = (a * dx + cross) * dx + row_term
                     if q > q_max:
                         continue
                     gaussian = math.exp(-half * q)
@@ -332,16 +361,16 @@ def composite_backward(tile_order, tile_start, pair_rank, tiles_x, tile_size, ce
                     if alpha < alpha_min:
                         continue
                     inv_keep = one / (one - alpha)
-                    transmittance = scratch_transmittance[y, x] * inv_keep
-                    weight = alpha * transmittance
-                    grad_alpha_here = grad_alpha[y, x] * final_transmittance[y, x] * inv_keep
+                    before = transmittance[p] * inv_keep
+                    weight = alpha * before
+                    grad_alpha_here = alpha_term[p] * inv_keep
                     for ch in range(channels):
-                        upstream = grad_features[y, x, ch]
+                        up = upstream[p, ch]
                         value = features[g, ch]
-                        grad_feature_sum[ch] += weight * upstream
-                        grad_alpha_here += upstream * (transmittance * value - scratch_behind[y, x, ch] * inv_keep)
-                        scratch_behind[y, x, ch] += weight * value
-                    scratch_transmittance[y, x] = transmittance
+                        grad_feature_sum[ch] += weight * up
+                        grad_alpha_here += up * (before * value - behind[p, ch] * inv_keep)
+                        behind[p, ch] += weight * value
+                    transmittance[p] = before
                     if raw <= alpha_max:
                         g_o += gaussian * grad_alpha_here
                         grad_q = -half * raw * grad_alpha_here
