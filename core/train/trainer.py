@@ -310,7 +310,7 @@ class Trainer:
         context.loss, context.loss_values = loss, values
         if not bool(torch.isfinite(loss)):
             terms = ", ".join(f"{name}={value:.4g}" for name, value in values.items())
-            self._diverged(f"the loss is {float(loss)} at step {step} ({terms})")
+            self._diverged(f"the loss is {float(loss.detach())} at step {step} ({terms})")
         loss.backward()
         for hook in self.hooks:
             hook.after_backward(self, context)
@@ -379,6 +379,9 @@ class Trainer:
             run.root.mkdir(parents=True, exist_ok=True)
             for _, path in list_checkpoints(run.checkpoints):
                 path.unlink()  # a fresh start must not resume from an older run's checkpoints later
+        # temporary files of a checkpoint write interrupted by SIGKILL or a power cut
+        for partial in run.checkpoints.glob(".step_*") if run.checkpoints.is_dir() else ():
+            partial.unlink(missing_ok=True)
         save_config(self.config, run.config)
 
     def _open_progress(self) -> None:

@@ -16,11 +16,11 @@ def tiny_scene(tmp_path_factory) -> Path:
 
 @pytest.fixture
 def fast_config(tiny_scene, tmp_path):
-    """A TrainConfig for quick runs on ``tiny_scene``: cpu backend, one thread, no LPIPS."""
+    """A TrainConfig for quick runs on ``tiny_scene``: the trusted reference rasterizer, one thread, no LPIPS."""
     from esgs.core.train import TrainConfig
 
     def build(**overrides) -> TrainConfig:
-        values = dict(scene=tiny_scene, out=tmp_path / "run", iterations=30, backend="cpu", threads=1, lpips=False,
+        values = dict(scene=tiny_scene, out=tmp_path / "run", iterations=30, backend="reference", threads=1, lpips=False,
                       progress_every=5, checkpoint_every=0, save_renders=False)
         values.update(overrides)
         return TrainConfig(**values)
