@@ -153,15 +153,21 @@ def bin_gaussians(boxes, tile_size, tiles_x, tiles_y):
 
 
 @njit(cache=True, inline="always")
-def _row_span(dy, a, b, c, level, mean_x, x_first, x_stop, half, slack):
+def _row_span(dy, b, inverse_a, a_level, conic_det, mean_x, x_first, x_stop, half, slack):
     """Pixels [start, stop) of one row, clipped to [x_first, x_stop), whose centre x + 1/2
-    satisfies a dx^2 + 2 b dx dy + c dy^2 <= level (a little wider, never narrower)."""
-    disc = a * level - (a * c - b * b) * dy * dy
+    satisfies a dx^2 + 2 b dx dy + c dy^2 <= level (a little wider, never narrower).
+
+    The roots are dx = (-b dy +- sqrt(a level - (a c - b^2) dy^2)) / a; the caller passes
+    1 / a, a level and a c - b^2, which are per Gaussian.
+    """
+    disc = a_level - conic_det * dy * dy
     if disc < 0:
         return 0, 0
     root = math.sqrt(disc)
-    low = mean_x + (-b * dy - root) / a - half - slack
-    high = mean_x + (-b * dy + root) / a - half + slack
+    centre = mean_x - b * dy * inverse_a - half
+    reach = root * inverse_a + slack
+    low = centre - reach
+    high = centre + reach
     if low < x_first:
         low = x_first
     if high > x_stop:
@@ -226,9 +232,12 @@ def composite_forward(tile_order, tile_start, pair_rank, tiles_x, tile_size, cen
             c = splats[g, S_CONIC_C]
             o = splats[g, S_OPACITY]
             q_max = splats[g, S_LEVEL]
+            inverse_a = one / a
+            a_level = a * q_max
+            conic_det = a * c - b * b
             for y in range(row_first, row_stop):
                 dy = centres_y[y] - my
-                xa, xb = _row_span(dy, a, b, c, q_max, mx, col_first, col_stop, half, slack)
+                xa, xb = _row_span(dy, b, inverse_a, a_level, conic_det, mx, col_first, col_stop, half, slack)
                 cross = two * b * dy
                 row_term = c * dy * dy
                 base = (y - y0) * tile_size - x0
@@ -301,12 +310,13 @@ def composite_backward(tile_order, tile_start, pair_rank, tiles_x, tile_size, ce
         end = tile_start[tile + 1]
         if end == start:
             continue
-        # Local copies: T after the current Gaussian, the sum of w f behind it, and the
-        # per-pixel inputs, all with one flat index per pixel.
+        # Local copies: T after the current Gaussian, the upstream-weighted sum of the
+        # features behind it (sum_c dL/dF_c sum_j>i w_j f_jc: one number per pixel instead of
+        # F), and the per-pixel inputs, all with one flat index per pixel.
         transmittance = np.zeros(tile_pixels, dtype=features.dtype)
         alpha_term = np.zeros(tile_pixels, dtype=features.dtype)
         stop = np.zeros(tile_pixels, dtype=np.int64)
-        behind = np.zeros((tile_pixels, channels), dtype=features.dtype)
+        behind = np.zeros(tile_pixels, dtype=features.dtype)
         upstream = np.zeros((tile_pixels, channels), dtype=features.dtype)
         for y in range(y0, y1):
             for x in range(x0, x1):
@@ -331,6 +341,9 @@ def composite_backward(tile_order, tile_start, pair_rank, tiles_x, tile_size, ce
             c = splats[g, S_CONIC_C]
             o = splats[g, S_OPACITY]
             q_max = splats[g, S_LEVEL]
+            inverse_a = one / a
+            a_level = a * q_max
+            conic_det = a * c - b * b
             g_mx = zero
             g_my = zero
             g_a = zero
@@ -341,7 +354,7 @@ def composite_backward(tile_order, tile_start, pair_rank, tiles_x, tile_size, ce
                 grad_feature_sum[ch] = zero
             for y in range(row_first, row_stop):
                 dy = centres_y[y] - my
-                xa, xb = _row_span(dy, a, b, c, q_max, mx, col_first, col_stop, half, slack)
+                xa, xb = _row_span(dy, b, inverse_a, a_level, conic_det, mx, col_first, col_stop, half, slack)
                 cross = two * b * dy
                 row_term = c * dy * dy
                 base = (y - y0) * tile_size - x0
@@ -363,13 +376,14 @@ def composite_backward(tile_order, tile_start, pair_rank, tiles_x, tile_size, ce
                     inv_keep = one / (one - alpha)
                     before = transmittance[p] * inv_keep
                     weight = alpha * before
-                    grad_alpha_here = alpha_term[p] * inv_keep
+                    # dL/dalpha_i = sum_c up_c (T_i f_ic - S_c / (1 - alpha_i)) + dL/dalpha_out T_final / (1 - alpha_i)
+                    dot = zero
                     for ch in range(channels):
                         up = upstream[p, ch]
-                        value = features[g, ch]
+                        dot += up * features[g, ch]
                         grad_feature_sum[ch] += weight * up
-                        grad_alpha_here += up * (before * value - behind[p, ch] * inv_keep)
-                        behind[p, ch] += weight * value
+                    grad_alpha_here = before * dot + (alpha_term[p] - behind[p]) * inv_keep
+                    behind[p] += weight * dot
                     transmittance[p] = before
                     if raw <= alpha_max:
                         g_o += gaussian * grad_alpha_here
