@@ -278,11 +278,12 @@ class TrainingJob:
         """Block until the job ends (or ``timeout`` seconds pass); returns the state.
 
         ``on_update`` is called from this thread whenever a new event arrived, so a
-        headless run can print progress. Ctrl-C cancels the trainer (it checkpoints)
-        before the KeyboardInterrupt propagates.
+        headless run can print progress. Ctrl-C or SIGTERM cancels the trainer (it
+        checkpoints) before the KeyboardInterrupt / SystemExit(143) propagates.
         """
         deadline = None if timeout is None else time.monotonic() + timeout
         seen = -1
+        previous = _raise_on_sigterm()
         try:
             while True:
                 remaining = None if deadline is None else deadline - time.monotonic()
@@ -295,9 +296,13 @@ class TrainingJob:
                     on_update(state)
                 if ended:
                     break
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, _Terminated):
+            # a killed script must not leave the trainer running on its own
             self.cancel()
             raise
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGTERM, previous)
         return self.state()
 
     def cancel(self, timeout: float = 120.0, *, wait: bool = True) -> JobState:
@@ -444,6 +449,24 @@ class TrainingJob:
                 self._state.step = max(self._state.step, self._state.total)
         _unregister_live(self)
         self._finished.set()
+
+
+class _Terminated(SystemExit):
+    """SIGTERM received while blocking in :meth:`TrainingJob.wait` (exit status 143)."""
+
+
+def _raise_on_sigterm():
+    """In the main thread, turn SIGTERM into :class:`_Terminated`; returns the old handler."""
+    if threading.current_thread() is not threading.main_thread() or os.name == "nt":
+        return None
+
+    def handler(signum, frame):
+        raise _Terminated(128 + signum)
+
+    try:
+        return signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main interpreter
+        return None
 
 
 def _number(value: object) -> Optional[float]:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 import textwrap
 import time
@@ -238,3 +239,28 @@ def test_cancel_without_waiting_returns_at_once(tmp_path, fake_trainer, scene):
     job.cancel(timeout=30, wait=False)
     assert job.wait(timeout=30, poll_s=0.05).status == jobs.CANCELLED
     assert (tmp_path / "run" / "checkpoint.json").exists()
+
+
+def test_sigterm_while_waiting_stops_the_child_too(tmp_path, fake_trainer, scene):
+    """A killed headless script must not leave an orphan trainer behind."""
+    script = tmp_path / "parent.py"
+    script.write_text(textwrap.dedent(f"""
+        import sys
+        from esgs.core import jobs
+        job = jobs.TrainingJob({str(scene)!r}, {str(tmp_path / 'run')!r}, iterations=100000,
+                               trainer={fake_trainer + ['--step-s', '0.01']!r})
+        job.start()
+        print(job._process.pid, flush=True)
+        job.wait(poll_s=0.05)
+    """))
+    import signal
+    import subprocess
+
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    child_pid = int(parent.stdout.readline())
+    time.sleep(0.5)
+    parent.send_signal(signal.SIGTERM)
+    assert parent.wait(timeout=60) == 143
+    assert (tmp_path / "run" / "checkpoint.json").exists()  # the child checkpointed on its SIGTERM
+    with pytest.raises(ProcessLookupError):
+        os.kill(child_pid, 0)
