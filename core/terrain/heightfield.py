@@ -146,8 +146,12 @@ class Terrain:
                 if k == 0:
                     result[start + row] = 0.0
                     continue
+                if not inside[row, k - 1]:
+                    # Entered the square already below the ground: it meets the edge.
+                    result[start + row] = steps[k]
+                    continue
                 a, b = above[row, k - 1], above[row, k]
-                fraction = a / (a - b) if a != b else 0.0
+                fraction = min(max(a / (a - b), 0.0), 1.0) if a != b else 0.0
                 result[start + row] = steps[k - 1] + fraction * step
         return result
 

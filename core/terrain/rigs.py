@@ -168,7 +168,8 @@ def _positions_and_angles(rig: RigConfig, terrain, rng: np.random.Generator):
         span = max(length, 1e-9)
         s = -length / 2 + rig.spacing_m * np.arange(views)
         offset = rig.wander_m * np.sin(math.pi * s / span + phase)
-        slope = rig.wander_m * math.pi / span * np.cos(math.pi * s / span + phase)
+        # Heading of the path (a single view has no path: it looks along heading_deg).
+        slope = rig.wander_m * math.pi / span * np.cos(math.pi * s / span + phase) if length > 0 else np.zeros(views)
         xy = center + s[:, None] * direction + offset[:, None] * lateral
         tangent = direction[None, :] + slope[:, None] * lateral[None, :]
         yaws = np.arctan2(tangent[:, 1], tangent[:, 0])
@@ -217,16 +218,18 @@ def _positions_and_angles(rig: RigConfig, terrain, rng: np.random.Generator):
     else:  # validate() already rejects this; kept so a bypassed validation fails loudly
         raise ConfigError(f"rig.kind {rig.kind!r} is not known")
 
+    # Keep every camera clear of the ground right below it (hills under an aerial grid or
+    # an orbit); done before aiming so orbit views still point at their target.
+    floor = terrain.height_at(positions[:, 0], positions[:, 1]) + rig.min_clearance_m
+    positions[:, 2] = np.maximum(positions[:, 2], floor)
     yaws = yaws + yaw_noise
     pitches = np.clip(pitches + pitch_noise, -0.5 * math.pi, 0.5 * math.pi)
     if target is not None:
         # Aim every orbit view at the site centre (the jitter then only perturbs the aim).
         delta = target[None, :] - positions
         yaws = np.arctan2(delta[:, 1], delta[:, 0]) + yaw_noise
-        pitches = np.arctan2(delta[:, 2], np.hypot(delta[:, 0], delta[:, 1])) + pitch_noise
-    # Keep every camera clear of the ground right below it (hills under an aerial grid).
-    floor = terrain.height_at(positions[:, 0], positions[:, 1]) + rig.min_clearance_m
-    positions[:, 2] = np.maximum(positions[:, 2], floor)
+        pitches = np.clip(np.arctan2(delta[:, 2], np.hypot(delta[:, 0], delta[:, 1])) + pitch_noise,
+                          -0.5 * math.pi, 0.5 * math.pi)
     return positions, yaws, pitches, target
 
 

@@ -246,3 +246,15 @@ def test_save_and_load_terrain_round_trip(tmp_path):
         load_terrain(tmp_path / "junk.npz")
     with pytest.raises(DatasetError, match="not found"):
         load_terrain(tmp_path / "absent.npz")
+
+
+def test_raycast_from_outside_the_square_never_goes_backwards():
+    resolution, extent = 33, 20.0
+    heights = np.full((resolution, resolution), 3.0, dtype=np.float32)
+    terrain = Terrain(heights=heights, extent_m=extent, sand_mask=np.zeros_like(heights))
+    # Starts outside at x = -15, below the plateau's top: it meets the square's edge at x = -10.
+    distance = terrain.raycast(np.array([[-15.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))[0]
+    assert 5.0 <= distance <= 5.0 + 0.5 * terrain.cell_m + 1e-9
+    # From above, outside, descending onto the plateau: an ordinary hit.
+    distance = terrain.raycast(np.array([[-15.0, 0.0, 8.0]]), np.array([[1.0, 0.0, -0.5]]))[0]
+    assert distance * 0.5 / math.sqrt(1.25) == pytest.approx(5.0, abs=1e-3)
