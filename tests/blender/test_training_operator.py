@@ -297,3 +297,27 @@ def test_ui_polling_updates_settings_and_imports(tmp_path, fake_trainer, scene_d
     assert (settings.status, settings.step, settings.progress) == ("finished", 5, 1.0)
     imported = [obj for obj in bpy.data.objects if obj.get(training_job.PROP_RUN_DIR) == str(tmp_path / "run")]
     assert len(imported) == 1 and len(imported[0].data.points) == 16
+
+
+def test_preferences_are_keyed_by_the_root_package(tmp_path, monkeypatch):
+    from types import SimpleNamespace
+
+    from esgs.esgs_addon import preferences
+
+    assert preferences.ADDON_ID == "esgs"  # "bl_ext.<repository>.esgs" inside Blender
+    assert preferences.ESGS_AP_preferences.bl_idname == preferences.ADDON_ID
+    assert preferences.ESGS_AP_preferences.is_registered
+    # registered without being enabled (the bpy module): defaults apply
+    assert preferences.get_preferences() is None
+    assert preferences.trainer_python() == jobs.find_python()
+    assert preferences.trainer_threads() == 0
+    python = tmp_path / "python"
+    python.write_text("")
+    fake = SimpleNamespace(python_path=str(python), threads=3, output_dir=str(tmp_path / "runs"))
+    monkeypatch.setattr(preferences, "get_preferences", lambda context=None: fake)
+    assert preferences.trainer_python() == str(python)
+    assert preferences.trainer_threads() == 3
+    assert preferences.runs_folder(tmp_path / "scene") == tmp_path / "runs"
+    fake.python_path = str(tmp_path / "missing")
+    with pytest.raises(Exception, match="does not exist"):
+        preferences.trainer_python()
