@@ -70,7 +70,8 @@ def test_run_folder_outputs(fast_config):
     assert not list((run / "checkpoints").glob(".*"))  # no temporary files left
     ply = read_gaussians_ply(run / "point_cloud.ply")
     for name, value in (("means", ply.means), ("log_scales", ply.log_scales), ("quats", ply.quats_wxyz),
-                        ("opacity_logit", ply.opacity_logit)):
+                        ("opacity_logit", ply.opacity_logit), ("sh_dc", ply.sh_dc[:, None, :]),
+                        ("sh_rest", ply.sh_rest)):
         assert np.array_equal(value, result_model_param(run, name)), name
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["split"] == "test" and metrics["views_count"] == 2
