@@ -191,6 +191,7 @@ class RigConfig:
     center_x_m: float = field(default=0.0, metadata=_help("site centre x (station, orbit target, aerial grid centre)"))
     center_y_m: float = field(default=0.0, metadata=_help("site centre y"))
     jitter_deg: float = field(default=0.0, metadata=_help("random yaw/pitch perturbation per view, degrees"))
+    stereo_baseline_m: float = field(default=0.0, metadata=_help("> 0: views come in left/right pairs this far apart (MSL Navcam: 0.424 m)"))
     min_clearance_m: float = field(default=0.5, metadata=_help("cameras stay at least this high above the ground below them"))
 
     def validate(self) -> None:
@@ -203,8 +204,11 @@ class RigConfig:
         _require(-90.0 <= self.pitch_deg <= 90.0, s + "pitch_deg", "must be between -90 and 90", self.pitch_deg)
         _require(self.spacing_m > 0, s + "spacing_m", "must be positive", self.spacing_m)
         _require(0 < self.sweep_deg <= 360.0, s + "sweep_deg", "must be in (0, 360]", self.sweep_deg)
-        for name in ("wander_m", "yaw_sweep_deg", "pivot_offset_m", "jitter_deg", "min_clearance_m"):
+        for name in ("wander_m", "yaw_sweep_deg", "pivot_offset_m", "jitter_deg", "min_clearance_m", "stereo_baseline_m"):
             _require(getattr(self, name) >= 0, s + name, "must not be negative", getattr(self, name))
+        if self.stereo_baseline_m > 0:
+            _require(self.views >= 2 and self.views % 2 == 0, s + "views",
+                     "must be even (left/right pairs) when rig.stereo_baseline_m is set", self.views)
         if self.kind == "aerial_oblique":
             _require(-85.0 <= self.pitch_deg <= -10.0, s + "pitch_deg",
                      "must be between -85 and -10 for aerial_oblique (use aerial_nadir to look straight down)",

@@ -236,12 +236,24 @@ def _positions_and_angles(rig: RigConfig, terrain, rng: np.random.Generator):
 def make_camera_rig(rig: RigConfig, render: RenderConfig, terrain, seed: int = 0) -> list[CameraPose]:
     """Camera poses [rig.views] of kind ``rig.kind`` over ``terrain`` (deterministic for ``seed``).
 
-    Names are ``view_000``, ``view_001``... (image stems). Raises ConfigError on bad config.
+    Names are ``view_000``, ``view_001``... (image stems); with a stereo baseline the even
+    views are the left and the odd views the right cameras. Raises ConfigError on bad config.
     """
     rig.validate()
     render.validate()
     rng = np.random.default_rng([int(seed), _STREAM_RIG])
-    positions, yaws, pitches, target = _positions_and_angles(rig, terrain, rng)
+    if rig.stereo_baseline_m > 0:
+        # Stereo: views / 2 pointings, each seen by a left and a right camera (parallel
+        # axes, centres ``stereo_baseline_m`` apart along the horizontal right axis).
+        positions, yaws, pitches, target = _positions_and_angles(dataclasses.replace(rig, views=rig.views // 2), terrain, rng)
+        right = np.stack([np.sin(yaws), -np.cos(yaws), np.zeros_like(yaws)], axis=1)
+        half = 0.5 * rig.stereo_baseline_m
+        positions = np.stack([positions - half * right, positions + half * right], axis=1).reshape(-1, 3)
+        floor = terrain.height_at(positions[:, 0], positions[:, 1]) + rig.min_clearance_m
+        positions[:, 2] = np.maximum(positions[:, 2], floor)
+        yaws, pitches = np.repeat(yaws, 2), np.repeat(pitches, 2)
+    else:
+        positions, yaws, pitches, target = _positions_and_angles(rig, terrain, rng)
     K = intrinsics(render)
     poses = []
     for index in range(rig.views):

@@ -209,3 +209,20 @@ def test_bad_rig_raises_before_work():
         make_camera_rig(RigConfig(views=0), RENDER, hilly_terrain())
     with pytest.raises(ConfigError, match="render.width"):
         make_camera_rig(RigConfig(), RenderConfig(width=-1), hilly_terrain())
+
+
+@pytest.mark.parametrize("kind", RIG_KINDS)
+def test_stereo_pairs_share_orientation_and_baseline(kind):
+    terrain = hilly_terrain()
+    config = rig(kind, views=10, stereo_baseline_m=0.424, jitter_deg=0.0)
+    poses = make_camera_rig(config, RENDER, terrain, seed=2)
+    assert len(poses) == 10
+    for left, right in zip(poses[0::2], poses[1::2]):
+        np.testing.assert_allclose(left.rotation, right.rotation, atol=1e-12)
+        offset = right.camera_center - left.camera_center
+        if abs(offset[2]) < 1e-9:  # neither camera lifted by the ground clearance
+            np.testing.assert_allclose(offset, 0.424 * left.rotation[0], atol=1e-9)
+        # The right camera sits to the right: positive x in the left camera's frame.
+        assert (left.rotation @ offset)[0] == pytest.approx(0.424, abs=1e-9)
+    with pytest.raises(ConfigError, match="rig.views.*even"):
+        make_camera_rig(rig(kind, views=9, stereo_baseline_m=0.424), RENDER, terrain)
