@@ -17,11 +17,11 @@ from .config import CAMERA_PRESETS, RIG_KINDS, RenderConfig, RigConfig, SceneCon
 from .heightfield import Terrain, generate_terrain, load_terrain, save_terrain
 from .mesh import heightfield_mesh, rock_mesh, rocks_mesh, terrain_mesh
 from .presets import list_presets, load_preset, load_scene_config, save_scene_config, scene_config_from_dict
-from .rigs import CameraPose, intrinsics, make_camera_rig, views_beyond_terrain
+from .rigs import CameraPose, ground_depth, intrinsics, make_camera_rig, views_beyond_terrain
 
 __all__ = [
     "CAMERA_PRESETS", "RIG_KINDS", "CameraPose", "RenderConfig", "RigConfig", "SceneConfig", "Terrain",
-    "TerrainConfig", "camera_preset", "config_to_dict", "generate_terrain", "heightfield_mesh", "intrinsics",
+    "TerrainConfig", "camera_preset", "config_to_dict", "generate_terrain", "ground_depth", "heightfield_mesh", "intrinsics",
     "list_presets", "load_terrain", "rock_mesh", "rocks_mesh", "save_terrain", "terrain_mesh",
     "load_preset", "load_scene_config", "make_camera_rig", "save_scene_config", "scene_config_from_dict",
     "views_beyond_terrain",

@@ -139,20 +139,18 @@ class Terrain:
             above = points[..., 2] - self.height_at(points[..., 0], points[..., 1])
             hit = inside & (above <= 0)
             any_hit = hit.any(axis=1)
-            first = np.argmax(hit, axis=1)
             rows = np.nonzero(any_hit)[0]
-            for row in rows:
-                k = first[row]
-                if k == 0:
-                    result[start + row] = 0.0
-                    continue
-                if not inside[row, k - 1]:
-                    # Entered the square already below the ground: it meets the edge.
-                    result[start + row] = steps[k]
-                    continue
-                a, b = above[row, k - 1], above[row, k]
-                fraction = min(max(a / (a - b), 0.0), 1.0) if a != b else 0.0
-                result[start + row] = steps[k - 1] + fraction * step
+            first = np.argmax(hit, axis=1)[rows]
+            previous = np.maximum(first - 1, 0)
+            a, b = above[rows, previous], above[rows, first]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                fraction = np.where(a != b, np.clip(a / (a - b), 0.0, 1.0), 0.0)
+            distance = steps[previous] + fraction * step
+            # Starting below the ground: distance 0. Entering the square already below the
+            # ground: the ray meets the square's edge wall.
+            distance = np.where(first == 0, 0.0, distance)
+            distance = np.where((first > 0) & ~inside[rows, previous], steps[first], distance)
+            result[start + rows] = distance
         return result
 
 

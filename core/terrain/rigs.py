@@ -273,6 +273,18 @@ def make_camera_rig(rig: RigConfig, render: RenderConfig, terrain, seed: int = 0
     return poses
 
 
+def ground_depth(pose: CameraPose, terrain, pixels: np.ndarray) -> np.ndarray:
+    """Depth along the camera z axis [N] of the bare ground seen through pixels [N, 2]; inf where none.
+
+    An independent reference for rendered depth maps (Cycles' Depth pass is also z-depth).
+    Rocks are not in the heightfield, so pixels showing a rock differ.
+    """
+    rays = pose.pixel_rays(pixels)
+    origins = np.repeat(pose.camera_center[None, :], rays.shape[0], axis=0)
+    distances = terrain.raycast(origins, rays)
+    return distances * (rays @ pose.forward)
+
+
 def _large_scale_terrain(config: TerrainConfig):
     """A coarse terrain with only the regional slope and escarpment (cheap; for checks)."""
     from .heightfield import Terrain

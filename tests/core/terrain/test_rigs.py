@@ -226,3 +226,19 @@ def test_stereo_pairs_share_orientation_and_baseline(kind):
         assert (left.rotation @ offset)[0] == pytest.approx(0.424, abs=1e-9)
     with pytest.raises(ConfigError, match="rig.views.*even"):
         make_camera_rig(rig(kind, views=9, stereo_baseline_m=0.424), RENDER, terrain)
+
+
+def test_ground_depth_matches_a_flat_plane():
+    from esgs.core.terrain import Terrain, ground_depth
+    heights = np.full((65, 65), 1.0, dtype=np.float32)
+    terrain = Terrain(heights=heights, extent_m=200.0, sand_mask=np.zeros_like(heights))
+    pose = make_camera_rig(RigConfig(kind="station_panorama", views=1, height_m=2.0, pitch_deg=-30.0),
+                           RENDER, terrain, seed=0)[0]
+    pixels = np.array([[160.0, 90.0], [10.0, 170.0], [300.0, 120.0], [160.0, 0.0]])
+    depth = ground_depth(pose, terrain, pixels)
+    rays = pose.pixel_rays(pixels)
+    # Camera 2 m above the plane z = 1: distance along each ray = 2 / -dz.
+    expected = (2.0 / -rays[:, 2]) * (rays @ pose.forward)
+    np.testing.assert_allclose(depth, expected, rtol=1e-6)
+    # The image centre looks 30 deg down: z-depth there = 2 / sin(30 deg).
+    assert depth[0] == pytest.approx(4.0, rel=1e-6)
