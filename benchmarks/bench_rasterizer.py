@@ -8,7 +8,9 @@ grad, "fwd+bwd" a forward with grad plus the backward of a fixed weighting of al
 Times are the minimum over the repeats: wall-clock ("ms") and process CPU time summed over
 all threads ("cpu ms", the work done, which the load of a shared machine inflates much
 less than the wall-clock time; on an idle machine wall ~ cpu / threads for the parallel
-kernels). The load average is printed before and after.
+kernels; run with --threads 1 for a clean measure of the work, as spinning idle workers
+count as CPU time too). "RSS MB" is the process's peak resident memory (torch included)
+sampled during that configuration. The load average is printed before and after.
 
     .venv/bin/python benchmarks/bench_rasterizer.py [--counts 10000 100000 300000]
         [--resolutions 480x270 960x540] [--repeats 3] [--threads N] [--reference]
@@ -157,7 +159,9 @@ def main(argv=None) -> int:
     import numba
 
     if args.threads:
+        # Both pools: with fewer cores than busy threads, spinning workers inflate CPU time.
         numba.set_num_threads(args.threads)
+        torch.set_num_threads(args.threads)
     print(f"load: {os.getloadavg()}  cores: {os.cpu_count()}  numba threads: {numba.get_num_threads()}  "
           f"torch threads: {torch.get_num_threads()}")
     # Compile (or load from the cache) before timing anything.
@@ -165,7 +169,7 @@ def main(argv=None) -> int:
     viewmats, Ks = oblique_camera(64, 36)
     run_once(warm, viewmats, Ks, 64, 36, True, "cpu")
     header = (f"{'N':>7} {'image':>8} {'in view':>7} {'pairs':>9} {'evals':>9} {'fwd ms':>8} {'cpu ms':>8} "
-              f"{'fwd+bwd ms':>10} {'cpu ms':>8} {'Geval/s':>8} {'peak MB':>8}")
+              f"{'fwd+bwd ms':>10} {'cpu ms':>8} {'Geval/s':>8} {'RSS MB':>8}")
     print(header)
     print("-" * len(header))
     for count in args.counts:
@@ -187,7 +191,7 @@ def main(argv=None) -> int:
             print(f"{count:>7} {resolution:>8} {in_view:>7.0%} {meta['n_intersections'][0]:>9} {evaluations:>9} "
                   f"{1e3 * min(forward_times):>8.1f} {1e3 * min(forward_cpu):>8.1f} "
                   f"{1e3 * min(full_times):>10.1f} {1e3 * min(full_cpu):>8.1f} "
-                  f"{evaluations / min(forward_times) / 1e9:>8.3f} {memory.used / 2**20:>8.0f}", flush=True)
+                  f"{evaluations / min(forward_times) / 1e9:>8.3f} {memory.peak / 2**20:>8.0f}", flush=True)
     if args.reference:
         scene = terrain_gaussians(10_000, args.mesh)
         viewmats, Ks = oblique_camera(160, 90)
