@@ -209,7 +209,14 @@ def generate_terrain(config: TerrainConfig, seed: int = 0, *, progress: Progress
     components["craters"] = (heights - relief).astype(np.float32)
 
     if config.layer_thickness_m > 0:
-        layered = _terrace(heights, config.layer_thickness_m, config.layer_sharpness)
+        terraced = _terrace(heights, config.layer_thickness_m, config.layer_sharpness)
+        # Beds show where erosion cuts through them (slopes, scarps, crater walls); gentle
+        # ground keeps its cap surface instead of turning into contour-line steps.
+        d_rows, d_cols = np.gradient(ndimage.gaussian_filter(heights, sigma=max(1.0 / cell, 1.0)), cell)
+        slope = np.hypot(d_rows, d_cols)
+        exposure = np.clip((slope - 0.08) / 0.25, 0.0, 1.0)
+        exposure = exposure * exposure * (3.0 - 2.0 * exposure)
+        layered = heights + exposure * (terraced - heights)
         components["layers"] = (layered - heights).astype(np.float32)
         heights = layered
 

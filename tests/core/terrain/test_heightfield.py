@@ -258,3 +258,10 @@ def test_raycast_from_outside_the_square_never_goes_backwards():
     # From above, outside, descending onto the plateau: an ordinary hit.
     distance = terrain.raycast(np.array([[-15.0, 0.0, 8.0]]), np.array([[1.0, 0.0, -0.5]]))[0]
     assert distance * 0.5 / math.sqrt(1.25) == pytest.approx(5.0, abs=1e-3)
+
+
+def test_layers_only_show_on_slopes():
+    gentle = small_config(crater_count=0, relief_amplitude_m=0.0, slope_deg=2.0, sand_fraction=0.0, rock_abundance=0.0)
+    plain = generate_terrain(gentle, seed=0)
+    layered = generate_terrain(dataclasses.replace(gentle, layer_thickness_m=0.3, layer_sharpness=1.0), seed=0)
+    np.testing.assert_allclose(layered.heights, plain.heights, atol=1e-6)
