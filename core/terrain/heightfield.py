@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Callable
+from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
 
-from ..progress import ProgressEvent
+from ..errors import ConfigError, DatasetError, FormatError
+from ..progress import ProgressCallback, ProgressEvent
 from .config import TerrainConfig
 from .craters import apply_craters, sample_craters
 from .dunes import dune_component, sand_mask
@@ -154,9 +155,6 @@ class Terrain:
         return result
 
 
-ProgressCallback = Callable[[ProgressEvent], None]
-
-
 def _report(progress: ProgressCallback | None, step: int, total: int, message: str) -> None:
     if progress is not None:
         progress(ProgressEvent(step=step, total=total, stage="terrain", message=message))
@@ -179,8 +177,6 @@ def generate_terrain(config: TerrainConfig, seed: int = 0, *, progress: Progress
     """
     config.validate()
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
-        from ..errors import ConfigError
-
         raise ConfigError(f"seed must be a non-negative integer (got {seed!r})")
     total = 5
     resolution, extent = config.resolution, config.extent_m
@@ -253,7 +249,7 @@ def replace_terrain(terrain: Terrain, **changes) -> Terrain:
 _SAVED_ARRAYS = ("heights", "sand_mask", "craters", "rocks")
 
 
-def save_terrain(terrain: Terrain, path, *, include_components: bool = False) -> None:
+def save_terrain(terrain: Terrain, path: str | Path, *, include_components: bool = False) -> None:
     """Write a terrain to a ``.npz`` file atomically (arrays exactly as generated).
 
     Regenerating from the scene config and seed gives the same arrays; the file is for
@@ -272,12 +268,8 @@ def save_terrain(terrain: Terrain, path, *, include_components: bool = False) ->
     atomic_write_bytes(path, buffer.getvalue())
 
 
-def load_terrain(path) -> Terrain:
+def load_terrain(path: str | Path) -> Terrain:
     """Read a terrain written by :func:`save_terrain`; FormatError when the file is not one."""
-    from pathlib import Path
-
-    from ..errors import DatasetError, FormatError
-
     path = Path(path)
     if not path.is_file():
         raise DatasetError("terrain file not found", path=path)

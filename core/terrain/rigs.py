@@ -32,6 +32,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from .config import RenderConfig, RigConfig, TerrainConfig
+from .heightfield import Terrain
 
 _STREAM_RIG = 100
 
@@ -146,7 +147,7 @@ def _grid_offsets(views: int, radius: float) -> list[tuple[float, float, int]]:
     return result[:views]
 
 
-def _positions_and_angles(rig: RigConfig, terrain, rng: np.random.Generator):
+def _positions_and_angles(rig: RigConfig, terrain: Terrain, rng: np.random.Generator):
     """Camera positions [V, 3], yaws [V], pitches [V] (radians) and orbit target or None."""
     views = rig.views
     center = np.array([rig.center_x_m, rig.center_y_m])
@@ -233,7 +234,7 @@ def _positions_and_angles(rig: RigConfig, terrain, rng: np.random.Generator):
     return positions, yaws, pitches, target
 
 
-def make_camera_rig(rig: RigConfig, render: RenderConfig, terrain, seed: int = 0) -> list[CameraPose]:
+def make_camera_rig(rig: RigConfig, render: RenderConfig, terrain: Terrain, seed: int = 0) -> list[CameraPose]:
     """Camera poses [rig.views] of kind ``rig.kind`` over ``terrain`` (deterministic for ``seed``).
 
     Names are ``view_000``, ``view_001``... (image stems); with a stereo baseline the even
@@ -273,7 +274,7 @@ def make_camera_rig(rig: RigConfig, render: RenderConfig, terrain, seed: int = 0
     return poses
 
 
-def ground_depth(pose: CameraPose, terrain, pixels: np.ndarray) -> np.ndarray:
+def ground_depth(pose: CameraPose, terrain: Terrain, pixels: np.ndarray) -> np.ndarray:
     """Depth along the camera z axis [N] of the bare ground seen through pixels [N, 2]; inf where none.
 
     An independent reference for rendered depth maps (Cycles' Depth pass is also z-depth).
@@ -285,10 +286,8 @@ def ground_depth(pose: CameraPose, terrain, pixels: np.ndarray) -> np.ndarray:
     return distances * (rays @ pose.forward)
 
 
-def _large_scale_terrain(config: TerrainConfig):
+def _large_scale_terrain(config: TerrainConfig) -> Terrain:
     """A coarse terrain with only the regional slope and escarpment (cheap; for checks)."""
-    from .heightfield import Terrain
-
     resolution = 65
     axis = np.linspace(-config.extent_m / 2, config.extent_m / 2, resolution)
     azimuth = math.radians(config.slope_azimuth_deg)
@@ -300,7 +299,7 @@ def _large_scale_terrain(config: TerrainConfig):
                    sand_mask=np.zeros_like(heights, dtype=np.float32))
 
 
-def views_beyond_terrain(poses: list[CameraPose], terrain, margin_fraction: float = 0.0) -> list[str]:
+def views_beyond_terrain(poses: list[CameraPose], terrain: Terrain, margin_fraction: float = 0.0) -> list[str]:
     """Names of views whose image border sees no ground inside the square (sky, or past the edge).
 
     ``margin_fraction`` shrinks the accepted square (0.03 = hits within 97% of it).

@@ -16,9 +16,14 @@ surface, a share of its height buried (more on slopes), and prefers bedrock over
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from .config import TerrainConfig
+
+if TYPE_CHECKING:
+    from .heightfield import Terrain
 
 ROCK_COLUMNS = ("x", "y", "z_base", "diameter_m", "height_m", "yaw_rad", "shape_seed")
 
@@ -70,7 +75,7 @@ def sample_rock_diameters(abundance: float, min_diameter_m: float, max_diameter_
     return rng.permutation(np.exp(log_d))
 
 
-def place_rocks(config: TerrainConfig, terrain: "Terrain", rng: np.random.Generator) -> np.ndarray:  # noqa: F821
+def place_rocks(config: TerrainConfig, terrain: Terrain, rng: np.random.Generator) -> np.ndarray:
     """Rock table [M, 7]: x, y, z_base, diameter_m, height_m, yaw_rad, shape_seed.
 
     ``z_base`` is where the rock's bottom sits: ``rock_embed_fraction`` of its height below
