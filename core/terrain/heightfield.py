@@ -37,7 +37,7 @@ def component_rng(seed: int, stream: int) -> np.random.Generator:
     return np.random.default_rng([int(seed), int(stream)])
 
 
-@dataclass
+@dataclass(eq=False)  # arrays: compare fields explicitly (np.array_equal), not with ==
 class Terrain:
     """A generated terrain. See the module docstring for the grid convention.
 
