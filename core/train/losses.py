@@ -7,8 +7,8 @@ trainer renders those channels only on the steps where such a term is active.
 
 Masks: where ``mask`` is False (sky, no surface) the rendered colour is replaced by the
 ground truth before the photometric terms, so those pixels contribute neither loss nor
-gradient; the mean still runs over all pixels, which keeps the loss scale independent of
-how much of the image is masked only up to that constant factor.
+gradient. The mean still runs over all pixels, so a mostly masked image contributes a
+proportionally smaller loss (its valid pixels weigh as much as anywhere else).
 """
 from __future__ import annotations
 
