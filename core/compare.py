@@ -191,7 +191,7 @@ def _numba_pair_distances():
     if _NUMBA_KERNEL is None:
         try:
             from ._compare_kernels import pair_distances
-        except ImportError:
+        except Exception:  # noqa: BLE001 - no numba, or a numba that does not fit this numpy
             _NUMBA_KERNEL = False
         else:
             _NUMBA_KERNEL = pair_distances
