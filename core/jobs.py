@@ -384,6 +384,10 @@ class TrainingJob:
         # CLI's "esgs train: error: ..." line says what went wrong
         for line in reversed(lines):
             if "error" in line.lower() or "exception" in line.lower():
+                if line.startswith("ModuleNotFoundError"):
+                    # the usual cause: Blender's own Python, which has no torch
+                    return (f"{line.strip()} (the trainer ran with {self.trainer[0]}; set a Python that has "
+                            "torch and esgs in the add-on preferences or $ESGS_PYTHON)")
                 return line.strip()
         if lines:
             return lines[-1].strip()

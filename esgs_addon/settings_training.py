@@ -36,6 +36,7 @@ class ESGS_PG_training(bpy.types.PropertyGroup):
 
     # live state, written by the job poller (also saved: the last run stays visible)
     status: bpy.props.StringProperty(name="Status", default="")
+    stage: bpy.props.StringProperty(name="Stage", default="")
     step: bpy.props.IntProperty(name="Step", default=0)
     total: bpy.props.IntProperty(name="Total", default=0)
     progress: bpy.props.FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR")

@@ -232,6 +232,7 @@ def train_scene(scene_dir: str | Path, run_dir: str | Path | None = None, iterat
 def copy_state(settings: Any, state: JobState) -> None:
     """Mirror a job state into ``scene.esgs.training`` (unknown numbers as -1)."""
     settings.status = state.status
+    settings.stage = state.stage
     settings.step = state.step
     settings.total = state.total
     settings.progress = state.fraction

@@ -51,6 +51,8 @@ class ESGS_PT_training(bpy.types.Panel):
 
         if running:
             text = f"{settings.step:,} / {settings.total:,}"
+            if settings.stage and settings.stage != "train":
+                text = f"{settings.stage}: {text}"  # evaluation after training has its own count
             layout.progress(factor=settings.progress, type="BAR", text=text)
             grid = layout.grid_flow(columns=2, even_columns=True)
             if settings.loss >= 0:

@@ -264,3 +264,13 @@ def test_sigterm_while_waiting_stops_the_child_too(tmp_path, fake_trainer, scene
     assert (tmp_path / "run" / "checkpoint.json").exists()  # the child checkpointed on its SIGTERM
     with pytest.raises(ProcessLookupError):
         os.kill(child_pid, 0)
+
+
+def test_missing_module_failure_names_the_interpreter(tmp_path, scene):
+    script = tmp_path / "needs_torch.py"
+    script.write_text("import no_such_module_for_esgs_tests\n")
+    job = jobs.TrainingJob(scene, tmp_path / "run", iterations=3, trainer=[sys.executable, str(script)])
+    state = job.start().wait(timeout=60, poll_s=0.05)
+    assert state.status == jobs.FAILED
+    assert state.error.startswith("ModuleNotFoundError: No module named 'no_such_module_for_esgs_tests'")
+    assert sys.executable in state.error and "preferences" in state.error
