@@ -181,6 +181,9 @@ def test_new_run_folders_do_not_collide(scene_dir):
     assert second != first and second.parent == first.parent == scene_dir.parent / "esgs_runs"
 
 
+_ICONS = {item.identifier for item in bpy.types.UILayout.bl_rna.functions["label"].parameters["icon"].enum_items}
+
+
 class _RecordingLayout:
     """Stands in for a UILayout: accepts every call, records the texts and properties shown."""
 
@@ -189,6 +192,10 @@ class _RecordingLayout:
 
     def __getattr__(self, name):
         def call(*args, **kwargs):
+            function = bpy.types.UILayout.bl_rna.functions[name]  # a real UILayout call...
+            assert set(kwargs) <= {p.identifier for p in function.parameters}, (name, kwargs)  # ...with real keywords
+            if "icon" in kwargs:
+                assert kwargs["icon"] in _ICONS, kwargs["icon"]
             if name == "prop":
                 data, prop = args[0], args[1]
                 if not prop.startswith("["):
