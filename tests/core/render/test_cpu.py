@@ -58,10 +58,12 @@ def test_antialiased_mode_and_backgrounds_match_reference():
     assert torch.allclose(cpu["render"], expected, atol=1e-12)
 
 
-@pytest.mark.parametrize("tile_size", [4, 8, 16])
-def test_tile_sizes_and_odd_image_sizes(tile_size):
-    scene = random_scene(120, seed=6, width=37, height=23)
-    assert_backends_agree(scene, tile_size=tile_size, render_depth=True)
+@pytest.mark.parametrize("tile_size, color_dims", [(4, 1), (8, 3), (16, 5)])
+def test_tile_sizes_odd_image_sizes_and_feature_widths(tile_size, color_dims):
+    scene = random_scene(120, seed=6, width=37, height=23, color_dims=color_dims)
+    backgrounds = torch.linspace(0.1, 0.9, color_dims, dtype=torch.float64)[None]
+    reference, _ = assert_backends_agree(scene, tile_size=tile_size, render_depth=True, backgrounds=backgrounds)
+    assert reference["render"].shape[-1] == color_dims + 1
 
 
 def test_behind_camera_outside_image_and_near_plane():
