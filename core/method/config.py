@@ -1,0 +1,53 @@
+"""Settings of the ESGS additions to the 3DGS trainer (priors, losses, GPDFN)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from ..errors import ConfigError
+from ..gpdfn import GPDFNConfig
+
+DEPTH_MODES = ("log", "inverse")
+
+
+@dataclass
+class ESGSConfig:
+    """What ESGS adds to a 3DGS run. All off by default: the plain baseline.
+
+    Step numbers are for a 30,000-step run and scale with the run's length, like every
+    other schedule of the trainer.
+    """
+
+    priors: str = field(default="", metadata={"help": "prior source under SCENE/priors/ (gt, labels, ndn, sfm); empty = none"})
+    depth: bool = field(default=False, metadata={"help": "depth-prior loss"})
+    normal: bool = field(default=False, metadata={"help": "normal-prior loss"})
+    consistency: bool = field(default=False, metadata={"help": "depth-normal consistency loss (needs no prior)"})
+    gpdfn: bool = field(default=False, metadata={"help": "GPDFN neighbour fusion"})
+    fused_k: int = field(default=3, metadata={"help": "Gaussians fused by GPDFN, itself included (1..5)"})
+    depth_weight: float = field(default=0.1, metadata={"help": "weight of the depth-prior loss"})
+    normal_weight: float = field(default=0.05, metadata={"help": "weight of the normal-prior loss"})
+    consistency_weight: float = field(default=0.05, metadata={"help": "weight of the depth-normal consistency loss"})
+    depth_mode: str = field(default="log", metadata={"help": "depth error space: log or inverse", "choices": DEPTH_MODES})
+    prior_start_step: int = field(default=500, metadata={"help": "first step of the prior losses (of 30,000)"})
+    consistency_start_step: int = field(default=7000, metadata={"help": "first step of the consistency loss (of 30,000)"})
+    edge_strength: float = field(default=10.0, metadata={"help": "edge-aware weighting exp(-s |grad I|); 0 = uniform"})
+    use_masks: bool = field(default=True, metadata={"help": "exclude sky/no-surface pixels from prior losses (the sky fix)"})
+    max_prior_depth: float = field(default=0.0, metadata={"help": "ignore prior depths beyond this (scene units; 0 = no limit)"})
+    gpdfn_lr: float = field(default=1e-3, metadata={"help": "learning rate of the GPDFN weights"})
+
+    def validate(self) -> None:
+        if (self.depth or self.normal) and not self.priors:
+            raise ConfigError("depth/normal prior losses need a prior source",
+                              hint="pass --priors gt|labels|ndn|sfm (folders under SCENE/priors/)")
+        if self.depth_mode not in DEPTH_MODES:
+            raise ConfigError(f"depth_mode must be one of {DEPTH_MODES}, got {self.depth_mode!r}")
+        for name in ("depth_weight", "normal_weight", "consistency_weight", "edge_strength", "max_prior_depth"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
+        self.gpdfn_config().validate()
+
+    def gpdfn_config(self) -> GPDFNConfig:
+        return GPDFNConfig(fused_k=self.fused_k, lr=self.gpdfn_lr)
+
+    @property
+    def enabled(self) -> bool:
+        return self.depth or self.normal or self.consistency or (self.gpdfn and self.fused_k > 1)

@@ -1,0 +1,65 @@
+"""Trainer hook that runs GPDFN before every render and trains it with the Gaussians."""
+from __future__ import annotations
+
+from typing import Any, Optional
+
+import torch
+
+from ..gpdfn import GPDFN
+from ..train.hooks import StepContext, TrainHook
+from .config import ESGSConfig
+
+
+def fused_render_params(module: GPDFN, gaussians: Any, params: Any) -> Any:
+    """Apply GPDFN residuals to activated rendering parameters (a new RenderParams)."""
+    raw = gaussians.params
+    residual = module(raw["means"], raw["log_scales"], raw["quats"], raw["opacity_logit"].reshape(-1),
+                      raw["sh_dc"].reshape(-1, 3))
+    from dataclasses import replace
+
+    scales = torch.exp(raw["log_scales"] + residual["log_scales"])
+    opacities = torch.sigmoid(raw["opacity_logit"].reshape(-1) + residual["opacity_logits"])
+    colors = params.colors.clone()
+    colors[:, 0, :] = colors[:, 0, :] + residual["sh_dc"]
+    return replace(params, scales=scales, opacities=opacities, colors=colors)
+
+
+class GPDFNHook(TrainHook):
+    """Owns the GPDFN module: optimiser group, residuals before render, checkpoint state."""
+
+    name = "esgs_gpdfn"
+
+    def __init__(self, config: ESGSConfig):
+        self.config = config
+        self.module = GPDFN(config.gpdfn_config())
+
+    def setup(self, trainer: Any) -> None:
+        self.module.to(trainer.device)
+        if self.module.enabled:
+            trainer.add_parameter_group("gpdfn", list(self.module.parameters()), self.config.gpdfn_lr)
+
+    def before_render(self, trainer: Any, context: StepContext, params: Any) -> Optional[Any]:
+        if not self.module.enabled:
+            return params
+        return fused_render_params(self.module, trainer.gaussians, params)
+
+    def bake(self, gaussians: Any) -> None:
+        """Fold the current residuals into the Gaussians' own parameters (for export/eval)."""
+        if not self.module.enabled or len(gaussians) == 0:
+            return
+        raw = gaussians.params
+        with torch.no_grad():
+            residual = self.module(raw["means"], raw["log_scales"], raw["quats"], raw["opacity_logit"].reshape(-1),
+                                   raw["sh_dc"].reshape(-1, 3))
+            raw["log_scales"].add_(residual["log_scales"])
+            raw["opacity_logit"].add_(residual["opacity_logits"].reshape(raw["opacity_logit"].shape))
+            raw["sh_dc"].add_(residual["sh_dc"].reshape(raw["sh_dc"].shape))
+
+    def state_dict(self) -> dict:
+        return {"module": self.module.state_dict(), "voxel_size": self.module.voxel_size}
+
+    def load_state_dict(self, state: dict) -> None:
+        if state.get("module"):
+            self.module.load_state_dict(state["module"])
+        self.module.voxel_size = float(state.get("voxel_size", self.module.voxel_size))
+

@@ -1,0 +1,103 @@
+"""Trainer hook that adds the ESGS geometry losses (depth prior, normal prior, consistency)."""
+from __future__ import annotations
+
+from typing import Any, Optional
+
+import torch
+
+from ..priors import load_prior_maps
+from ..priors.losses import depth_loss, depth_normal_consistency_loss, edge_aware_weights, normal_loss
+from ..train.hooks import TrainHook
+from ..train.losses import LossContext, LossTerm
+from .config import ESGSConfig
+
+
+class PriorLossHook(TrainHook):
+    """Loads ``priors/<source>/`` for every training view and adds the loss terms.
+
+    Prior maps are loaded once at setup, brought to each view's training resolution, and
+    kept as tensors. Pixels outside the prior's mask (and the view's own mask) never count.
+    """
+
+    name = "esgs_priors"
+
+    def __init__(self, config: ESGSConfig):
+        self.config = config
+        self.priors: dict[str, dict[str, Optional[torch.Tensor]]] = {}
+        self._weights: dict[str, torch.Tensor] = {}
+
+    # ------------------------------------------------------------------------------
+    def setup(self, trainer: Any) -> None:
+        config = self.config
+        start = trainer.config.scaled_step(config.prior_start_step)
+        if config.depth or config.normal:
+            self._load(trainer)
+        if config.depth:
+            trainer.add_loss_term(LossTerm("depth_prior", config.depth_weight, self._depth_term, start_step=start,
+                                           needs=frozenset({"depth"})))
+        if config.normal:
+            trainer.add_loss_term(LossTerm("normal_prior", config.normal_weight, self._normal_term, start_step=start,
+                                           needs=frozenset({"normals"})))
+        if config.consistency:
+            trainer.add_loss_term(LossTerm("depth_normal", config.consistency_weight, self._consistency_term,
+                                           start_step=trainer.config.scaled_step(config.consistency_start_step),
+                                           needs=frozenset({"depth", "normals"})))
+
+    def _load(self, trainer: Any) -> None:
+        source = self.config.priors
+        device = trainer.device
+        for view in trainer.data.train:
+            rotation = view.viewmat[:3, :3].double().numpy()
+            maps = load_prior_maps(trainer.data.source or trainer.config.scene, source, view.name,
+                                   size=(view.width, view.height), world_to_camera_rotation=rotation)
+            mask = torch.from_numpy(maps.mask.copy())
+            if not self.config.use_masks:
+                mask = torch.ones_like(mask)
+            depth = torch.from_numpy(maps.depth.copy()) if maps.depth is not None else None
+            if depth is not None and self.config.max_prior_depth > 0:
+                mask = mask & (depth <= self.config.max_prior_depth)
+            if view.mask is not None and self.config.use_masks:
+                mask = mask & view.mask[..., 0].bool()
+            self.priors[view.name] = {
+                "depth": depth.to(device) if depth is not None else None,
+                "normal": torch.from_numpy(maps.normal.copy()).to(device) if maps.normal is not None else None,
+                "mask": mask.to(device),
+                "relative": torch.tensor(bool(maps.relative_depth)),
+            }
+        if self.config.depth and all(p["depth"] is None for p in self.priors.values()):
+            trainer.message(f"warning: prior source {source!r} has no depth maps; the depth loss stays at zero")
+        if self.config.normal and all(p["normal"] is None for p in self.priors.values()):
+            trainer.message(f"warning: prior source {source!r} has no normal maps; the normal loss stays at zero")
+
+    def _edge_weights(self, context: LossContext) -> torch.Tensor:
+        name = context.view.name
+        if name not in self._weights:
+            if self.config.edge_strength > 0:
+                self._weights[name] = edge_aware_weights(context.target, self.config.edge_strength)
+            else:
+                self._weights[name] = torch.ones(context.target.shape[:2], device=context.target.device)
+        return self._weights[name]
+
+    # --- loss terms ------------------------------------------------------------------
+    def _depth_term(self, context: LossContext) -> torch.Tensor:
+        prior = self.priors.get(context.view.name)
+        if prior is None or prior["depth"] is None or context.depth is None:
+            return context.image.sum() * 0.0
+        return depth_loss(context.depth[..., 0], prior["depth"], prior["mask"], self._edge_weights(context),
+                          mode=self.config.depth_mode, relative=bool(prior["relative"]), alpha=context.alpha[..., 0])
+
+    def _normal_term(self, context: LossContext) -> torch.Tensor:
+        prior = self.priors.get(context.view.name)
+        if prior is None or prior["normal"] is None or context.normals is None:
+            return context.image.sum() * 0.0
+        return normal_loss(context.normals, prior["normal"], prior["mask"], self._edge_weights(context),
+                           alpha=context.alpha[..., 0])
+
+    def _consistency_term(self, context: LossContext) -> torch.Tensor:
+        if context.depth is None or context.normals is None:
+            return context.image.sum() * 0.0
+        mask = (context.alpha[..., 0] > 0.5)
+        if context.mask is not None:
+            mask = mask & context.mask[..., 0]
+        return depth_normal_consistency_loss(context.depth[..., 0], context.normals, context.view.K.to(context.depth),
+                                             mask=mask)
