@@ -41,6 +41,10 @@ class ESGS_OT_compare_to_mesh(bpy.types.Operator):
         except ESGSError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
+        except ImportError as error:
+            # Blender's Python lacks scipy/trimesh unless the extension's wheels are installed
+            self.report({"ERROR"}, f"The comparison needs {error.name or 'a missing package'}: {error}")
+            return {"CANCELLED"}
         stats = summary["gaussians_to_mesh_filtered"]
         mean = f"{stats['mean']:.4g}" if stats["mean"] is not None else "n/a"
         self.report({"INFO"}, f"Mean distance {mean} (opacity >= {settings.compare_opacity_min:g}), "

@@ -144,3 +144,17 @@ def test_operator(tmp_path):
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["precision"] == pytest.approx(2 / 3)
     assert report["mesh"] == "plane"
+
+
+def test_operator_reports_a_missing_dependency(tmp_path, monkeypatch):
+    from esgs.operators import compare_to_mesh as operator_module
+
+    def without_scipy(*args, **kwargs):
+        raise ModuleNotFoundError("No module named 'scipy'", name="scipy")
+
+    monkeypatch.setattr(operator_module, "compare_to_mesh", without_scipy)
+    plane = mesh_object("plane", np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float), np.array([[0, 1, 2]]))
+    obj = gaussians_import.import_gaussians(gaussians_file(tmp_path / "g.ply", np.zeros((2, 3))))
+    bpy.context.view_layer.objects.active = obj
+    with pytest.raises(RuntimeError, match="needs scipy"):
+        bpy.ops.esgs.compare_to_mesh(mesh=plane.name)
