@@ -14,6 +14,7 @@ blocking path there (see DESIGN.md).
 """
 from __future__ import annotations
 
+import contextlib
 import time
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
@@ -272,8 +273,13 @@ def start_polling(scene_name: str, key: str, import_result: bool = True) -> None
             return POLL_INTERVAL_S
         window_manager.progress_end()
         if scene is not None and state.status == jobs.FINISHED and import_result:
+            # timers run without a window in the context; operators used by the import
+            # (point-cloud conversion) want one
+            windows = list(getattr(window_manager, "windows", ()))
+            override = bpy.context.temp_override(window=windows[0]) if windows else contextlib.nullcontext()
             try:
-                import_run_result(job.run_dir, scene=scene, scene_dir=job.scene_dir)
+                with override:
+                    import_run_result(job.run_dir, scene=scene, scene_dir=job.scene_dir)
             except Exception as error:  # noqa: BLE001 - a timer must not raise; show it instead
                 scene.esgs.training.error = f"training finished but importing failed: {error}"
         return None
