@@ -27,6 +27,9 @@ class ESGS_PG_training(bpy.types.PropertyGroup):
                                   default=False)
     normal: bpy.props.BoolProperty(name="Normal prior", description="Align rendered normals with the normal priors",
                                    default=False)
+    consistency: bpy.props.BoolProperty(
+        name="Depth-normal consistency", description="Make rendered depth and normals agree (needs no prior)",
+        default=False)
     gpdfn: bpy.props.BoolProperty(name="GPDFN", description="Neighbourhood fusion of Gaussian parameters",
                                   default=False)
     priors: bpy.props.StringProperty(

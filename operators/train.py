@@ -8,7 +8,7 @@ from ..core.errors import ESGSError
 from ..esgs_addon import training_job
 
 #: the ESGS switches of the panel, passed only when the installed trainer has them
-SWITCHES = ("depth", "normal", "gpdfn")
+SWITCHES = ("depth", "normal", "consistency", "gpdfn")
 
 
 def options_from_settings(settings) -> dict:
@@ -29,8 +29,9 @@ def _run(operator, context, resume: bool) -> set[str]:
         else:
             scene_dir = training_job.find_scene_dir(context.scene, settings.scene_dir, context.active_object)
             run_dir = bpy.path.abspath(settings.run_dir) if settings.run_dir else None
+        # a resumed run keeps the options saved in its config.json: pass none that could override them
         job = training_job.start_training(scene_dir, run_dir, settings.iterations,
-                                          options=options_from_settings(settings), resume=resume)
+                                          options=None if resume else options_from_settings(settings), resume=resume)
     except ESGSError as error:
         operator.report({"ERROR"}, str(error))
         return {"CANCELLED"}

@@ -39,7 +39,7 @@ class ESGS_PT_training(bpy.types.Panel):
         supported = training_job.supported_options()
         if "--width" in supported:
             column.prop(settings, "width")
-        switches = [name for name in ("depth", "normal", "gpdfn") if f"--{name}" in supported]
+        switches = [name for name in ("depth", "normal", "consistency", "gpdfn") if f"--{name}" in supported]
         if switches or "--priors" in supported:
             box = column.box()
             box.label(text="ESGS")

@@ -131,16 +131,23 @@ def test_failure_shows_the_trainers_message(tmp_path, fake_trainer, scene_dir, m
     settings.scene_dir = str(scene_dir)
     settings.run_dir = str(tmp_path / "run")
     settings.iterations = 3
+    settings.depth = True
+    settings.priors = "gt"
     objects_before = len(bpy.data.objects)
     with pytest.raises(RuntimeError, match="ran out of memory"):
         bpy.ops.esgs.train()
+    argv = json.loads((tmp_path / "run" / "argv.json").read_text())
+    if "--depth" in training_job.supported_options():  # the ESGS switches of the installed trainer
+        assert "--depth" in argv and argv[argv.index("--priors") + 1] == "gt"
     assert settings.status == "failed"
     assert settings.error == "RuntimeError: the fake trainer ran out of memory"
     assert len(bpy.data.objects) == objects_before
     # the failed run can be resumed: same folders, --resume
     monkeypatch.setattr(training_job, "TRAINER_OVERRIDE", list(training_job.TRAINER_OVERRIDE)[:-1])
     assert bpy.ops.esgs.train_resume() == {"FINISHED"}
-    assert "--resume" in json.loads((tmp_path / "run" / "argv.json").read_text())
+    argv = json.loads((tmp_path / "run" / "argv.json").read_text())
+    assert "--resume" in argv
+    assert "--depth" not in argv and "--priors" not in argv  # the run keeps its saved options
     assert settings.status == "finished"
 
 
