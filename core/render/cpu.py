@@ -38,8 +38,9 @@ class _Plan:
     order: np.ndarray  # [M] Gaussian id of each depth rank
     rank_pair_start: np.ndarray  # [M + 1]
     rank_pairs: np.ndarray  # [P] pair positions of each rank
-    splats: np.ndarray  # [M, 8] packed screen-space Gaussians in depth order
-    boxes: np.ndarray  # [M, 4] inclusive pixel bounds in depth order
+    pair_gaussian: np.ndarray  # [P] Gaussian id of each pair
+    splats: np.ndarray  # [P, 8] screen-space Gaussian of each pair, in tile order
+    boxes: np.ndarray  # [P, 4] inclusive pixel bounds of each pair
     centres_x: np.ndarray
     centres_y: np.ndarray
     constants: np.ndarray
@@ -90,10 +91,15 @@ def _make_plan(means2d, conics, opacities, depths, valid, cov_diagonal, width, h
     constants[kernels.C_ALPHA_MAX] = K.ALPHA_MAX
     constants[kernels.C_T_MIN] = K.TRANSMITTANCE_MIN
     constants[kernels.C_SLACK] = 1e-3
+    pair_splats = np.empty((pair_rank.shape[0], kernels.SPLAT_COLUMNS), dtype=np_dtype)
+    pair_boxes = np.empty((pair_rank.shape[0], 4), dtype=np.int32)
+    kernels.gather_rows(pair_rank, splats, pair_splats)
+    kernels.gather_rows(pair_rank, packed_boxes, pair_boxes)
     plan = _Plan(
         width=width, height=height, tile_size=tile_size, tiles_x=tiles_x, tiles_y=tiles_y,
         tile_order=_tile_order(tiles_x * tiles_y), tile_start=tile_start, pair_rank=pair_rank, order=order,
-        rank_pair_start=rank_pair_start, rank_pairs=rank_pairs, splats=splats, boxes=packed_boxes,
+        rank_pair_start=rank_pair_start, rank_pairs=rank_pairs, pair_gaussian=order[pair_rank],
+        splats=pair_splats, boxes=pair_boxes,
         centres_x=(np.arange(width) + 0.5).astype(np_dtype), centres_y=(np.arange(height) + 0.5).astype(np_dtype),
         constants=constants,
     )
@@ -111,13 +117,13 @@ class _Composite(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, features, plan: _Plan):
         features_np = features.detach().numpy()
         np_dtype = features_np.dtype
-        packed = np.empty((plan.order.shape[0], features_np.shape[1]), dtype=np_dtype)
-        kernels.pack_features(plan.order, features_np, packed)
+        packed = np.empty((plan.pairs, features_np.shape[1]), dtype=np_dtype)
+        kernels.gather_rows(plan.pair_gaussian, np.ascontiguousarray(features_np), packed)
         image = np.zeros((plan.height, plan.width, features_np.shape[1]), dtype=np_dtype)
         transmittance = np.empty((plan.height, plan.width), dtype=np_dtype)
         stop = np.empty((plan.height, plan.width), dtype=np.int64)
         evaluations = np.zeros(plan.tiles_x * plan.tiles_y, dtype=np.int64)
-        kernels.composite_forward(plan.tile_order, plan.tile_start, plan.pair_rank, plan.tiles_x, plan.tile_size,
+        kernels.composite_forward(plan.tile_order, plan.tile_start, plan.tiles_x, plan.tile_size,
                                   plan.centres_x, plan.centres_y, plan.splats, plan.boxes, packed, plan.constants,
                                   image, transmittance, stop, evaluations)
         plan.evaluations = int(evaluations.sum())
@@ -142,7 +148,7 @@ class _Composite(torch.autograd.Function):
                       else np.ascontiguousarray(grad_alpha.detach().numpy()[..., 0], dtype=np_dtype))
         records = np.empty((plan.pairs, kernels.RECORD_FIXED + channels), dtype=np_dtype)
         kernels.composite_backward(
-            plan.tile_order, plan.tile_start, plan.pair_rank, plan.tiles_x, plan.tile_size,
+            plan.tile_order, plan.tile_start, plan.tiles_x, plan.tile_size,
             plan.centres_x, plan.centres_y, plan.splats, plan.boxes, packed, plan.constants,
             ctx.transmittance, ctx.stop, grad_image, grad_alpha, records)
         totals = np.zeros((ctx.count, kernels.RECORD_FIXED + channels), dtype=np_dtype)

@@ -1,10 +1,12 @@
 """Numba kernels of the CPU backend: tile binning, alpha compositing and its backward.
 
-Layout: the visible Gaussians are packed in depth order (rank 0 = nearest), one row per
-Gaussian: ``splats [M, 8]`` (mean x, mean y, conic a, b, c, opacity, level, unused),
-``boxes [M, 4]`` inclusive pixel bounds (x0, x1, y0, y1) and ``features [M, F]``. Tile lists
-hold ranks, so a tile walks these rows forwards in memory (one cache line per Gaussian
-instead of one per attribute). Images are [H, W, F]. The same kernels serve
+Layout: the visible Gaussians are first packed in depth order (rank 0 = nearest) for
+binning. The compositing kernels then read one row per tile-Gaussian pair, gathered in
+tile order: ``splats [P, 8]`` (mean x, mean y, conic a, b, c, opacity, level, unused),
+``boxes [P, 4]`` inclusive pixel bounds (x0, x1, y0, y1) and ``features [P, F]``. A tile
+streams through consecutive rows instead of jumping through memory (with 100k+
+Gaussians the per-Gaussian arrays do not fit in cache, and a cache miss per pair cost
+more than the pixels). Images are [H, W, F]. The same kernels serve
 float32 and float64 inputs (Numba compiles one version per dtype and caches both); all
 arithmetic constants come in through ``constants`` so float32 data stays in float32.
 
@@ -101,12 +103,12 @@ def pack_splats(order, means2d, conics, opacities, level, boxes, splats, packed_
 
 
 @njit(cache=True, parallel=True)
-def pack_features(order, features, packed):
-    """packed[i] = features[order[i]] ([M, F])."""
-    for i in prange(order.shape[0]):
-        g = order[i]
-        for j in range(features.shape[1]):
-            packed[i, j] = features[g, j]
+def gather_rows(index, source, out):
+    """out[k] = source[index[k]] for 2D arrays (rows gathered in parallel)."""
+    for k in prange(index.shape[0]):
+        row = index[k]
+        for j in range(source.shape[1]):
+            out[k, j] = source[row, j]
 
 
 @njit(cache=True)
@@ -182,7 +184,7 @@ def _row_span(dy, b, inverse_a, a_level, conic_det, mean_x, x_first, x_stop, hal
 
 
 @njit(cache=True, parallel=True)
-def composite_forward(tile_order, tile_start, pair_rank, tiles_x, tile_size, centres_x, centres_y,
+def composite_forward(tile_order, tile_start, tiles_x, tile_size, centres_x, centres_y,
                       splats, boxes, features, constants,
                       out_features, out_transmittance, out_stop, tile_evaluations):
     """Front-to-back compositing of every tile.
@@ -220,7 +222,7 @@ def composite_forward(tile_order, tile_start, pair_rank, tiles_x, tile_size, cen
         active = (x1 - x0) * (y1 - y0)
         evaluations = 0
         for k in range(start, end):
-            g = pair_rank[k]
+            g = k
             row_first = max(boxes[g, 2], y0)
             row_stop = min(boxes[g, 3] + 1, y1)
             col_first = max(boxes[g, 0], x0)
@@ -278,7 +280,7 @@ def composite_forward(tile_order, tile_start, pair_rank, tiles_x, tile_size, cen
 
 
 @njit(cache=True, parallel=True)
-def composite_backward(tile_order, tile_start, pair_rank, tiles_x, tile_size, centres_x, centres_y,
+def composite_backward(tile_order, tile_start, tiles_x, tile_size, centres_x, centres_y,
                        splats, boxes, features, constants,
                        final_transmittance, final_stop, grad_features, grad_alpha, records):
     """Per-pair gradient records, walking each tile's Gaussians back to front.
@@ -329,7 +331,7 @@ def composite_backward(tile_order, tile_start, pair_rank, tiles_x, tile_size, ce
                     upstream[p, ch] = grad_features[y, x, ch]
         grad_feature_sum = np.zeros(channels, dtype=features.dtype)
         for k in range(end - 1, start - 1, -1):
-            g = pair_rank[k]
+            g = k
             row_first = max(boxes[g, 2], y0)
             row_stop = min(boxes[g, 3] + 1, y1)
             col_first = max(boxes[g, 0], x0)
