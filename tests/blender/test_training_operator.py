@@ -6,7 +6,6 @@ when the engine's trainer is installed.
 """
 from __future__ import annotations
 
-import importlib.util
 import json
 import sys
 import textwrap
@@ -263,7 +262,7 @@ def test_panels_draw_progress_and_results(tmp_path):
 @pytest.mark.slow
 def test_real_trainer_end_to_end(tmp_path):
     """The installed trainer on a tiny synthetic plane scene: train headless, import, compare."""
-    if importlib.util.find_spec("esgs.core.train") is None or "--iterations" not in jobs.trainer_options():
+    if not jobs.trainer_available() or "--iterations" not in jobs.trainer_options():
         pytest.skip("the engine's trainer (esgs.core.train, esgs train) is not installed")
     pytest.importorskip("torch")
     from tests.core.train.scene import make_scene
