@@ -274,3 +274,12 @@ def test_missing_module_failure_names_the_interpreter(tmp_path, scene):
     assert state.status == jobs.FAILED
     assert state.error.startswith("ModuleNotFoundError: No module named 'no_such_module_for_esgs_tests'")
     assert sys.executable in state.error and "preferences" in state.error
+
+
+def test_installed_trainer_has_the_interface_the_runner_uses():
+    if not jobs.trainer_available():
+        pytest.skip("the engine's trainer (esgs.core.train) is not installed")
+    options = jobs.trainer_options()
+    assert {"--out", "--iterations", "--events", "--resume", "--threads"} <= options
+    command = jobs.trainer_command("PY")
+    assert command == ["PY", "-m", "esgs.core.cli", "train"]
