@@ -57,6 +57,20 @@ def _tile_order(tiles: int) -> np.ndarray:
     return np.random.default_rng(12345).permutation(tiles).astype(np.int64)
 
 
+def _depth_order(index: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """``index`` sorted by ``depth[index]``, ties by index (a stable sort), as int64.
+
+    For float32 depths (all positive here: behind-the-near-plane ones are culled) the bit
+    pattern read as an integer increases with the value, so one sort of the 64-bit keys
+    (depth bits, index) gives the stable order about 7x faster than a stable argsort.
+    """
+    values = depth[index]
+    if values.dtype == np.float32 and index.size and index.max() < 2**31:
+        keys = (values.view(np.int32).astype(np.int64) << 32) | index.astype(np.int64)
+        return np.sort(keys) & 0xFFFFFFFF
+    return index[np.argsort(values, kind="stable")].astype(np.int64)
+
+
 def _make_plan(means2d, conics, opacities, depths, valid, cov_diagonal, width, height, tile_size):
     """Cull, bound, depth-sort, pack and bin the Gaussians of one camera.
 
@@ -72,9 +86,7 @@ def _make_plan(means2d, conics, opacities, depths, valid, cov_diagonal, width, h
     kernels.prepare_splats(means2d, conics.detach().numpy(), opacities.detach().numpy(), cov_diagonal.numpy(),
                            valid.numpy(), width, height, K.LOG_INV_ALPHA_MIN, _LEVEL_SLACK_RELATIVE,
                            _LEVEL_SLACK_ABSOLUTE, K.ALPHA_MIN, keep, level, exact_level, boxes)
-    index = np.flatnonzero(keep)
-    depth = depths.detach().numpy()
-    order = index[np.argsort(depth[index], kind="stable")].astype(np.int64)
+    order = _depth_order(np.flatnonzero(keep), depths.detach().numpy())
     splats = np.empty((order.shape[0], kernels.SPLAT_COLUMNS), dtype=np_dtype)
     packed_boxes = np.empty((order.shape[0], 4), dtype=np.int32)
     kernels.pack_splats(order, means2d, conics.detach().numpy(), opacities.detach().numpy(), level, boxes, splats,

@@ -207,3 +207,17 @@ def test_cuda_backend_is_optional():
     cpu_scene = {key: value.cpu() if isinstance(value, torch.Tensor) else value for key, value in scene.items()}
     cpu = run_backend(cpu_scene, "cpu", backward=False, render_depth=True)
     assert (cuda["render"].cpu() - cpu["render"]).abs().mean() < 1e-2
+
+
+def test_depth_order_is_a_stable_sort_with_ties():
+    import numpy as np
+
+    from esgs.core.render.cpu import _depth_order
+
+    rng = np.random.default_rng(1)
+    depth = rng.choice(np.array([0.5, 2.0, 2.5, 1e3], dtype=np.float32), 5000)
+    depth[::7] = rng.uniform(0.02, 50.0, depth[::7].shape[0])
+    index = np.flatnonzero(rng.random(5000) < 0.7)
+    for values in (depth, depth.astype(np.float64)):
+        expected = index[np.argsort(values[index], kind="stable")]
+        assert np.array_equal(_depth_order(index, values), expected)
