@@ -7,7 +7,7 @@ from pathlib import Path
 HELP = "train Gaussians on a COLMAP scene folder (images/ + sparse/0) into a run folder"
 
 #: Settings given as positional arguments or handled here rather than as plain flags.
-_SKIPPED = ("scene",)
+_SKIPPED = ("scene", "esgs")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -16,6 +16,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("scene", type=Path, help="COLMAP scene folder (images/ + sparse/0)")
     add_dataclass_arguments(parser, TrainConfig, skip=_SKIPPED)
+    from ..method.config import ESGSConfig
+
+    esgs_group = parser.add_argument_group("ESGS", "prior losses and GPDFN (all off = the 3DGS baseline)")
+    add_dataclass_arguments(esgs_group, ESGSConfig)
     parser.add_argument("--config", dest="config_file", type=Path, default=None,
                         help="read settings from a JSON file (flags given here override it)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -36,8 +40,11 @@ def build_config(args: argparse.Namespace):
         base = load_config(TrainConfig, RunDir(args.out).config)
     elif args.config_file is not None:
         base = load_config(TrainConfig, args.config_file)
+    from ..method.config import ESGSConfig
+
     config = dataclass_from_args(TrainConfig, args, base=base)
-    values = {**_as_dict(config), "scene": Path(args.scene)}
+    esgs = dataclass_from_args(ESGSConfig, args, base=config.esgs)
+    values = {**_as_dict(config), "scene": Path(args.scene), "esgs": _as_dict(esgs)}
     return config_from_dict(TrainConfig, values)
 
 

@@ -55,6 +55,15 @@ class GPDFNHook(TrainHook):
             raw["opacity_logit"].add_(residual["opacity_logits"].reshape(raw["opacity_logit"].shape))
             raw["sh_dc"].add_(residual["sh_dc"].reshape(raw["sh_dc"].shape))
 
+    def export_model(self, trainer: Any, gaussians: Any) -> Any:
+        """A copy of the Gaussians with the residuals folded in (the raw model keeps training)."""
+        if not self.module.enabled:
+            return gaussians
+        copy = type(gaussians).from_state_dict(gaussians.state_dict())
+        copy.to(trainer.device)
+        self.bake(copy)
+        return copy
+
     def state_dict(self) -> dict:
         return {"module": self.module.state_dict(), "voxel_size": self.module.voxel_size}
 

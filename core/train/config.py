@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Optional
 
 from ..errors import ConfigError
+from ..method.config import ESGSConfig
 
 #: The schedule every step count of :class:`TrainConfig` is written for.
 REFERENCE_ITERATIONS = 30_000
@@ -87,9 +88,12 @@ class TrainConfig:
     opacity_reset_every: int = field(default=3000, metadata=_help("steps between opacity resets (scaled; 0 = never)"))
     opacity_reset_value: float = field(default=0.01, metadata=_help("opacities are clamped to at most this at a reset"))
     max_gaussians: int = field(default=3_000_000, metadata=_help("growth stops (with one warning) at this many Gaussians"))
+    esgs: ESGSConfig = field(default_factory=ESGSConfig, metadata=_help(
+        "the ESGS additions: prior losses and GPDFN (all off = the 3DGS baseline)"))
 
     def validate(self) -> None:
         """Raise ConfigError for out-of-range or inconsistent settings."""
+        self.esgs.validate()
         def positive(name: str, allow_zero: bool = False) -> None:
             value = getattr(self, name)
             if value < 0 or (value == 0 and not allow_zero):

@@ -15,6 +15,9 @@ override what you need). The trainer calls them in the order the hooks were give
 - ``on_densify(trainer, report)``: the Gaussian set changed (clone/split/prune or an
   opacity reset); ``report.source_index`` [N_new] maps every Gaussian to the one it came
   from, so per-Gaussian state can be remapped with ``state[report.source_index]``;
+- ``export_model(trainer, gaussians) -> gaussians``: at the end of a run, the model that is
+  written to point_cloud.ply and evaluated (GPDFN returns a copy with its residuals baked
+  in; checkpoints keep the raw Gaussians so training can resume);
 - ``state_dict()`` / ``load_state_dict(state)``: saved in and restored from checkpoints
   (tensors, numbers, strings, lists and dicts only).
 """
@@ -67,6 +70,10 @@ class TrainHook:
 
     def on_densify(self, trainer: Any, report: "DensifyReport") -> None:
         pass
+
+    def export_model(self, trainer: Any, gaussians: Any) -> Any:
+        """The Gaussians to write and evaluate at the end (GPDFN folds its residuals in)."""
+        return gaussians
 
     def state_dict(self) -> dict:
         return {}

@@ -140,6 +140,9 @@ class Trainer:
         config.validate()
         if config.scene is None or config.out is None:
             raise ConfigError("both scene and out must be set", hint="esgs train SCENE --out RUN_DIR")
+        from ..method.hooks import esgs_hooks
+
+        hooks = [*esgs_hooks(config.esgs), *hooks]
         names = [getattr(hook, "name", type(hook).__name__) for hook in hooks]
         if len(set(names)) != len(names):
             raise ConfigError(f"hook names must be unique, got {names}")
@@ -463,13 +466,16 @@ class Trainer:
         from ..ply import write_gaussians_ply
 
         config = self.config
-        write_gaussians_ply(self.run_dir.point_cloud, self.gaussians.to_ply())
+        model = self.gaussians
+        for hook in self.hooks:
+            model = hook.export_model(self, model) or model
+        write_gaussians_ply(self.run_dir.point_cloud, model.to_ply())
         metrics = None
         if status != "interrupted" and config.evaluate:
             from .evaluate import evaluate_model
 
             sh_degree = self.schedule.sh_degree_at(self.step, config.sh_degree)
-            metrics = evaluate_model(self.gaussians, self.data, backend=self.backend, background=self.background,
+            metrics = evaluate_model(model, self.data, backend=self.backend, background=self.background,
                                      sh_degree=sh_degree, renders_dir=self.run_dir.test_renders if config.save_renders else None,
                                      use_lpips=config.lpips, num_threads=self.num_threads,
                                      progress=self._progress)

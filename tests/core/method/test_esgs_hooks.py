@@ -9,7 +9,9 @@ import torch
 
 from esgs.core.colmap import read_model
 from esgs.core.errors import ConfigError
-from esgs.core.method import ESGSConfig, GPDFNHook, esgs_hooks
+from esgs.core.method import ESGSConfig
+from esgs.core.method.gpdfn_hook import GPDFNHook
+from esgs.core.method.hooks import esgs_hooks
 from esgs.core.priors import write_prior_maps
 from esgs.core.render import rasterization
 from esgs.core.train.config import TrainConfig
@@ -51,8 +53,8 @@ def scene(tmp_path_factory):
 def _trainer(scene, out, esgs: ESGSConfig, iterations=40, **overrides):
     config = TrainConfig(scene=scene, out=out, iterations=iterations, backend="cpu", evaluate=False, densify_until=0,
                          checkpoint_every=0, progress_every=1000, test_every=0, lpips=False, sh_degree=1,
-                         mask_source="none", **overrides)
-    trainer = Trainer(config, hooks=esgs_hooks(esgs))
+                         mask_source="none", esgs=esgs, **overrides)
+    trainer = Trainer(config)
     trainer.setup()
     return trainer
 
@@ -136,3 +138,26 @@ def test_gpdfn_hook_trains_its_module_and_bakes_residuals(scene, tmp_path):
     torch.testing.assert_close(baked.opacities, fused.opacities, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(baked.scales, fused.scales, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(baked.colors[:, 0], fused.colors[:, 0], rtol=1e-5, atol=1e-6)
+
+
+def test_cli_runs_full_esgs_and_saves_its_settings(scene, tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    from esgs.core.ply import read_gaussians_ply
+
+    out = tmp_path / "run"
+    command = [sys.executable, "-m", "esgs.core", "train", str(scene), "--out", str(out), "--iterations", "12",
+               "--backend", "cpu", "--test-every", "3", "--no-lpips", "--quiet", "--sh-degree", "1",
+               "--priors", "gt", "--depth", "--normal", "--gpdfn", "--fused-k", "2", "--prior-start-step", "0"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-2000:]
+    saved = json.loads((out / "config.json").read_text())["esgs"]
+    assert saved["depth"] and saved["normal"] and saved["gpdfn"] and saved["fused_k"] == 2 and saved["priors"] == "gt"
+    assert len(read_gaussians_ply(out / "point_cloud.ply").means) > 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["psnr"] > 5
+    bad = subprocess.run([sys.executable, "-m", "esgs.core", "train", str(scene), "--out", str(tmp_path / "r2"),
+                          "--depth"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "need a prior source" in bad.stderr

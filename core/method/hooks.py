@@ -1,0 +1,19 @@
+"""The trainer hooks an ESGS configuration needs."""
+from __future__ import annotations
+
+from ..train.hooks import TrainHook
+from .config import ESGSConfig
+
+
+def esgs_hooks(config: ESGSConfig) -> list[TrainHook]:
+    """The hooks a run with ``config`` needs (none for the plain 3DGS baseline)."""
+    from .gpdfn_hook import GPDFNHook
+    from .prior_hook import PriorLossHook
+
+    config.validate()
+    hooks: list[TrainHook] = []
+    if config.depth or config.normal or config.consistency:
+        hooks.append(PriorLossHook(config))
+    if config.gpdfn and config.fused_k > 1:
+        hooks.append(GPDFNHook(config))
+    return hooks
