@@ -7,12 +7,12 @@ them back through the projection and SH evaluation.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from ..errors import ConfigError
 from . import constants as K
 from . import cpu_kernels as kernels
 from . import projection_kernels
@@ -253,10 +253,12 @@ def rasterize_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, 
                   num_threads, evaluate_colors):
     """See :func:`esgs.core.render.rasterization`; returns (render, alpha, meta)."""
     if means.dtype not in (torch.float32, torch.float64):
-        means, quats, scales, opacities, colors, viewmats, Ks = (
-            t.float() for t in (means, quats, scales, opacities, colors, viewmats, Ks))
+        raise ConfigError(f"the cpu rasterizer backend needs float32 or float64 tensors, got {means.dtype}",
+                          hint="convert the inputs with .float()")
+    if means.device.type != "cpu":
+        raise ConfigError(f"the cpu rasterizer backend needs CPU tensors, got {means.device}",
+                          hint='move them with .cpu() or use backend="cuda"')
     _set_threads(num_threads)
-    dtype = means.dtype
     projected = project(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane=near_plane,
                         far_plane=far_plane, antialiased=antialiased, eps2d=eps2d, need_normals=render_normals)
     means2d = projected["means2d"]

@@ -9,7 +9,6 @@ chunk's worth (``[pixels_per_chunk, N]`` tensors) in the forward and the backwar
 """
 from __future__ import annotations
 
-import math
 
 import torch
 from torch.utils.checkpoint import checkpoint

@@ -189,6 +189,8 @@ def test_bad_input_raises_config_error():
         rasterization(arguments[0].float(), *arguments[1:], 10, 10)
     with pytest.raises(ConfigError, match="sh_degree"):
         rasterization(*arguments, 10, 10, sh_degree=1)
+    with pytest.raises(ConfigError, match="float32 or float64"):
+        rasterization(*[tensor.half() for tensor in arguments], 10, 10, backend="cpu")
 
 
 def test_cuda_backend_is_optional():
