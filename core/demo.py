@@ -1,0 +1,201 @@
+"""The main job end to end: synthetic Mars scene -> priors -> ESGS (and 3DGS) -> Blender -> report.
+
+``run_demo(DemoConfig(...))`` runs every stage with progress and writes ``OUT/report.md``
+(pictures beside it). Each stage's output lives in its own folder, so a re-run skips what is
+already complete (scene, runs) and redoes only the rest. The Blender stage runs the bpy
+module in a subprocess (``python -m esgs.esgs_addon.results_scene``), since core never
+imports bpy.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from .errors import ConfigError, ESGSError
+from .progress import ProgressCallback, ProgressEvent, no_progress
+
+
+@dataclass
+class DemoConfig:
+    """Settings of the demo; the defaults finish in about 15 minutes on a 2-core CPU."""
+
+    out: Path = field(default=Path("demo_output"), metadata={"help": "output folder (scene, runs, report)"})
+    preset: str = field(default="cratered_plain", metadata={"help": "synthetic scene preset"})
+    seed: int = field(default=1, metadata={"help": "scene seed"})
+    views: int = field(default=12, metadata={"help": "camera views of the scene (every 8th is held out)"})
+    width: int = field(default=320, metadata={"help": "image width in pixels"})
+    height: int = field(default=180, metadata={"help": "image height in pixels"})
+    samples: int = field(default=16, metadata={"help": "Cycles samples per pixel"})
+    iterations: int = field(default=1500, metadata={"help": "training steps per method"})
+    priors: str = field(default="sfm", metadata={"help": "prior source for ESGS (sfm: sparse COLMAP depth; gt: exact)"})
+    baseline: bool = field(default=True, metadata={"help": "also train the 3DGS baseline for comparison"})
+    gpdfn: bool = field(default=True, metadata={"help": "use GPDFN in the ESGS run"})
+    max_gaussians: int = field(default=60_000, metadata={"help": "cap on Gaussians per run"})
+    blender: bool = field(default=True, metadata={"help": "build results.blend and the heat-map picture with bpy"})
+    snapshots: int = field(default=5, metadata={"help": "renders of one held-out view during training"})
+    threads: int = field(default=0, metadata={"help": "CPU threads (0 = all)"})
+
+    def validate(self) -> None:
+        if self.views < 3:
+            raise ConfigError(f"views must be at least 3, got {self.views}")
+        if self.iterations < 10:
+            raise ConfigError(f"iterations must be at least 10, got {self.iterations}")
+        if self.width < 32 or self.height < 32:
+            raise ConfigError(f"image size must be at least 32x32, got {self.width}x{self.height}")
+
+
+# --------------------------------------------------------------------------------------
+def _run_command(command: list[str], stage: str, progress: ProgressCallback, log_path: Path) -> None:
+    """Run a subprocess, keep its output in a log, raise with its last lines on failure."""
+    progress(ProgressEvent(step=0, total=1, stage=stage, kind="message", message=f"{stage}: {' '.join(command[2:])}"))
+    with open(log_path, "w", encoding="utf-8") as log:
+        result = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT, text=True)
+    if result.returncode != 0:
+        tail = log_path.read_text(encoding="utf-8", errors="replace").strip().splitlines()[-8:]
+        raise ESGSError(f"the {stage} stage failed (exit {result.returncode}): " + " | ".join(tail),
+                        path=log_path, hint="see the log for the whole output")
+
+
+def make_scene(config: DemoConfig, progress: ProgressCallback) -> Path:
+    scene = config.out / "scene"
+    if (scene / "scene.json").is_file():
+        progress(ProgressEvent(0, 1, "scene", kind="message", message=f"scene: reusing {scene}"))
+        return scene
+    command = [sys.executable, "-m", "esgs.core", "scene", "--preset", config.preset, "--seed", str(config.seed),
+               "--views", str(config.views), "--resolution", f"{config.width}x{config.height}",
+               "--samples", str(config.samples), "--out", str(scene)]
+    _run_command(command, "scene", progress, config.out / "logs" / "scene.log")
+    return scene
+
+
+def _snapshot_hook(folder: Path, steps: list[int]):
+    """A trainer hook rendering one held-out view at ``steps`` (the paper's Figure 17)."""
+    import torch
+
+    from .imageio import write_png
+    from .method.gpdfn_hook import GPDFNHook
+    from .train.hooks import TrainHook
+
+    class SnapshotHook(TrainHook):
+        name = "demo_snapshots"
+
+        def setup(self, trainer: Any) -> None:
+            self.view = (trainer.data.test or trainer.data.train)[0]
+
+        def after_backward(self, trainer: Any, context: Any) -> None:
+            if context.step not in steps:
+                return
+            with torch.no_grad():
+                params = trainer.gaussians.render_params(context.sh_degree)
+                for hook in trainer.hooks:
+                    if isinstance(hook, GPDFNHook):
+                        params = hook.before_render(trainer, context, params)
+                output = trainer.render(params, self.view)
+            image = (output.image.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
+            write_png(folder / f"step_{context.step:06d}.png", image)
+
+    return SnapshotHook()
+
+
+def train_method(config: DemoConfig, scene: Path, name: str, esgs: dict, progress: ProgressCallback,
+                 snapshots: bool) -> dict:
+    """Train one method into OUT/runs/<name> (skipped when already finished); returns its result.json."""
+    from .config import config_from_dict
+    from .method import ESGSConfig
+    from .progress import JsonLinesProgress, combine
+    from .train import TrainConfig, train
+
+    run = config.out / "runs" / name
+    result_path = run / "result.json"
+    if result_path.is_file() and json.loads(result_path.read_text()).get("status") == "finished":
+        progress(ProgressEvent(0, 1, name, kind="message", message=f"{name}: reusing finished run {run}"))
+        return json.loads(result_path.read_text())
+    train_config = TrainConfig(scene=scene, out=run, iterations=config.iterations, max_gaussians=config.max_gaussians,
+                               threads=config.threads, resume=(run / "checkpoints").is_dir(),
+                               esgs=config_from_dict(ESGSConfig, esgs), progress_every=20)
+    hooks = []
+    if snapshots and config.snapshots > 0:
+        steps = sorted({max(1, round(config.iterations * (i + 1) / config.snapshots)) for i in range(config.snapshots)})
+        steps = sorted(set([min(50, config.iterations)] + steps))
+        hooks.append(_snapshot_hook(config.out / "report" / "snapshots", steps))
+
+    def relabel(event: ProgressEvent) -> None:
+        progress(ProgressEvent(event.step, event.total, f"train {name}", dict(event.metrics), event.kind, event.message))
+
+    result = train(train_config, progress=relabel, hooks=hooks)
+    return json.loads((run / "result.json").read_text()) if (run / "result.json").is_file() else result.to_dict()
+
+
+def mesh_distances(scene: Path, run: Path, opacity_min: float = 0.5, threshold: float = 0.05) -> dict:
+    """Gaussian-centre <-> ground-truth mesh statistics of a run (core only, no Blender)."""
+    from .compare import compare_points_to_mesh, load_mesh
+    from .ply import read_gaussians_ply
+
+    gaussians = read_gaussians_ply(run / "point_cloud.ply")
+    vertices, faces = load_mesh(scene / "mesh" / "ground_truth.ply")
+    result = compare_points_to_mesh(gaussians.means.astype(np.float64), vertices, faces,
+                                    opacities=gaussians.opacities(), opacity_min=opacity_min, threshold_m=threshold)
+    return result.summary
+
+
+def run_demo(config: DemoConfig, progress: ProgressCallback = no_progress) -> Path:
+    """Run every stage and return the path of the report (``OUT/report.md``)."""
+    from .priors import available_prior_sources
+    from .report import write_report
+
+    config.validate()
+    config.out = Path(config.out).resolve()
+    (config.out / "logs").mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+    started = time.perf_counter()
+
+    scene = make_scene(config, progress)
+    timings["scene_s"] = time.perf_counter() - started
+
+    if config.priors == "sfm" and "sfm" not in available_prior_sources(scene):
+        from .colmap import read_model
+        from .priors.sfm import write_sfm_priors
+
+        write_sfm_priors(scene, read_model(scene / "sparse" / "0"))
+    if config.priors not in available_prior_sources(scene):
+        raise ConfigError(f"the scene has no {config.priors!r} priors", path=scene / "priors")
+
+    esgs = {"priors": config.priors, "depth": True, "normal": config.priors != "sfm", "gpdfn": config.gpdfn,
+            "consistency": config.priors == "sfm"}
+    runs: dict[str, dict] = {}
+    stage_start = time.perf_counter()
+    runs["ESGS"] = train_method(config, scene, "esgs", esgs, progress, snapshots=True)
+    timings["esgs_s"] = time.perf_counter() - stage_start
+    if config.baseline:
+        stage_start = time.perf_counter()
+        runs["3DGS"] = train_method(config, scene, "3dgs", {}, progress, snapshots=False)
+        timings["3dgs_s"] = time.perf_counter() - stage_start
+
+    distances = {name: mesh_distances(scene, config.out / "runs" / ("esgs" if name == "ESGS" else "3dgs"))
+                 for name in runs}
+
+    blender: Optional[dict] = None
+    if config.blender:
+        stage_start = time.perf_counter()
+        command = [sys.executable, "-m", "esgs.esgs_addon.results_scene", "--scene", str(scene),
+                   "--run", str(config.out / "runs" / "esgs"), "--out", str(config.out / "blender")]
+        try:
+            _run_command(command, "blender", progress, config.out / "logs" / "blender.log")
+            blender = json.loads((config.out / "blender" / "compare.json").read_text())
+            blender["heat_map"] = str(config.out / "blender" / "heat_map.png")
+            blender["blend"] = str(config.out / "blender" / "results.blend")
+        except ESGSError as error:
+            progress(ProgressEvent(0, 1, "blender", kind="message", message=f"warning: {error}"))
+        timings["blender_s"] = time.perf_counter() - stage_start
+
+    timings["total_s"] = time.perf_counter() - started
+    report = write_report(config, scene, runs, distances, blender, timings)
+    progress(ProgressEvent(1, 1, "demo", kind="done", message=str(report)))
+    return report
