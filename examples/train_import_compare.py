@@ -137,8 +137,9 @@ def main(argv: list[str]) -> int:
         # the mesh file is in the scene's (COLMAP) frame, like the trained Gaussians
         summary = compare_mesh.compare_to_mesh(gaussians, mesh_path, opacity_min=args.opacity_min,
                                                threshold_m=args.threshold, out_json=args.out / "compare.json")
-        # show the faint ones too (dimmer); the statistics above used the opacity filter
-        gaussian_nodes.set_display_inputs(gaussians, opacity_min=0.05)
+        # the picture shows every Gaussian (short runs reset opacities often, so most are
+        # faint); the statistics above used the opacity filter
+        gaussian_nodes.set_display_inputs(gaussians, opacity_min=0.0)
         bpy.ops.wm.save_as_mainfile(filepath=str(args.out / "result.blend"))
         render_heat_map(bpy, imported["cameras"][0], args.out / "heat_map.png", args.render_size)
     except errors.ESGSError as error:
