@@ -186,11 +186,14 @@ class _Project(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, cameras):
         viewmats, Ks, settings = cameras
-        arrays = [t.detach().contiguous().numpy() for t in (means, quats, scales, opacities)]
-        views = viewmats.detach().to(means.dtype).contiguous().numpy()
-        intrinsics = Ks.detach().to(means.dtype).contiguous().numpy()
+        # The kernels compute in float64 anyway; giving them float64 storage too means one
+        # compiled version instead of two (this kernel pair is the slowest to compile).
+        arrays = [t.detach().to(torch.float64).contiguous().numpy() for t in (means, quats, scales, opacities)]
+        views = viewmats.detach().to(torch.float64).contiguous().numpy()
+        intrinsics = Ks.detach().to(torch.float64).contiguous().numpy()
         count, cams = means.shape[0], views.shape[0]
-        dtype = arrays[0].dtype
+        dtype = np.float64
+        ctx.dtype = means.dtype
         means2d = np.empty((cams, count, 2), dtype=dtype)
         conics = np.empty((cams, count, 3), dtype=dtype)
         effective = np.empty((cams, count), dtype=dtype)
@@ -202,17 +205,19 @@ class _Project(torch.autograd.Function):
                                            depths, normals, valid, cov_diagonal)
         ctx.arrays = arrays
         ctx.cameras = (views, intrinsics, settings)
-        valid_t, cov_t = torch.from_numpy(valid), torch.from_numpy(cov_diagonal)
+        storage = means.dtype
+        valid_t, cov_t = torch.from_numpy(valid), torch.from_numpy(cov_diagonal).to(storage)
         ctx.mark_non_differentiable(valid_t, cov_t)
-        return (torch.from_numpy(means2d), torch.from_numpy(conics), torch.from_numpy(effective),
-                torch.from_numpy(depths), torch.from_numpy(normals), valid_t, cov_t)
+        return (torch.from_numpy(means2d).to(storage), torch.from_numpy(conics).to(storage),
+                torch.from_numpy(effective).to(storage), torch.from_numpy(depths).to(storage),
+                torch.from_numpy(normals).to(storage), valid_t, cov_t)
 
     @staticmethod
     def backward(ctx, grad_means2d, grad_conics, grad_opacities, grad_depths, grad_normals, _valid, _cov):
         arrays = ctx.arrays
         views, intrinsics, settings = ctx.cameras
         count, cams = arrays[0].shape[0], views.shape[0]
-        dtype = arrays[0].dtype
+        dtype = np.float64
 
         def prepared(gradient, shape):
             if gradient is None:
@@ -225,7 +230,7 @@ class _Project(torch.autograd.Function):
             *arrays, views, intrinsics, *settings, prepared(grad_means2d, (cams, count, 2)),
             prepared(grad_conics, (cams, count, 3)), prepared(grad_opacities, (cams, count)),
             prepared(grad_depths, (cams, count)), prepared(grad_normals, (cams, count, 3)), *out)
-        return (*(torch.from_numpy(g) for g in out), None)
+        return (*(torch.from_numpy(g).to(ctx.dtype) for g in out), None)
 
 
 def project(means, quats, scales, opacities, viewmats, Ks, width, height, *, near_plane, far_plane, antialiased,

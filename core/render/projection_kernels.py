@@ -5,8 +5,8 @@ statement of the maths and used by the CUDA mapping for normals): per camera c a
 Gaussian n, camera point p = W m + t, centre (fx p_x / p_z + cx, fy p_y / p_z + cy),
 covariance J W R S S R^T W^T J^T with the Jacobian at the clamped image-plane position,
 dilation, antialiasing opacity factor, conic = inverse dilated covariance, and the
-shortest axis of W R flipped towards the camera. Arithmetic is float64 whatever the
-storage dtype. The backward recomputes the forward per Gaussian and applies the chain
+shortest axis of W R flipped towards the camera. The CPU backend passes float64 arrays
+whatever the input dtype (one compiled version; the arithmetic is float64 in any case). The backward recomputes the forward per Gaussian and applies the chain
 rule by hand; per-Gaussian gradients are summed over cameras in camera order, so the
 result is deterministic.
 """
