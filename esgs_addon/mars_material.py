@@ -87,9 +87,9 @@ def make_terrain_material(name: str = "ESGS Mars terrain") -> bpy.types.Material
     material, nodes, links, shader = _new_material(name)
     coords = nodes.new("ShaderNodeTexCoord")
 
-    fine = _noise(nodes, scale=2.5, detail=4.0, roughness=0.6)  # pebbles and clods, ~0.4 m
+    fine = _noise(nodes, scale=2.5, detail=3.0, roughness=0.6)  # pebbles and clods, ~0.4 m
     coarse = _noise(nodes, scale=0.08, detail=3.0)  # albedo patches, ~10 m
-    grain = _noise(nodes, scale=20.0, detail=2.0, roughness=0.5)  # granules, ~5 cm: texture for matching
+    grain = _noise(nodes, scale=20.0, detail=1.0, roughness=0.5)  # granules, ~5 cm: texture for matching
     for noise in (fine, coarse, grain):
         links.new(coords.outputs["Object"], noise.inputs["Vector"])
 
@@ -137,7 +137,8 @@ def _add_pebbles(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, coordinates
     blobs give feature matchers (SIFT) something to hold on to, as real regolith does.
     """
     cells = nodes.new("ShaderNodeTexVoronoi")
-    cells.voronoi_dimensions = "3D"
+    # 2D cells on the ground plane: a third of the cost of 3D cells, and pebbles lie on the ground
+    cells.voronoi_dimensions = "2D"
     cells.feature = "F1"
     cells.inputs["Scale"].default_value = scale
     links.new(coordinates, cells.inputs["Vector"])

@@ -210,3 +210,47 @@ def test_sfm_registers_most_views(tmp_path):
     assert info["sfm"]["total"] == 10
     assert info["sfm"]["ratio"] >= 0.9
     assert read_model(scene / "sparse_sfm" / "0").images
+
+
+def test_render_operator_writes_the_generated_scene(tmp_path):
+    settings = bpy.context.scene.esgs.terrain
+    settings.preset = "rocky_slope"
+    settings.seed = 1
+    settings.views = 2
+    settings.width, settings.height, settings.samples = 64, 64, 1
+    settings.points_per_view = 100
+    assert bpy.ops.esgs.generate_terrain() == {"FINISHED"}
+    settings.output_dir = str(tmp_path / "from_operator")
+    assert bpy.ops.esgs.render_dataset() == {"FINISHED"}
+    info = json.loads((tmp_path / "from_operator" / "scene.json").read_text())
+    assert info["config"]["name"] == "rocky_slope" and info["grayscale"] is True  # a Navcam-like preset
+    assert len(read_model(tmp_path / "from_operator").images) == 2
+    # a second run into the same folder is refused and reported, not raised
+    with pytest.raises(RuntimeError, match="already exists"):
+        bpy.ops.esgs.render_dataset()
+
+
+def test_esgs_scene_command_end_to_end(tmp_path, capsys):
+    from esgs.core.cli import main
+
+    out = tmp_path / "cli"
+    status = main(["scene", "--preset", "cratered_plain", "--seed", "4", "--views", "2", "--resolution", "64x36",
+                   "--samples", "1", "--points-per-view", "100", "--out", str(out), "--events", str(tmp_path / "ev.jsonl")])
+    assert status == 0
+    info = json.loads((out / "scene.json").read_text())
+    assert info["seed"] == 4 and info["config"]["rig"]["views"] == 2
+    assert (info["config"]["render"]["width"], info["config"]["render"]["height"]) == (64, 36)
+    events = [json.loads(line) for line in (tmp_path / "ev.jsonl").read_text().splitlines()]
+    assert any(event["stage"] == "render" and event["step"] == 2 for event in events)
+    assert events[-1]["kind"] == "done"
+
+
+def test_esgs_scene_command_rejects_bad_settings_without_rendering(tmp_path, capsys):
+    from esgs.core.cli import main
+
+    out = tmp_path / "bad"
+    assert main(["scene", "--preset", "cratered_plain", "--resolution", "4x4", "--out", str(out)]) == 2
+    assert "render.width" in capsys.readouterr().err
+    assert main(["scene", "--preset", "no_such_preset", "--out", str(out)]) == 2
+    assert "unknown scene preset" in capsys.readouterr().err
+    assert not out.exists()
