@@ -1,9 +1,10 @@
-"""CPU backend: torch projection + Numba tile compositing with a hand-written backward.
+"""CPU backend: Numba projection and tile compositing, both with hand-written backwards.
 
-Per camera, :class:`_Composite` (a ``torch.autograd.Function``) composites a generic
-per-Gaussian feature vector (colour, depth, normal, extra concatenated) from screen-space
-means, conics and opacities; its backward returns their gradients and autograd carries
-them back through the projection and SH evaluation.
+:class:`_Project` maps the Gaussians into all cameras at once. Per camera,
+:class:`_Composite` composites a generic per-Gaussian feature vector (colour, depth,
+normal, extra concatenated) from screen-space means, conics and opacities; its backward
+returns their gradients. Autograd glues the two together with the SH evaluation and the
+per-channel post-processing (background, depth normalisation), which stay in torch.
 """
 from __future__ import annotations
 

@@ -1,7 +1,9 @@
-"""Vectorised torch projection of 3D Gaussians to screen-space splats (CPU backend).
+"""Vectorised torch projection of 3D Gaussians to screen-space splats.
 
-Autograd differentiates everything here; the Numba kernels only see the results.
-Culled Gaussians get finite placeholder values so that no NaN or inf can leak into
+The readable statement of the CPU backend's projection rule: the Numba kernels in
+:mod:`.projection_kernels` implement the same maths with a hand-written backward, and a
+test keeps the two equal (values and autograd gradients). The CUDA mapping uses it for
+the camera-frame normals. Culled Gaussians get finite placeholder values so that no NaN or inf can leak into
 gradients through ``torch.where`` (0 * inf = NaN).
 """
 from __future__ import annotations
