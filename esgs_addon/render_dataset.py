@@ -368,6 +368,7 @@ def render_dataset(objects: dict[str, Any], out_dir: str | Path, *, progress: Ca
         scratch = staging / ".render_scratch"
         scratch.mkdir()
         passes = _PassOutputs(scene, scratch)
+        hidden = _hide_other_objects(scene, objects)
         depths, images = [], []
         try:
             for index, (camera, (K, world_to_camera, width, height)) in enumerate(zip(cameras, opencv)):
@@ -405,6 +406,8 @@ def render_dataset(objects: dict[str, Any], out_dir: str | Path, *, progress: Ca
                     message=f"rendered {stem}"))
         finally:
             passes.close()
+            for obj in hidden:
+                obj.hide_render = False
             scene.camera, scene.render.filepath = previous_camera, previous_path
 
         vertices, triangles, vertex_normals = world_mesh_arrays(objects)
@@ -461,6 +464,21 @@ def render_dataset(objects: dict[str, Any], out_dir: str | Path, *, progress: Ca
         })
     report(ProgressEvent(total, total, "export", kind="done", message=f"scene folder written: {out_dir}"))
     return out_dir
+
+
+def _hide_other_objects(scene: bpy.types.Scene, objects: dict[str, Any]) -> list[bpy.types.Object]:
+    """Hide from rendering every visible object that is not part of the synthetic scene.
+
+    Anything else in the file (the default cube, an imported model) would show up in the
+    renders and depth maps but not in the ground-truth mesh. Returns the objects hidden.
+    """
+    ours = {obj.as_pointer() for obj in objects["collection"].all_objects}
+    hidden = []
+    for obj in scene.objects:
+        if obj.as_pointer() not in ours and not obj.hide_render and obj.type not in ("CAMERA", "LIGHT"):
+            obj.hide_render = True
+            hidden.append(obj)
+    return hidden
 
 
 def _read_single_channel(path: Path) -> np.ndarray:

@@ -99,8 +99,8 @@ def test_depth_and_normals_agree_with_mesh_ray_casts(rendered):
         assert depth_meta["frame"] == "camera_opencv" and depth_meta["units"] == "m"
         assert normal_meta["frame"] == "camera_opencv"
         K, rotation, centre = camera.K(), image.rotation_matrix(), image.camera_center()
-        u = rng.integers(0, camera.width, 200)
-        v = rng.integers(0, camera.height, 200)
+        u = rng.integers(0, camera.width, 150)
+        v = rng.integers(0, camera.height, 150)
         rays = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0], (v + 0.5 - K[1, 2]) / K[1, 1], np.ones(len(u))], axis=1)
         hits, ray_index, triangle_index = mesh.ray.intersects_location(
             np.repeat(centre[None], len(u), axis=0), rays @ rotation, multiple_hits=False)
@@ -254,3 +254,32 @@ def test_esgs_scene_command_rejects_bad_settings_without_rendering(tmp_path, cap
     assert main(["scene", "--preset", "no_such_preset", "--out", str(out)]) == 2
     assert "unknown scene preset" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_objects_outside_the_scene_are_not_rendered(tmp_path):
+    from esgs.esgs_addon.render_dataset import render_dataset
+    from esgs.esgs_addon.terrain_scene import build_terrain_scene
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    objects = build_terrain_scene(tiny_config(views=1))
+    # a large plane between the camera and the ground: it would cover the whole view
+    camera_height = float(objects["cameras"][0].matrix_world.translation.z)
+    ground_top = float(objects["terrain_data"].heights.max())
+    plane_height = (camera_height + ground_top) / 2
+    mesh = bpy.data.meshes.new("blocker")
+    mesh.from_pydata([(-100, -100, plane_height), (100, -100, plane_height), (100, 100, plane_height),
+                      (-100, 100, plane_height)], [], [(0, 1, 2, 3)])
+    blocker = bpy.data.objects.new("blocker", mesh)
+    bpy.context.scene.collection.objects.link(blocker)
+    scene = render_dataset(objects, tmp_path / "scene", points_per_view=50)
+    assert not blocker.hide_render, "hidden objects must be shown again"
+    model = read_model(scene)
+    image = model.sorted_images()[0]
+    depth, _ = read_depth_exr(scene / "priors" / "gt" / "depth" / "view_000.exr")
+    K = model.cameras[image.camera_id].K()
+    rows, cols = np.nonzero(depth > 0)
+    assert len(rows) > 0.5 * depth.size
+    pixels = np.stack([cols + 0.5, rows + 0.5, np.ones(len(rows))], axis=1)
+    local = (pixels @ np.linalg.inv(K).T) * depth[rows, cols, None]
+    world = (local - image.translation) @ image.rotation_matrix()
+    assert world[:, 2].max() < plane_height - 0.1
