@@ -124,16 +124,18 @@ def make_terrain_material(name: str = "ESGS Mars terrain") -> bpy.types.Material
     textured.operation = "SCALE"
     links.new(albedo, textured.inputs[0])
     links.new(grain_gain.outputs["Result"], textured.inputs["Scale"])
-    pebbled = _add_pebbles(nodes, links, coords.outputs["Object"], textured.outputs["Vector"], scale=9.0)
-    pebbled = _add_pebbles(nodes, links, coords.outputs["Object"], pebbled, scale=2.5)
+    pebbled = _add_pebbles(nodes, links, coords.outputs["Object"], textured.outputs["Vector"], scale=9.0,
+                           fraction=0.4, radius=0.2)
+    pebbled = _add_pebbles(nodes, links, coords.outputs["Object"], pebbled, scale=2.5, fraction=0.12, radius=0.16)
     links.new(pebbled, shader.inputs["Base Color"])
     return material
 
 
-def _add_pebbles(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, coordinates, albedo, scale: float):
-    """Scatter pebbles (dark or light, one per Voronoi cell for ~70 % of the cells) over ``albedo``.
+def _add_pebbles(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, coordinates, albedo, scale: float,
+                 fraction: float, radius: float):
+    """Scatter pebbles (dark or light, one per Voronoi cell in ``fraction`` of the cells) over ``albedo``.
 
-    ``scale`` cells per metre; pebbles are about half a cell across. Distinct
+    ``scale`` cells per metre; a pebble's radius is ``radius`` cells, with a soft edge. Distinct
     blobs give feature matchers (SIFT) something to hold on to, as real regolith does.
     """
     cells = nodes.new("ShaderNodeTexVoronoi")
@@ -142,16 +144,15 @@ def _add_pebbles(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, coordinates
     cells.feature = "F1"
     cells.inputs["Scale"].default_value = scale
     links.new(coordinates, cells.inputs["Vector"])
-    # inside the pebble: distance to the cell's point below ~0.25 cell
     edge = nodes.new("ShaderNodeMapRange")
-    edge.inputs["From Min"].default_value = 0.3
-    edge.inputs["From Max"].default_value = 0.22
+    edge.inputs["From Min"].default_value = radius * 1.3
+    edge.inputs["From Max"].default_value = radius * 0.9
     links.new(cells.outputs["Distance"], edge.inputs["Value"])
     cell_random = nodes.new("ShaderNodeSeparateColor")
     links.new(cells.outputs["Color"], cell_random.inputs["Color"])
     present = nodes.new("ShaderNodeMath")
     present.operation = "GREATER_THAN"
-    present.inputs[1].default_value = 0.3
+    present.inputs[1].default_value = 1.0 - fraction
     links.new(cell_random.outputs["Red"], present.inputs[0])
     amount = nodes.new("ShaderNodeMath")
     amount.operation = "MULTIPLY"
