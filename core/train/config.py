@@ -87,6 +87,12 @@ class TrainConfig:
     prune_world_size: float = field(default=0.1, metadata=_help("after the first opacity reset, prune Gaussians larger than this fraction of the extent"))
     opacity_reset_every: int = field(default=3000, metadata=_help("steps between opacity resets (scaled; 0 = never)"))
     opacity_reset_value: float = field(default=0.01, metadata=_help("opacities are clamped to at most this at a reset"))
+    min_densify_interval: int = field(default=20, metadata=_help(
+        "short runs: the scaled densification interval never falls below this many steps, so each "
+        "clone/split decision averages gradients over several views"))
+    min_opacity_reset_interval: int = field(default=1000, metadata=_help(
+        "short runs: the scaled opacity-reset interval never falls below this many steps (opacities need "
+        "hundreds of steps to recover from a reset)"))
     max_gaussians: int = field(default=3_000_000, metadata=_help("growth stops (with one warning) at this many Gaussians"))
     esgs: ESGSConfig = field(default_factory=ESGSConfig, metadata=_help(
         "the ESGS additions: prior losses and GPDFN (all off = the 3DGS baseline)"))
@@ -137,8 +143,11 @@ class TrainConfig:
             densify_from=self.scaled_step(self.densify_from),
             # no densification also means no opacity resets: both live in the same window
             densify_until=self.scaled_step(self.densify_until) if self.densify else 0,
-            densify_every=self.scaled_step(self.densify_every, minimum=1),
-            opacity_reset_every=self.scaled_step(self.opacity_reset_every, minimum=1) if self.opacity_reset_every else 0,
+            densify_every=max(self.scaled_step(self.densify_every, minimum=1), min(self.min_densify_interval,
+                                                                                    self.densify_every)),
+            opacity_reset_every=(max(self.scaled_step(self.opacity_reset_every, minimum=1),
+                                     min(self.min_opacity_reset_interval, self.opacity_reset_every))
+                                 if self.opacity_reset_every else 0),
             position_lr_delay_steps=self.scaled_step(self.position_lr_delay_steps),
         )
 

@@ -338,7 +338,10 @@ class Trainer:
                                    reset_opacity=True, source_index=torch.arange(len(self.gaussians), device=self.device))
             for hook in self.hooks:
                 hook.on_densify(self, report)
-        if not self.gaussians.all_finite():
+        # a non-finite parameter shows up in the next loss when the Gaussian is in view; the full
+        # scan (costly at 100k+ Gaussians) runs periodically and before every checkpoint
+        if (step % 50 == 0 or step == config.iterations or self._checkpoint_due(step)) \
+                and not self.gaussians.all_finite():
             bad = [name for name, p in self.gaussians.params.items() if not bool(torch.isfinite(p).all())]
             self._diverged(f"Gaussian parameters {', '.join(bad)} are not finite after step {step}")
 
@@ -347,6 +350,10 @@ class Trainer:
         self.psnr_ema = psnr if self.psnr_ema is None else 0.4 * psnr + 0.6 * self.psnr_ema
         context.extras["psnr"] = psnr
         return context
+
+    def _checkpoint_due(self, step: int) -> bool:
+        every = self.config.checkpoint_every
+        return bool(every) and step % every == 0
 
     def _densify(self, step: int) -> None:
         config = self.config

@@ -20,7 +20,7 @@ def test_paper_schedule_is_unscaled_at_30000_steps():
     assert not schedule.prunes_large(3000) and schedule.prunes_large(3001)
 
 
-@pytest.mark.parametrize("iterations", [2000, 7000, 60000])
+@pytest.mark.parametrize("iterations", [12000, 60000])
 def test_schedule_scales_in_proportion(iterations):
     config = TrainConfig(iterations=iterations)
     schedule = config.schedule()
@@ -35,6 +35,24 @@ def test_schedule_scales_in_proportion(iterations):
     assert densify_steps[0] > schedule.densify_from
     # about as many densifications as the paper's run (144), up to rounding of the interval
     assert abs(len(densify_steps) - 144) <= 0.06 * 144
+    assert schedule.sh_degree_at(iterations, 3) == 3
+
+
+@pytest.mark.parametrize("iterations", [300, 2000])
+def test_short_runs_keep_minimum_intervals(iterations):
+    """Windows scale with the run, but densification and resets keep sane minimum intervals."""
+    config = TrainConfig(iterations=iterations)
+    schedule = config.schedule()
+    factor = iterations / 30000
+    assert schedule.densify_from == round(500 * factor)
+    assert schedule.densify_until == round(15000 * factor)
+    assert schedule.densify_every == config.min_densify_interval == 20
+    assert schedule.opacity_reset_every == config.min_opacity_reset_interval == 1000
+    densify_steps = [s for s in range(1, iterations + 1) if schedule.is_densify_step(s)]
+    assert densify_steps and densify_steps[-1] < iterations / 2
+    assert all(b - a == 20 for a, b in zip(densify_steps, densify_steps[1:]))
+    resets = [s for s in range(1, iterations + 1) if schedule.is_opacity_reset_step(s)]
+    assert resets == [s for s in (1000,) if s < iterations / 2]
     assert schedule.sh_degree_at(iterations, 3) == 3
 
 

@@ -149,7 +149,9 @@ def test_nan_stops_with_clear_error_and_keeps_last_good_checkpoint(fast_config):
     with pytest.raises(TrainingDivergedError) as caught:
         train(config, hooks=[_NaNInjector(at_step=8)])
     message = str(caught.value)
-    assert "not finite after step 8" in message and "step_000000006.pt" in message
+    # caught by the next loss (the Gaussian is in view) or the periodic/pre-checkpoint scan
+    assert ("not finite after step" in message or "the loss is nan at step 9" in message), message
+    assert "step_000000006.pt" in message
     assert isinstance(caught.value, ESGSError)
     assert [step for step, _ in list_checkpoints(config.out / "checkpoints")] == [3, 6]
     last = load_checkpoint(list_checkpoints(config.out / "checkpoints")[-1][1])
@@ -213,7 +215,7 @@ class _GainModule(TrainHook):
 
 def test_hooks_parameter_groups_and_loss_terms(fast_config):
     hook = _GainModule()
-    config = fast_config(iterations=8, evaluate=False, checkpoint_every=8, densify_from=2000)
+    config = fast_config(iterations=8, evaluate=False, checkpoint_every=8, densify_from=2000, min_densify_interval=1)
     train(config, hooks=[hook])
     assert hook.calls["setup"] == 1 and hook.calls["before_render"] == 8 and hook.calls["after_backward"] == 8
     assert hook.calls["on_densify"] >= 1  # densification from step 1 every step (scaled)
