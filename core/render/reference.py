@@ -132,7 +132,7 @@ def rasterize_reference(means, quats, scales, opacities, colors, viewmats, Ks, w
         pixels = width * height
         if pixels_per_chunk is None:
             per_pixel_bytes = max(1, order.numel()) * 8 * 12
-            pixels_per_chunk_now = int(max(64, min(pixels, 512 * 2**20 // per_pixel_bytes)))
+            pixels_per_chunk_now = int(max(64, min(pixels, 128 * 2**20 // per_pixel_bytes)))
         else:
             pixels_per_chunk_now = pixels_per_chunk
         out_features, out_weight, out_transmittance = [], [], []
