@@ -186,7 +186,21 @@ def make_rock_material(name: str = "ESGS Mars rock") -> bpy.types.Material:
     dust = nodes.new("ShaderNodeRGB")
     dust.outputs["Color"].default_value = _DUST
     albedo = _mix_color(nodes, links, dust_amount.outputs["Result"], rock_ramp.outputs["Color"], dust.outputs["Color"])
-    links.new(albedo, shader.inputs["Base Color"])
+    # fine speckle (vesicles, crystals) keeps close-up rock faces textured; coordinates are
+    # the unit prototype's, so ~40 per rock diameter
+    speckle = _noise(nodes, scale=40.0, detail=1.0)
+    links.new(coords.outputs["Object"], speckle.inputs["Vector"])
+    speckle_gain = nodes.new("ShaderNodeMapRange")
+    speckle_gain.inputs["From Min"].default_value = 0.3
+    speckle_gain.inputs["From Max"].default_value = 0.7
+    speckle_gain.inputs["To Min"].default_value = 0.6
+    speckle_gain.inputs["To Max"].default_value = 1.4
+    links.new(speckle.outputs["Fac"], speckle_gain.inputs["Value"])
+    textured = nodes.new("ShaderNodeVectorMath")
+    textured.operation = "SCALE"
+    links.new(albedo, textured.inputs[0])
+    links.new(speckle_gain.outputs["Result"], textured.inputs["Scale"])
+    links.new(textured.outputs["Vector"], shader.inputs["Base Color"])
     return material
 
 

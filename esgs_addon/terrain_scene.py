@@ -41,7 +41,10 @@ PROP_GENERATOR = "esgs_generator_version"
 
 #: Number of distinct rock shapes; each rock picks one from its ``shape_seed``.
 ROCK_PROTOTYPES = 12
-_ROCK_SUBDIVISIONS = 2  # 162 vertices per rock: irregular enough, cheap for thousands of rocks
+#: Icosphere subdivisions of small rocks (162 vertices: cheap for thousands of rocks) and of
+#: rocks at least LARGE_ROCK_DIAMETER_M across (642 vertices: close-ups stay rock-like).
+_ROCK_SUBDIVISIONS = (2, 3)
+LARGE_ROCK_DIAMETER_M = 0.8
 
 # Mars receives ~43 % of Earth's sunlight; with the Standard view transform a sun of this
 # strength exposes regolith albedos (~0.3) to mid-grey, as rover images are exposed.
@@ -96,19 +99,35 @@ def mesh_from_arrays(name: str, vertices: np.ndarray, triangles: np.ndarray, *, 
     return mesh
 
 
-def rock_prototype_geometry(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """One irregular rock shape: (vertices [V, 3], triangles [F, 3]).
+def rock_shape_parameters(rng: np.random.Generator) -> dict[str, Any]:
+    """Random parameters of one rock shape (lumps, fracture planes, stretch); see :func:`rock_prototype_geometry`."""
+    waves = []
+    for _ in range(4):
+        frequency = rng.normal(size=3)
+        frequency *= rng.uniform(1.5, 3.5) / np.linalg.norm(frequency)
+        waves.append((frequency, rng.uniform(0.04, 0.12), rng.uniform(0, 2 * math.pi)))
+    planes = []
+    for _ in range(int(rng.integers(3, 7))):
+        normal = rng.normal(size=3)
+        planes.append((normal / np.linalg.norm(normal), rng.uniform(0.55, 0.85)))
+    return {"waves": waves, "planes": planes, "stretch_y": rng.uniform(0.65, 1.0)}
 
-    A unit icosphere is made lumpy with a few random low-frequency waves, cut by a few
-    random planes (the flat fracture faces of real rocks), stretched a little, then fitted
-    into the unit footprint: ``x, y`` within a 1 m diameter, ``z`` from 0 (base) to 1 (top).
-    Scaling the object by (diameter, diameter, height) gives the rock the core asked for.
+
+def rock_prototype_geometry(shape: dict[str, Any], subdivisions: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """One irregular rock: (vertices [V, 3], triangles [F, 3]) from :func:`rock_shape_parameters`.
+
+    A unit icosphere (``subdivisions`` levels) is made lumpy with a few random
+    low-frequency waves, cut by a few random planes (the flat fracture faces of real
+    rocks), stretched a little, then fitted into the unit footprint: ``x, y`` within a 1 m
+    diameter, ``z`` from 0 (base) to 1 (top). Scaling the object by (diameter, diameter,
+    height) gives the rock the core asked for. The same parameters at another subdivision
+    level give the same rock, finer or coarser.
     """
     import bmesh
 
     bm = bmesh.new()
     try:
-        bmesh.ops.create_icosphere(bm, subdivisions=_ROCK_SUBDIVISIONS, radius=1.0)
+        bmesh.ops.create_icosphere(bm, subdivisions=int(subdivisions), radius=1.0)
         bm.verts.ensure_lookup_table()
         vertices = np.array([v.co for v in bm.verts], dtype=np.float64)
         bmesh.ops.triangulate(bm, faces=bm.faces[:])
@@ -117,18 +136,13 @@ def rock_prototype_geometry(rng: np.random.Generator) -> tuple[np.ndarray, np.nd
         bm.free()
     directions = vertices / np.linalg.norm(vertices, axis=1, keepdims=True)
     radius = np.ones(len(vertices))
-    for _ in range(4):
-        frequency = rng.normal(size=3)
-        frequency *= rng.uniform(1.5, 3.5) / np.linalg.norm(frequency)
-        radius += rng.uniform(0.04, 0.12) * np.cos(directions @ frequency + rng.uniform(0, 2 * math.pi))
+    for frequency, amplitude, phase in shape["waves"]:
+        radius += amplitude * np.cos(directions @ frequency + phase)
     points = directions * radius[:, None]
-    for _ in range(int(rng.integers(3, 7))):
-        normal = rng.normal(size=3)
-        normal /= np.linalg.norm(normal)
-        offset = rng.uniform(0.55, 0.85)
+    for normal, offset in shape["planes"]:
         excess = np.maximum(points @ normal - offset, 0.0)
         points -= excess[:, None] * normal[None, :]
-    points *= np.array([1.0, rng.uniform(0.65, 1.0), 1.0])
+    points *= np.array([1.0, shape["stretch_y"], 1.0])
     low, high = points.min(axis=0), points.max(axis=0)
     centre_xy = (low[:2] + high[:2]) / 2.0
     footprint = max(high[0] - low[0], high[1] - low[1])
@@ -304,19 +318,24 @@ def _add_rocks(rocks: np.ndarray, seed: int, collection: bpy.types.Collection,
     # prototypes depend on the scene seed only, so the same seed gives the same rocks
     rng = np.random.default_rng([int(seed), 0x526F636B])
     material = created.add(bpy.data.materials, make_rock_material())
-    used = set((rocks[:, 6].astype(np.int64) % ROCK_PROTOTYPES).tolist())
-    meshes: dict[int, bpy.types.Mesh] = {}
+    shape_index = rocks[:, 6].astype(np.int64) % ROCK_PROTOTYPES
+    level = (rocks[:, 3] >= LARGE_ROCK_DIAMETER_M).astype(np.int64)
+    used = set(zip(shape_index.tolist(), level.tolist()))
+    meshes: dict[tuple[int, int], bpy.types.Mesh] = {}
     for index in range(ROCK_PROTOTYPES):
         # always draw every shape so a shape's geometry does not depend on which are used
-        vertices, triangles = rock_prototype_geometry(rng)
-        if index in used:
-            mesh = created.add(bpy.data.meshes, mesh_from_arrays(f"ESGS rock shape {index}", vertices, triangles))
-            mesh.materials.append(material)
-            meshes[index] = mesh
+        shape = rock_shape_parameters(rng)
+        for detail in (0, 1):
+            if (index, detail) in used:
+                vertices, triangles = rock_prototype_geometry(shape, _ROCK_SUBDIVISIONS[detail])
+                mesh = created.add(bpy.data.meshes, mesh_from_arrays(
+                    f"ESGS rock shape {index}{' fine' if detail else ''}", vertices, triangles))
+                mesh.materials.append(material)
+                meshes[index, detail] = mesh
     objects = []
     for row, (x, y, z_base, diameter, height, yaw, shape_seed) in enumerate(rocks):
         rock = created.add(bpy.data.objects, bpy.data.objects.new(f"ESGS rock {row}",
-                                                                 meshes[int(shape_seed) % ROCK_PROTOTYPES]))
+                                                                 meshes[int(shape_index[row]), int(level[row])]))
         rock.matrix_world = Matrix.LocRotScale(Vector((x, y, z_base)), Matrix.Rotation(yaw, 3, "Z").to_quaternion(),
                                                Vector((diameter, diameter, height)))
         rock[PROP_ROLE] = "rock"

@@ -73,7 +73,8 @@ def test_rocks_have_the_requested_size_and_place():
     table = objects["terrain_data"].rocks
     assert len(table) > 5 and len(objects["rocks"]) == len(table)
     shapes = {rock.data.name for rock in objects["rocks"]}
-    assert 1 < len(shapes) <= ROCK_PROTOTYPES  # several shapes, shared as linked duplicates
+    assert 1 < len(shapes) <= 2 * ROCK_PROTOTYPES  # several shapes, shared as linked duplicates
+    assert len(shapes) < len(objects["rocks"])
     for rock, (x, y, z_base, diameter, height, yaw, _) in zip(objects["rocks"], table):
         local = _mesh_vertices(rock).astype(np.float64)
         matrix = np.array(rock.matrix_world)
@@ -88,13 +89,21 @@ def test_rocks_have_the_requested_size_and_place():
 
 
 def test_rock_prototypes_differ_and_fill_the_unit_box():
-    from esgs.esgs_addon.terrain_scene import rock_prototype_geometry
+    from esgs.esgs_addon.terrain_scene import rock_prototype_geometry, rock_shape_parameters
 
     rng = np.random.default_rng(0)
-    first, triangles = rock_prototype_geometry(rng)
-    second, _ = rock_prototype_geometry(rng)
+    shape = rock_shape_parameters(rng)
+    first, triangles = rock_prototype_geometry(shape)
+    second, _ = rock_prototype_geometry(rock_shape_parameters(rng))
+    fine, fine_triangles = rock_prototype_geometry(shape, subdivisions=3)
     assert first.shape == second.shape and not np.allclose(first, second)
-    for shape in (first, second):
+    assert len(fine) > 3 * len(first) and len(fine_triangles) == 4 * len(triangles)
+    # every coarse vertex is also a vertex of the finer icosphere: the same rock, refined
+    from scipy.spatial import cKDTree
+
+    distances, _ = cKDTree(fine).query(first)
+    assert distances.max() < 0.05
+    for shape in (first, second, fine):
         np.testing.assert_allclose(shape[:, 2].min(), 0.0, atol=1e-12)
         np.testing.assert_allclose(shape[:, 2].max(), 1.0, atol=1e-12)
         extent = shape.max(axis=0) - shape.min(axis=0)
