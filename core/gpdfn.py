@@ -11,9 +11,9 @@ How we read the paper (its Section 3.4 gives the idea, not every layer):
    ``mean + voxel_size * (base_offset_k + delta_k(params))``. ``base_offset_k`` are learnable
    shared offsets (initialised to unit steps along +x, -x, +y, -y: terrain continues
    sideways), ``delta_k`` a per-Gaussian learnable correction predicted from its own
-   parameters (deformable-convolution style, bounded by tanh). Features are read at those
-   places by trilinear interpolation over the occupied voxels, so the offsets receive
-   gradients.
+   parameters (deformable-convolution style, bounded by tanh). The feature of the voxel
+   holding each place is read, weighted by a Gaussian kernel of the distance to that voxel's
+   centroid, so the offsets receive gradients.
 3. **1D convolution + attention.** The ``[fused_k, D + 1]`` tensor (the Gaussian itself first,
    then its samples) goes through pointwise 1D convolutions along the fused axis, an
    attention score per entry (softmax over the fused entries) weights them, and a linear
@@ -36,7 +36,6 @@ from .errors import ConfigError
 
 FEATURE_DIM = 14  # position 3, log-scale 3, quaternion 4, opacity 1, SH DC 3
 _BASE_DIRECTIONS = ((1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, -1.0, 0.0))
-_CORNERS = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=torch.int64)
 
 
 @dataclass
@@ -129,23 +128,25 @@ class GPDFN(nn.Module):
             0, inverse, torch.ones_like(features[:, 0]))
         summed = torch.zeros(len(unique_keys), features.shape[1], dtype=features.dtype).index_add_(0, inverse, features)
         voxel_features = summed / count.unsqueeze(1)
-        return unique_keys, voxel_features
+        centroids = torch.zeros(len(unique_keys), 3, dtype=means.dtype).index_add_(0, inverse, means.detach())
+        return unique_keys, voxel_features, centroids / count.unsqueeze(1)
 
-    def _sample(self, points: torch.Tensor, unique_keys: torch.Tensor, voxel_features: torch.Tensor) -> torch.Tensor:
-        """Trilinear read of voxel features at ``points`` [M,3] -> [M, D+1] (last = occupancy)."""
-        grid = points / self.voxel_size - 0.5  # voxel centres at integer grid positions
-        base = torch.floor(grid.detach())
-        frac = grid - base
-        base = base.to(torch.int64)
-        keys = _voxel_keys(base.unsqueeze(1) + _CORNERS.unsqueeze(0))  # [M, 8]
+    def _sample(self, points: torch.Tensor, unique_keys: torch.Tensor, voxel_features: torch.Tensor,
+                centroids: torch.Tensor) -> torch.Tensor:
+        """Soft read of voxel features at ``points`` [M,3] -> [M, D+1] (last = weight).
+
+        The voxel containing each point is looked up; its feature is weighted by a Gaussian
+        kernel of the distance from the point to the voxel's centroid (in voxel units), so the
+        sampling place (and the learnable offsets behind it) receives gradients. One gather
+        per sample: eight times cheaper than trilinear interpolation over voxel corners, which
+        matters at 100k+ Gaussians on the CPU. Empty voxels give weight 0.
+        """
+        keys = _voxel_keys(torch.floor(points.detach() / self.voxel_size).to(torch.int64))
         index = torch.searchsorted(unique_keys, keys).clamp_max(len(unique_keys) - 1)
-        found = (unique_keys[index] == keys).to(voxel_features.dtype)
-        corner_weights = torch.where(_CORNERS.bool().unsqueeze(0), frac.unsqueeze(1), 1.0 - frac.unsqueeze(1))
-        weights = corner_weights.prod(dim=2) * found  # [M, 8]
-        weight_sum = weights.sum(dim=1, keepdim=True)
-        gathered = voxel_features[index]  # [M, 8, D]
-        accumulated = torch.einsum("mc,mcd->md", weights, gathered)
-        return torch.cat([accumulated / weight_sum.clamp_min(1e-6), weight_sum], dim=1)
+        found = (unique_keys[index] == keys).to(voxel_features.dtype).unsqueeze(1)
+        offset = (points - centroids[index]) / self.voxel_size
+        weight = found * torch.exp(-0.5 * (offset * offset).sum(dim=1, keepdim=True))
+        return torch.cat([voxel_features[index] * weight, weight], dim=1)
 
     def forward(self, means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
                 opacity_logits: torch.Tensor, sh_dc: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -162,12 +163,12 @@ class GPDFN(nn.Module):
         if self.voxel_size <= 0:
             self.voxel_size = automatic_voxel_size(means)
         features = self.gaussian_features(means, log_scales, quats, opacity_logits, sh_dc)
-        unique_keys, voxel_features = self._voxel_table(means, features)
+        unique_keys, voxel_features, centroids = self._voxel_table(means, features)
         neighbours = self.config.fused_k - 1
         delta = torch.tanh(self.offset_head(features)).view(count, neighbours, 3) * self.config.max_shift_voxels
         offsets = (self.base_offsets.unsqueeze(0) + delta) * self.voxel_size  # [N, K-1, 3]
         sample_points = (means.unsqueeze(1) + offsets).reshape(-1, 3)
-        sampled = self._sample(sample_points, unique_keys, voxel_features).view(count, neighbours, -1)
+        sampled = self._sample(sample_points, unique_keys, voxel_features, centroids).view(count, neighbours, -1)
         own = torch.cat([features, torch.ones_like(features[:, :1])], dim=1).unsqueeze(1)
         stacked = torch.cat([own, sampled], dim=1)  # [N, K, D+1]
         hidden = self.embed(stacked)  # [N, K, H]

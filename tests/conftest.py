@@ -8,6 +8,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before anything imports torch
+
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

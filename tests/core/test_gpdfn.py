@@ -49,20 +49,25 @@ def test_deterministic_with_a_seed():
     assert torch.equal(outputs[0], outputs[1])
 
 
-def test_trilinear_sampling_reproduces_a_linear_field():
-    # voxel features that vary linearly in space are read back exactly between occupied voxels
-    module = GPDFN(GPDFNConfig(fused_k=2, voxel_size=1.0))
-    coords = torch.stack(torch.meshgrid(*(torch.arange(4),) * 3, indexing="ij"), -1).reshape(-1, 3)
+def test_soft_sampling_reads_the_containing_voxel_with_a_distance_kernel():
     from esgs.core.gpdfn import _voxel_keys
 
+    module = GPDFN(GPDFNConfig(fused_k=2, voxel_size=2.0))
+    coords = torch.tensor([[0, 0, 0], [1, 0, 0], [5, 5, 5]])
     keys, order = torch.sort(_voxel_keys(coords))
-    centres = coords[order].double() + 0.5
-    field = torch.cat([centres @ torch.tensor([[1.0], [2.0], [-1.0]], dtype=torch.float64)] * 15, dim=1)[:, :15]
-    query = torch.tensor([[1.3, 2.2, 1.9], [2.5, 2.5, 2.5]], dtype=torch.float64)
-    sampled = module._sample(query, keys, field)
-    expected = query @ torch.tensor([1.0, 2.0, -1.0], dtype=torch.float64)
-    assert torch.allclose(sampled[:, 0], expected, atol=1e-9)
-    assert torch.allclose(sampled[:, -1], torch.ones(2, dtype=torch.float64))
+    features = torch.arange(3 * 14, dtype=torch.float64).reshape(3, 14)[order]
+    centroids = (coords[order].double() + 0.5) * 2.0
+    query = torch.tensor([[2.5, 1.0, 1.0], [1.0, 1.0, 1.0], [-3.0, 0.0, 0.0]], dtype=torch.float64, requires_grad=True)
+    sampled = module._sample(query, keys, features, centroids)
+    # point 0 lies in voxel (1,0,0), 0.25 voxel from its centroid (3,1,1); point 1 at voxel (0,0,0)'s centroid
+    expected_weight = torch.tensor([torch.exp(torch.tensor(-0.5 * 0.25 ** 2)).item(), 1.0, 0.0], dtype=torch.float64)
+    torch.testing.assert_close(sampled[:, -1], expected_weight)
+    torch.testing.assert_close(sampled[1, :-1], features[(order == 0).nonzero()[0, 0]])
+    torch.testing.assert_close(sampled[0, :-1], features[(order == 1).nonzero()[0, 0]] * expected_weight[0])
+    assert torch.all(sampled[2] == 0)  # empty voxel
+    sampled[:, -1].sum().backward()
+    # the weight grows toward the centroid (x = 3), and is flat at it
+    assert query.grad[0, 0] > 0 and query.grad[1].abs().sum() < 1e-12
 
 
 def test_offsets_get_gradients_and_residuals_grow_when_trained():
