@@ -263,3 +263,16 @@ def test_random_initialisation_without_points(fast_config, tmp_path):
     means = trainer.gaussians.params["means"].detach().numpy()
     assert len(means) == 200
     assert np.abs(means - trainer.data.center).max() <= trainer.data.extent + 1e-6
+
+
+def test_resume_skips_a_damaged_newest_checkpoint(fast_config):
+    train(fast_config(iterations=4, evaluate=False, checkpoint_every=2))
+    checkpoints = list_checkpoints(fast_config().out / "checkpoints")
+    assert [step for step, _ in checkpoints] == [2, 4]
+    checkpoints[-1][1].write_bytes(b"not a checkpoint")
+    messages = []
+    result = train(fast_config(iterations=4, evaluate=False, checkpoint_every=2, resume=True),
+                   progress=lambda event: messages.append(event.message))
+    assert result.status == "completed" and result.step == 4
+    assert any("resuming from step 2" in message for message in messages)
+    assert load_checkpoint(list_checkpoints(fast_config().out / "checkpoints")[-1][1])["step"] == 4
