@@ -4,7 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from ..errors import ConfigError
-from ..gpdfn import GPDFNConfig
+from ..gpdfn_config import GPDFNConfig
 
 DEPTH_MODES = ("log", "inverse")
 
