@@ -7,7 +7,7 @@ from pathlib import Path
 HELP = "train Gaussians on a COLMAP scene folder (images/ + sparse/0) into a run folder"
 
 #: Settings given as positional arguments or handled here rather than as plain flags.
-_SKIPPED = ("scene", "esgs")
+_SKIPPED = ("scene", "esgs", "baselines")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -20,6 +20,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     esgs_group = parser.add_argument_group("ESGS", "prior losses and GPDFN (all off = the 3DGS baseline)")
     add_dataclass_arguments(esgs_group, ESGSConfig)
+    from ..baselines.config import BaselinesConfig
+
+    baselines_group = parser.add_argument_group("comparison methods", "Mip-Splatting and DropoutGS (docs/baselines.md)")
+    add_dataclass_arguments(baselines_group, BaselinesConfig)
     parser.add_argument("--config", dest="config_file", type=Path, default=None,
                         help="read settings from a JSON file (flags given here override it)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -43,8 +47,11 @@ def build_config(args: argparse.Namespace):
     from ..method.config import ESGSConfig
 
     config = dataclass_from_args(TrainConfig, args, base=base)
+    from ..baselines.config import BaselinesConfig
+
     esgs = dataclass_from_args(ESGSConfig, args, base=config.esgs)
-    values = {**_as_dict(config), "scene": Path(args.scene), "esgs": _as_dict(esgs)}
+    baselines = dataclass_from_args(BaselinesConfig, args, base=config.baselines)
+    values = {**_as_dict(config), "scene": Path(args.scene), "esgs": _as_dict(esgs), "baselines": _as_dict(baselines)}
     return config_from_dict(TrainConfig, values)
 
 

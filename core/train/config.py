@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Optional
 
 from ..errors import ConfigError
+from ..baselines.config import BaselinesConfig
 from ..method.config import ESGSConfig
 
 #: The schedule every step count of :class:`TrainConfig` is written for.
@@ -96,10 +97,13 @@ class TrainConfig:
     max_gaussians: int = field(default=3_000_000, metadata=_help("growth stops (with one warning) at this many Gaussians"))
     esgs: ESGSConfig = field(default_factory=ESGSConfig, metadata=_help(
         "the ESGS additions: prior losses and GPDFN (all off = the 3DGS baseline)"))
+    baselines: BaselinesConfig = field(default_factory=BaselinesConfig, metadata=_help(
+        "comparison methods: Mip-Splatting, DropoutGS (all off = the 3DGS baseline)"))
 
     def validate(self) -> None:
         """Raise ConfigError for out-of-range or inconsistent settings."""
         self.esgs.validate()
+        self.baselines.validate()
         def positive(name: str, allow_zero: bool = False) -> None:
             value = getattr(self, name)
             if value < 0 or (value == 0 and not allow_zero):

@@ -43,8 +43,12 @@ def _lpips_model(use_lpips: bool) -> tuple[Any, Optional[str]]:
 
 def evaluate_model(model: GaussianModel, data: Any, *, backend: str, background: torch.Tensor, sh_degree: int,
                    renders_dir: Optional[Path] = None, use_lpips: bool = True, num_threads: Optional[int] = None,
-                   progress: Optional[ProgressCallback] = None, views: Optional[list] = None) -> dict:
-    """Render every held-out view of ``data`` (or ``views``) and measure it against its image."""
+                   progress: Optional[ProgressCallback] = None, views: Optional[list] = None,
+                   antialiased: bool = False, eps2d: float = 0.3) -> dict:
+    """Render every held-out view of ``data`` (or ``views``) and measure it against its image.
+
+    ``antialiased``/``eps2d``: render with the rasterizer's 2D filter (runs trained with Mip-Splatting).
+    """
     from ..imageio import write_png
     from ..metrics.image import psnr, ssim
     from .rendering import render_view
@@ -63,7 +67,8 @@ def evaluate_model(model: GaussianModel, data: Any, *, backend: str, background:
         params = model.render_params(sh_degree)
         for number, view in enumerate(views):
             output = render_view(params, view.viewmat.to(device), view.K.to(device), view.width, view.height,
-                                 background=background, backend=backend, num_threads=num_threads)
+                                 background=background, backend=backend, num_threads=num_threads,
+                                 antialiased=antialiased, eps2d=eps2d)
             image = output.image.clamp(0.0, 1.0).permute(2, 0, 1)[None]
             target = view.image_float(device).permute(2, 0, 1)[None]
             row = {"name": view.name, "psnr": float(psnr(image, target)), "ssim": float(ssim(image, target)),
@@ -146,6 +151,7 @@ def evaluate_run(run_dir: str | Path, *, backend: Optional[str] = None, save_ren
     background = torch.tensor(config.background, dtype=torch.float32, device=device)
     metrics = evaluate_model(model, data, backend=name, background=background, sh_degree=model.max_sh_degree,
                              renders_dir=run.test_renders if save_renders else None, use_lpips=use_lpips,
-                             num_threads=config.threads or None, progress=progress)
+                             num_threads=config.threads or None, progress=progress,
+                             antialiased=config.baselines.antialiased, eps2d=config.baselines.eps2d)
     atomic_write_json(run.metrics, metrics)
     return metrics

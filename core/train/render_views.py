@@ -40,7 +40,8 @@ def render_run(run_dir: str | Path, *, cameras: Optional[Sequence[str]] = None, 
         for view in views:
             result = render_view(params, view.viewmat.to(device), view.K.to(device), view.width, view.height,
                                  background=background, render_depth=depth, backend=name,
-                                 num_threads=config.threads or None)
+                                 num_threads=config.threads or None,
+                                 antialiased=config.baselines.antialiased, eps2d=config.baselines.eps2d)
             written.append(write_png(output / f"{view.stem}.png", _to_uint8(result.image)))
             if depth:
                 path = output / f"{view.stem}_depth.exr"

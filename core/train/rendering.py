@@ -45,8 +45,12 @@ class RenderOutput:
 
 def render_view(params: RenderParams, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, *,
                 background: Optional[torch.Tensor] = None, render_depth: bool = False, render_normals: bool = False,
-                backend: str = "cpu", num_threads: Optional[int] = None) -> RenderOutput:
-    """Render ``params`` into one camera. viewmat: [4, 4] world-to-camera; K: [3, 3]; background: [3]."""
+                backend: str = "cpu", num_threads: Optional[int] = None, antialiased: bool = False,
+                eps2d: float = 0.3) -> RenderOutput:
+    """Render ``params`` into one camera. viewmat: [4, 4] world-to-camera; K: [3, 3]; background: [3].
+
+    ``antialiased``/``eps2d``: the rasterizer's 2D anti-aliasing filter (Mip-Splatting's 2D filter).
+    """
     from ..render import rasterization
 
     render, alpha, meta = rasterization(
@@ -54,7 +58,7 @@ def render_view(params: RenderParams, viewmat: torch.Tensor, K: torch.Tensor, wi
         viewmat[None], K[None], width, height, sh_degree=params.sh_degree,
         backgrounds=None if background is None else background[None],
         render_depth=render_depth, render_normals=render_normals, extra=params.extra,
-        num_threads=num_threads, backend=backend)
+        num_threads=num_threads, backend=backend, antialiased=antialiased, eps2d=eps2d)
     channels = meta["channels"]
 
     def part(name: str) -> Optional[torch.Tensor]:

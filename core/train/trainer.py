@@ -140,9 +140,10 @@ class Trainer:
         config.validate()
         if config.scene is None or config.out is None:
             raise ConfigError("both scene and out must be set", hint="esgs train SCENE --out RUN_DIR")
+        from ..baselines import baseline_hooks
         from ..method.hooks import esgs_hooks
 
-        hooks = [*esgs_hooks(config.esgs), *hooks]
+        hooks = [*esgs_hooks(config.esgs), *baseline_hooks(config.baselines), *hooks]
         names = [getattr(hook, "name", type(hook).__name__) for hook in hooks]
         if len(set(names)) != len(names):
             raise ConfigError(f"hook names must be unique, got {names}")
@@ -184,7 +185,8 @@ class Trainer:
         """Render ``params`` into a :class:`~.dataset.View` with this run's backend and background."""
         return render_view(params, view.viewmat.to(self.device), view.K.to(self.device), view.width, view.height,
                            background=self.background, render_depth=render_depth, render_normals=render_normals,
-                           backend=self.backend, num_threads=self.num_threads)
+                           backend=self.backend, num_threads=self.num_threads,
+                           antialiased=self.config.baselines.antialiased, eps2d=self.config.baselines.eps2d)
 
     def message(self, text: str) -> None:
         """Send a message event (warnings, densification summaries) to the progress callbacks."""
@@ -485,7 +487,8 @@ class Trainer:
             metrics = evaluate_model(model, self.data, backend=self.backend, background=self.background,
                                      sh_degree=sh_degree, renders_dir=self.run_dir.test_renders if config.save_renders else None,
                                      use_lpips=config.lpips, num_threads=self.num_threads,
-                                     progress=self._progress)
+                                     progress=self._progress, antialiased=config.baselines.antialiased,
+                                     eps2d=config.baselines.eps2d)
             metrics["step"] = self.step
             atomic_write_json(self.run_dir.metrics, metrics)
         elapsed = self.elapsed_before_s + self._session_elapsed()
