@@ -1,0 +1,89 @@
+"""Settings of the NDN prior network: model size, diffusion schedule, training and sampling."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from ..errors import ConfigError
+
+
+@dataclass
+class NDNModelConfig:
+    """Size of the UNet noise predictor (defaults: ~2.6M parameters, CPU-sized)."""
+
+    base_channels: int = field(default=32, metadata={"help": "channels of the first UNet level (doubled per level)"})
+    levels: int = field(default=3, metadata={"help": "UNet resolution levels (each halves the size)"})
+    time_dim: int = field(default=128, metadata={"help": "width of the sinusoidal time-step embedding"})
+    working_size: int = field(default=128, metadata={"help": "long side of the working resolution in pixels"})
+
+    def validate(self) -> None:
+        if self.base_channels < 4 or self.base_channels % 4:
+            raise ConfigError(f"base_channels must be a positive multiple of 4, got {self.base_channels}")
+        if not 1 <= self.levels <= 5:
+            raise ConfigError(f"levels must be 1..5, got {self.levels}")
+        if self.working_size < 16 or self.working_size % (2 ** self.levels):
+            raise ConfigError(f"working_size must be >= 16 and a multiple of 2**levels, got {self.working_size}")
+        if self.time_dim < 8 or self.time_dim % 2:
+            raise ConfigError(f"time_dim must be an even number >= 8, got {self.time_dim}")
+
+
+@dataclass
+class NDNDiffusionConfig:
+    """DDPM forward process and DDIM sampling."""
+
+    timesteps: int = field(default=1000, metadata={"help": "diffusion steps T of the forward process"})
+    schedule: str = field(default="cosine", metadata={"help": "beta schedule: cosine or linear"})
+    prediction: str = field(default="epsilon", metadata={"help": "what the network predicts: epsilon or v"})
+    sample_steps: int = field(default=15, metadata={"help": "DDIM steps at inference (eta = 0, deterministic)"})
+    coarse_fraction: float = field(default=0.5, metadata={
+        "help": "normal branch: the noisiest fraction of the T steps (N/T) is denoised coarsely, without "
+                "full-resolution image features; the remaining T-N steps fuse them"})
+
+    def validate(self) -> None:
+        if self.timesteps < 2:
+            raise ConfigError(f"timesteps must be >= 2, got {self.timesteps}")
+        if self.schedule not in ("cosine", "linear"):
+            raise ConfigError(f"schedule must be cosine or linear, got {self.schedule!r}")
+        if self.prediction not in ("epsilon", "v"):
+            raise ConfigError(f"prediction must be epsilon or v, got {self.prediction!r}")
+        if not 1 <= self.sample_steps <= self.timesteps:
+            raise ConfigError(f"sample_steps must be in 1..timesteps, got {self.sample_steps}")
+        if not 0.0 <= self.coarse_fraction < 1.0:
+            raise ConfigError(f"coarse_fraction must be in [0, 1), got {self.coarse_fraction}")
+
+    @property
+    def refine_below(self) -> int:
+        """Time steps ``t < refine_below`` are the last T-N steps (fine normals)."""
+        return int(round(self.timesteps * (1.0 - self.coarse_fraction)))
+
+
+@dataclass
+class NDNTrainConfig:
+    """One training run of the NDN network."""
+
+    steps: int = field(default=2000, metadata={"help": "optimiser steps in total (a resumed run continues to this)"})
+    batch_size: int = field(default=8, metadata={"help": "training triples per step"})
+    learning_rate: float = field(default=2e-4, metadata={"help": "AdamW learning rate"})
+    weight_decay: float = field(default=1e-4, metadata={"help": "AdamW weight decay"})
+    normal_weight: float = field(default=1.0, metadata={"help": "weight of the normal branch loss"})
+    checkpoint_every: int = field(default=200, metadata={"help": "steps between checkpoints"})
+    seed: int = field(default=0, metadata={"help": "seed of batches, noise and initial weights"})
+    threads: int = field(default=0, metadata={"help": "torch threads (0 = torch's default)"})
+
+    def validate(self) -> None:
+        for name in ("steps", "batch_size", "checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.learning_rate <= 0:
+            raise ConfigError(f"learning_rate must be positive, got {self.learning_rate}")
+
+
+@dataclass
+class NDNConfig:
+    """Model and diffusion settings saved with the weights (what inference needs)."""
+
+    model: NDNModelConfig = field(default_factory=NDNModelConfig)
+    diffusion: NDNDiffusionConfig = field(default_factory=NDNDiffusionConfig)
+
+    def validate(self) -> None:
+        self.model.validate()
+        self.diffusion.validate()

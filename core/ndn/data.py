@@ -1,0 +1,258 @@
+"""Training data for NDN: view triples with depth/normal/mask targets at the working resolution.
+
+A *triple* is a reference view plus its two nearest neighbours (camera centres close and
+viewing directions alike). The data builder renders synthetic scenes with ``esgs scene``
+(one child process per scene), turns every view of a scene into a triple and stores the
+scene as one npz shard:
+
+- ``views`` [N, 9, h, w] uint8: reference RGB, neighbour 1 RGB, neighbour 2 RGB;
+- ``depth`` [N, h, w] float32: z depth in metres (0 = no surface);
+- ``normal`` [N, 3, h, w] float32: unit normals in the camera frame (OpenCV axes), 0 = none;
+- ``mask`` [N, h, w] bool: valid surface.
+
+The diffusion targets are derived on the fly: :func:`depth_to_state` maps depth affinely to
+[-1, 1] per view (near = -1, far and sky = +1), so the state is *relative* depth, known up
+to scale and shift, which the trainer's prior losses recover with ``fit_scale_shift``.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DatasetError
+from ..io_utils import atomic_path, atomic_write_json
+from ..progress import ProgressCallback, ProgressEvent, no_progress
+
+SHARD_FORMAT = "esgs-ndn-shard-1"
+TRAIN_PRESETS = ("cratered_plain", "crater_survey_nadir", "dune_field", "layered_outcrop", "rocky_slope",
+                 "navcam_panorama")
+HELDOUT_SEED_OFFSET = 100_000  # held-out scenes use seeds >= this; training scenes never do
+
+
+def working_shape(width: int, height: int, working_size: int, multiple: int) -> tuple[int, int]:
+    """(w, h) at the working resolution: long side ``working_size``, both multiples of ``multiple``."""
+    scale = working_size / max(width, height)
+    out_width = max(multiple, int(round(width * scale / multiple)) * multiple)
+    out_height = max(multiple, int(round(height * scale / multiple)) * multiple)
+    return out_width, out_height
+
+
+def neighbour_indices(centres: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """For each camera, its two best neighbours: [N, 3] centres and [N, 3] unit viewing
+    directions -> [N, 2] indices. Score = distance / median spacing + (1 - cos angle), so
+    close cameras looking the same way (overlapping views) win. A scene with fewer than
+    three views repeats what it has (a lone view is its own neighbour)."""
+    count = len(centres)
+    distance = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+    spacing = np.median(distance[distance > 0]) if (distance > 0).any() else 1.0
+    score = distance / spacing + (1.0 - directions @ directions.T)
+    np.fill_diagonal(score, np.inf)
+    order = np.argsort(score, axis=1)
+    result = np.zeros((count, 2), np.int64)
+    for index in range(count):
+        others = [int(j) for j in order[index] if j != index][:2]
+        while len(others) < 2:
+            others.append(others[-1] if others else index)
+        result[index] = others
+    return result
+
+
+def depth_to_state(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Relative depth state in [-1, 1]: [H, W] depth, [H, W] bool mask -> [H, W] float32.
+
+    Affine per view (nearest surface -1, farthest +1); no-surface pixels are +1 (far).
+    """
+    valid = mask & (depth > 0) & np.isfinite(depth)
+    state = np.ones(depth.shape, np.float32)
+    if valid.any():
+        low, high = float(depth[valid].min()), float(depth[valid].max())
+        span = max(high - low, 1e-6)
+        state[valid] = 2.0 * (depth[valid] - low) / span - 1.0
+    return state
+
+
+def state_to_relative_depth(state: np.ndarray) -> np.ndarray:
+    """Relative depth (positive, affine in true depth) from a state in [-1, 1]: values in [1, 2]."""
+    return (np.clip(state, -1.0, 1.0) + 1.0) * 0.5 + 1.0
+
+
+def _resize_masked(values: np.ndarray, weight: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Area-resize ``values`` [H, W(, C)] averaging only where ``weight`` [H, W] is 1."""
+    import cv2
+
+    weight = weight.astype(np.float32)
+    values = np.nan_to_num(values.astype(np.float32))
+    weighted = values * (weight[..., None] if values.ndim == 3 else weight)
+    summed = cv2.resize(weighted, (width, height), interpolation=cv2.INTER_AREA)
+    coverage = cv2.resize(weight, (width, height), interpolation=cv2.INTER_AREA)
+    denominator = np.maximum(coverage, 1e-6)
+    return summed / (denominator[..., None] if summed.ndim == 3 else denominator), coverage
+
+
+def _rgb(image: np.ndarray) -> np.ndarray:
+    return np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
+
+
+@dataclass
+class SceneTriples:
+    """A scene's views as triples at the working resolution (targets only when ground truth exists)."""
+
+    names: list[str]
+    image_sizes: list[tuple[int, int]]  # (width, height) of each original image
+    views: np.ndarray  # [N, 9, h, w] uint8
+    depth: np.ndarray | None = None  # [N, h, w] float32
+    normal: np.ndarray | None = None  # [N, 3, h, w] float32
+    mask: np.ndarray | None = None  # [N, h, w] bool
+
+
+def scene_triples(scene_dir: str | Path, working_size: int, multiple: int, *, with_targets: bool = True,
+                  target_source: str = "gt") -> SceneTriples:
+    """Read a scene folder (images/, sparse/0, and priors/<target_source>/ for targets) into triples."""
+    import cv2
+
+    from ..colmap import read_model
+    from ..imageio import read_image
+    from ..priors import load_prior_maps
+
+    scene_dir = Path(scene_dir)
+    model = read_model(scene_dir, use_pycolmap=False)
+    images = sorted(model.images.values(), key=lambda image: image.name)
+    if not images:
+        raise DatasetError("the COLMAP model has no images", path=scene_dir / "sparse" / "0")
+    centres = np.stack([image.camera_center() for image in images])
+    directions = np.stack([image.rotation_matrix()[2] for image in images])  # camera z axis in the world
+    neighbours = neighbour_indices(centres, directions)
+    rgb_small, sizes, depth, normal, mask = [], [], [], [], []
+    for image in images:
+        path = scene_dir / "images" / image.name
+        if not path.exists():
+            raise DatasetError(f"image {image.name!r} of the COLMAP model is missing", path=path)
+        rgb = _rgb(read_image(path))
+        height, width = rgb.shape[:2]
+        sizes.append((width, height))
+        small_width, small_height = working_shape(width, height, working_size, multiple)
+        rgb_small.append(cv2.resize(rgb, (small_width, small_height), interpolation=cv2.INTER_AREA))
+        if with_targets:
+            maps = load_prior_maps(scene_dir, target_source, image.name, size=(width, height))
+            if maps.depth is None or maps.normal is None:
+                raise DatasetError(f"{target_source} priors of {image.name!r} lack depth or normals",
+                                   path=scene_dir / "priors" / target_source)
+            valid = maps.mask & (maps.depth > 0)
+            small_depth, coverage = _resize_masked(maps.depth, valid, small_width, small_height)
+            small_normal, _ = _resize_masked(maps.normal, valid, small_width, small_height)
+            small_mask = coverage > 0.5
+            length = np.linalg.norm(small_normal, axis=-1, keepdims=True)
+            small_normal = np.where(small_mask[..., None], small_normal / np.maximum(length, 1e-6), 0.0)
+            depth.append(np.where(small_mask, small_depth, 0.0).astype(np.float32))
+            normal.append(small_normal.transpose(2, 0, 1).astype(np.float32))
+            mask.append(small_mask)
+    shapes = {array.shape for array in rgb_small}
+    if len(shapes) != 1:
+        raise DatasetError(f"the scene's images have different sizes {sorted(shapes)}; NDN needs one size per scene",
+                           path=scene_dir / "images")
+    views = np.stack([np.concatenate([rgb_small[i], rgb_small[neighbours[i, 0]], rgb_small[neighbours[i, 1]]],
+                                     axis=-1).transpose(2, 0, 1) for i in range(len(images))])
+    result = SceneTriples(names=[image.name for image in images], image_sizes=sizes, views=views)
+    if with_targets:
+        result.depth, result.normal, result.mask = np.stack(depth), np.stack(normal), np.stack(mask)
+    return result
+
+
+def write_shard(path: str | Path, triples: SceneTriples, metadata: dict) -> None:
+    """Write a scene's triples and targets as one npz shard, atomically."""
+    if triples.depth is None:
+        raise DatasetError("a training shard needs depth/normal targets", path=path)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as handle:
+            np.savez_compressed(handle, format=np.array(SHARD_FORMAT), views=triples.views, depth=triples.depth,
+                                normal=triples.normal, mask=triples.mask, names=np.array(triples.names),
+                                metadata=np.array(json.dumps(metadata)))
+
+
+def load_shards(data_dir: str | Path, split: str = "train") -> dict[str, np.ndarray]:
+    """Concatenate the shards of one split: views, depth, normal, mask (see the module docstring).
+
+    Shards with different working resolutions cannot be batched together: a mix raises
+    :class:`DatasetError`.
+    """
+    data_dir = Path(data_dir)
+    paths = sorted((data_dir / "shards").glob(f"{split}_*.npz"))
+    if not paths:
+        raise DatasetError(f"no {split!r} shards", path=data_dir / "shards",
+                           hint="build them with `esgs ndn build-data --out DIR`")
+    arrays: dict[str, list[np.ndarray]] = {"views": [], "depth": [], "normal": [], "mask": []}
+    for path in paths:
+        with np.load(path, allow_pickle=False) as shard:
+            if "format" not in shard or str(shard["format"]) != SHARD_FORMAT:
+                raise DatasetError("not an NDN shard (missing or unknown format tag)", path=path)
+            for key in arrays:
+                arrays[key].append(shard[key])
+    shapes = {array.shape[-2:] for array in arrays["views"]}
+    if len(shapes) != 1:
+        raise DatasetError(f"shards have different working resolutions {sorted(shapes)}", path=data_dir / "shards",
+                           hint="rebuild the data set with one --working-size")
+    return {key: np.concatenate(values) for key, values in arrays.items()}
+
+
+def plan_scenes(count: int, heldout: int, presets: tuple[str, ...] = TRAIN_PRESETS,
+                heldout_presets: tuple[str, ...] = ()) -> list[tuple[str, str, int]]:
+    """(split, preset, seed) of every scene: training scenes cycle over ``presets`` with seeds
+    1, 2, ...; held-out scenes use seeds >= HELDOUT_SEED_OFFSET and also every preset in
+    ``heldout_presets`` (which training never sees)."""
+    plan = [("train", presets[i % len(presets)], 1 + i // len(presets)) for i in range(count)]
+    heldout_pool = tuple(presets) + tuple(heldout_presets)
+    plan += [("heldout", heldout_pool[i % len(heldout_pool)], HELDOUT_SEED_OFFSET + i) for i in range(heldout)]
+    return plan
+
+
+def build_dataset(out_dir: str | Path, scenes: int, *, heldout: int = 1, presets: tuple[str, ...] = TRAIN_PRESETS,
+                  heldout_presets: tuple[str, ...] = (), views: int = 8, width: int = 160, height: int = 90,
+                  samples: int = 8, working_size: int = 128, multiple: int = 4, keep_scenes: bool = False,
+                  progress: ProgressCallback = no_progress) -> dict:
+    """Render scenes with ``esgs scene`` and write one shard per scene under ``OUT/shards``.
+
+    Resumable: a shard that already exists is skipped, so an interrupted build continues
+    where it stopped. ``OUT/manifest.json`` records the plan and settings. Returns the manifest.
+    """
+    import shutil
+    import tempfile
+
+    out_dir = Path(out_dir)
+    (out_dir / "shards").mkdir(parents=True, exist_ok=True)
+    plan = plan_scenes(scenes, heldout, tuple(presets), tuple(heldout_presets))
+    manifest = {"format": SHARD_FORMAT, "working_size": working_size, "multiple": multiple, "views": views,
+                "resolution": [width, height], "samples": samples,
+                "scenes": [{"split": s, "preset": p, "seed": seed, "shard": f"shards/{s}_{p}_{seed}.npz"}
+                           for s, p, seed in plan]}
+    atomic_write_json(out_dir / "manifest.json", manifest)
+    for index, (split, preset, seed) in enumerate(plan):
+        shard = out_dir / "shards" / f"{split}_{preset}_{seed}.npz"
+        progress(ProgressEvent(index, len(plan), "build-data", message=f"{preset} seed {seed}"))
+        if shard.exists():
+            continue
+        work = Path(tempfile.mkdtemp(prefix=f".{preset}_{seed}.", dir=out_dir))
+        scene_dir = work / "scene"
+        try:
+            command = [sys.executable, "-m", "esgs.core.cli", "scene", "--preset", preset, "--seed", str(seed),
+                       "--views", str(views), "--resolution", f"{width}x{height}", "--samples", str(samples),
+                       "--out", str(scene_dir)]
+            completed = subprocess.run(command, capture_output=True, text=True)
+            if completed.returncode != 0:
+                raise DatasetError(f"rendering scene {preset} seed {seed} failed (exit {completed.returncode}): "
+                                   f"{completed.stderr.strip()[-500:]}", path=scene_dir)
+            triples = scene_triples(scene_dir, working_size, multiple)
+            write_shard(shard, triples, {"preset": preset, "seed": seed, "split": split})
+            if keep_scenes:
+                kept = out_dir / "scenes" / f"{split}_{preset}_{seed}"
+                kept.parent.mkdir(parents=True, exist_ok=True)
+                shutil.rmtree(kept, ignore_errors=True)
+                shutil.move(str(scene_dir), str(kept))
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+    progress(ProgressEvent(len(plan), len(plan), "build-data", kind="done"))
+    return manifest

@@ -1,0 +1,151 @@
+"""NDN inference: depth and normal priors for a scene, and evaluation against ground truth.
+
+The network works at <= 128 px on the long side. Its maps are brought back to the image
+size with an image-guided filter (OpenCV's ``ximgproc.guidedFilter``: bilinear upsampling,
+then edges snapped to the image's), and written to ``SCENE/priors/ndn/`` in the standard
+format: depth with ``depth_kind = relative`` (affine in true depth, values in [1, 2];
+training aligns it with ``fit_scale_shift``), unit normals in the camera frame (OpenCV
+axes), and a mask of the pixels the normal branch calls surface (it was trained to output
+a zero normal where there is no surface).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..progress import ProgressCallback, ProgressEvent, no_progress
+from .data import SceneTriples, load_shards, scene_triples, state_to_relative_depth
+from .diffusion import GaussianDiffusion
+from .model import NDNUNet
+from .train import load_checkpoint, training_tensors
+
+SURFACE_NORMAL_LENGTH = 0.5  # predicted normals shorter than this are "no surface"
+
+
+def predict_states(model: NDNUNet, diffusion: GaussianDiffusion, views: torch.Tensor, *, steps: int | None = None,
+                   seed: int = 0, batch_size: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
+    """Denoise in batches: views [N, 9, h, w] in [-1, 1] -> (depth state [N, 1, h, w], normal [N, 3, h, w]).
+
+    Batch k starts from noise seeded with ``seed + k``: the same call always gives the same maps.
+    """
+    depth_parts, normal_parts = [], []
+    model.eval()
+    for batch_index, start in enumerate(range(0, views.shape[0], batch_size)):
+        depth, normal = diffusion.sample(model, views[start:start + batch_size], steps=steps, seed=seed + batch_index)
+        depth_parts.append(depth)
+        normal_parts.append(normal)
+    return torch.cat(depth_parts), torch.cat(normal_parts)
+
+
+def guided_upsample(values: np.ndarray, guide_rgb: np.ndarray, radius: int = 4, eps: float = 1e-3) -> np.ndarray:
+    """Bring ``values`` [h, w] or [h, w, C] to the guide's size [H, W, 3] (uint8), edges from the guide."""
+    import cv2
+
+    height, width = guide_rgb.shape[:2]
+    up = cv2.resize(values.astype(np.float32), (width, height), interpolation=cv2.INTER_LINEAR)
+    guide = cv2.cvtColor(guide_rgb, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255.0
+    return cv2.ximgproc.guidedFilter(guide, up, radius, eps)
+
+
+def maps_from_states(depth_state: np.ndarray, normal_state: np.ndarray,
+                     guide_rgb: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One view's states -> (relative depth [H, W], unit normals [H, W, 3], mask [H, W] bool).
+
+    ``depth_state`` [h, w], ``normal_state`` [3, h, w]; with ``guide_rgb`` [H, W, 3] the maps
+    are upsampled to its size under its guidance, otherwise kept at the working size.
+    """
+    import cv2
+
+    relative = state_to_relative_depth(depth_state)
+    normal = normal_state.transpose(1, 2, 0)
+    surface = (np.linalg.norm(normal, axis=-1) > SURFACE_NORMAL_LENGTH).astype(np.uint8)
+    if guide_rgb is not None:
+        height, width = guide_rgb.shape[:2]
+        relative = np.clip(guided_upsample(relative, guide_rgb), 1.0, 2.0)
+        normal = guided_upsample(normal, guide_rgb)
+        surface = cv2.resize(surface, (width, height), interpolation=cv2.INTER_NEAREST)
+    length = np.linalg.norm(normal, axis=-1, keepdims=True)
+    normal = np.where(length > 1e-6, normal / np.maximum(length, 1e-6), 0.0).astype(np.float32)
+    mask = surface.astype(bool)
+    return np.where(mask, relative, 0.0).astype(np.float32), np.where(mask[..., None], normal, 0.0), mask
+
+
+def write_ndn_priors(scene_dir: str | Path, weights: str | Path, *, steps: int | None = None, seed: int = 0,
+                     batch_size: int = 4, progress: ProgressCallback = no_progress) -> int:
+    """Predict and write ``SCENE/priors/ndn/`` for every view of the scene; returns the view count.
+
+    ``weights``: a weights/checkpoint file or a model folder (``weights.pt`` or latest checkpoint).
+    """
+    from ..imageio import read_image
+    from ..priors import write_prior_maps
+
+    scene_dir = Path(scene_dir)
+    model, diffusion, config, _ = load_checkpoint(weights)
+    triples: SceneTriples = scene_triples(scene_dir, config.model.working_size, 2 ** (config.model.levels - 1),
+                                          with_targets=False)
+    views = torch.from_numpy(triples.views.astype(np.float32) / 127.5 - 1.0)
+    total = len(triples.names)
+    depth_states, normal_states = [], []
+    for start in range(0, total, batch_size):
+        progress(ProgressEvent(start, total, "ndn-infer"))
+        depth, normal = diffusion.sample(model, views[start:start + batch_size], steps=steps, seed=seed + start)
+        depth_states.append(depth.numpy())
+        normal_states.append(normal.numpy())
+    depth_states_all, normal_states_all = np.concatenate(depth_states), np.concatenate(normal_states)
+    metadata = {"method": "ndn", "weights": str(weights), "ddim_steps": str(steps or config.diffusion.sample_steps),
+                "seed": str(seed)}
+    for index, name in enumerate(triples.names):
+        image = read_image(scene_dir / "images" / name)
+        image = np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
+        depth, normal, mask = maps_from_states(depth_states_all[index, 0], normal_states_all[index], image)
+        write_prior_maps(scene_dir, "ndn", name, depth=depth, normal=normal, mask=mask, relative_depth=True,
+                         units="relative", metadata=metadata)
+    progress(ProgressEvent(total, total, "ndn-infer", kind="done"))
+    return total
+
+
+def depth_metrics(relative: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> dict[str, float]:
+    """AbsRel and delta1 of a relative depth [H, W] against metric ``truth`` [H, W] after the
+    robust scale/shift fit over ``mask`` [H, W] bool (the same alignment training uses)."""
+    from ..priors.losses import fit_scale_shift
+
+    valid = mask & (truth > 0)
+    scale, shift = fit_scale_shift(relative, truth, valid)
+    aligned = (scale * relative + shift)[valid].clamp_min(1e-6)
+    target = truth[valid]
+    ratio = torch.maximum(aligned / target, target / aligned)
+    return {"abs_rel": float(((aligned - target).abs() / target).mean()), "delta1": float((ratio < 1.25).float().mean())}
+
+
+def normal_metrics(predicted: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> dict[str, float]:
+    """Mean angular error (degrees) and fraction under 11.25 deg: [3, H, W] normals, [H, W] mask."""
+    unit = predicted / predicted.norm(dim=0, keepdim=True).clamp_min(1e-6)
+    cosine = (unit * truth).sum(dim=0).clamp(-1.0, 1.0)[mask]
+    angle = torch.rad2deg(torch.arccos(cosine))
+    return {"normal_mean_deg": float(angle.mean()), "normal_within_11_25": float((angle < 11.25).float().mean())}
+
+
+def evaluate_ndn(weights: str | Path, data_dir: str | Path, *, split: str = "heldout", steps: int | None = None,
+                 seed: int = 0, limit: int = 0, progress: ProgressCallback = no_progress) -> dict:
+    """Scores on a data split: mean AbsRel and delta1 (depth after scale/shift alignment),
+    normal mean angular error and the fraction within 11.25 deg, over surface pixels."""
+    model, diffusion, _, _ = load_checkpoint(weights)
+    arrays = load_shards(data_dir, split)
+    if limit:
+        arrays = {key: value[:limit] for key, value in arrays.items()}
+    data = training_tensors(arrays)
+    count = data["views"].shape[0]
+    scores: dict[str, list[float]] = {}
+    for index in range(count):
+        progress(ProgressEvent(index, count, "ndn-eval"))
+        depth_state, normal = diffusion.sample(model, data["views"][index:index + 1], steps=steps, seed=seed + index)
+        mask = torch.from_numpy(arrays["mask"][index])
+        relative = torch.from_numpy(state_to_relative_depth(depth_state[0, 0].numpy()))
+        truth = torch.from_numpy(arrays["depth"][index])
+        for key, value in {**depth_metrics(relative, truth, mask),
+                           **normal_metrics(normal[0], torch.from_numpy(arrays["normal"][index]), mask)}.items():
+            scores.setdefault(key, []).append(value)
+    progress(ProgressEvent(count, count, "ndn-eval", kind="done"))
+    return {"split": split, "views": count, **{key: float(np.mean(values)) for key, values in scores.items()}}

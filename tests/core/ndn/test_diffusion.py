@@ -1,0 +1,76 @@
+"""NDN diffusion: noise schedules, the forward process, predictions and DDIM."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from esgs.core.errors import ConfigError
+from esgs.core.ndn.config import NDNDiffusionConfig
+from esgs.core.ndn.diffusion import GaussianDiffusion, make_betas
+
+
+@pytest.mark.parametrize("schedule", ["cosine", "linear"])
+def test_schedule_is_monotone_and_ends_near_pure_noise(schedule):
+    diffusion = GaussianDiffusion(NDNDiffusionConfig(timesteps=1000, schedule=schedule))
+    alpha_bar = diffusion.alphas_cumprod
+    assert alpha_bar.shape == (1000,)
+    assert (alpha_bar[1:] < alpha_bar[:-1]).all()
+    assert 0.99 < alpha_bar[0] < 1.0 and 0 < alpha_bar[-1] < 1e-3
+    betas = make_betas(1000, schedule)
+    torch.testing.assert_close(alpha_bar, torch.cumprod(1 - betas, 0))
+
+
+def test_q_sample_statistics():
+    diffusion = GaussianDiffusion(NDNDiffusionConfig(timesteps=1000))
+    generator = torch.Generator().manual_seed(0)
+    x0 = torch.full((20000, 1), 0.7)
+    for step in (10, 500, 990):
+        t = torch.full((20000,), step)
+        x_t = diffusion.q_sample(x0, t, torch.randn(x0.shape, generator=generator))
+        alpha_bar = float(diffusion.alphas_cumprod[step])
+        assert float(x_t.mean()) == pytest.approx(math.sqrt(alpha_bar) * 0.7, abs=0.02)
+        assert float(x_t.std()) == pytest.approx(math.sqrt(1 - alpha_bar), abs=0.02)
+
+
+@pytest.mark.parametrize("prediction", ["epsilon", "v"])
+def test_split_prediction_inverts_the_target(prediction):
+    diffusion = GaussianDiffusion(NDNDiffusionConfig(timesteps=100, prediction=prediction))
+    generator = torch.Generator().manual_seed(1)
+    x0 = torch.rand((3, 1, 4, 4), generator=generator) * 2 - 1
+    noise = torch.randn(x0.shape, generator=generator)
+    t = torch.tensor([0, 50, 99])
+    x_t = diffusion.q_sample(x0, t, noise)
+    x0_back, noise_back = diffusion.split_prediction(x_t, t, diffusion.target(x0, t, noise))
+    torch.testing.assert_close(x0_back, x0, atol=1e-4, rtol=0)
+    torch.testing.assert_close(noise_back, noise, atol=1e-4, rtol=0)
+
+
+@pytest.mark.parametrize("prediction", ["epsilon", "v"])
+def test_ddim_with_an_oracle_network_recovers_the_clean_maps(prediction):
+    """A network that outputs the exact noise (or v) of known targets: DDIM (eta 0) must land on them."""
+    diffusion = GaussianDiffusion(NDNDiffusionConfig(timesteps=1000, sample_steps=10, prediction=prediction))
+    generator = torch.Generator().manual_seed(2)
+    depth_x0 = torch.rand((2, 1, 6, 8), generator=generator) * 2 - 1
+    normal_x0 = torch.nn.functional.normalize(torch.randn((2, 3, 6, 8), generator=generator), dim=1)
+
+    def oracle_output(x_t, t, x0):
+        alpha_bar = diffusion.alphas_cumprod[t].float().view(-1, 1, 1, 1)
+        noise = (x_t - alpha_bar.sqrt() * x0) / (1 - alpha_bar).sqrt()
+        return diffusion.target(x0, t, noise)
+
+    def oracle(views, depth, normal, t):
+        return oracle_output(depth, t, depth_x0), oracle_output(normal, t, normal_x0)
+
+    depth, normal = diffusion.sample(oracle, torch.zeros(2, 9, 6, 8), seed=0)
+    torch.testing.assert_close(depth, depth_x0, atol=1e-4, rtol=0)
+    torch.testing.assert_close(normal, normal_x0, atol=1e-4, rtol=0)
+    assert len(diffusion.ddim_timesteps()) == 10 and diffusion.ddim_timesteps()[0] == 999
+
+
+def test_bad_settings_are_config_errors():
+    with pytest.raises(ConfigError, match="schedule"):
+        GaussianDiffusion(NDNDiffusionConfig(schedule="quadratic"))
+    with pytest.raises(ConfigError, match="sample_steps"):
+        GaussianDiffusion(NDNDiffusionConfig(timesteps=10, sample_steps=20))
