@@ -1,0 +1,134 @@
+"""One experiment run: train a TrainConfig in its own folder, then measure it.
+
+A finished run leaves ``RUN/summary.json`` (written last, atomically); a task whose summary
+exists is not trained again, and an interrupted one resumes from its newest checkpoint.
+"""
+from __future__ import annotations
+
+import json
+import resource
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+SUMMARY_NAME = "summary.json"
+
+
+@dataclass
+class RunTask:
+    """A training run of an experiment.
+
+    ``config``: the TrainConfig as a dict (``config_to_dict`` form; ``scene`` and ``out``
+    are set from the task); ``variant``/``seed``/``scene_name``: the labels of the
+    tables; ``mesh``: ground-truth mesh for the distance figures (None = skip them).
+    """
+
+    name: str
+    scene: Path
+    out: Path
+    config: dict[str, Any]
+    variant: str = ""
+    seed: int = 0
+    scene_name: str = ""
+    mesh: Optional[Path] = None
+    measure_render: bool = True
+
+    @property
+    def summary_path(self) -> Path:
+        return Path(self.out) / SUMMARY_NAME
+
+    def finished(self) -> bool:
+        return self.summary_path.is_file()
+
+    def load_summary(self) -> dict:
+        return json.loads(self.summary_path.read_text())
+
+
+def peak_memory_mib() -> float:
+    """Peak resident memory of this process so far, MiB (ru_maxrss is KiB on Linux, bytes on macOS)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
+
+
+def geometry_figures(point_cloud: Path, mesh: Path, *, opacity_min: float = 0.5,
+                     surface_samples: int = 20_000) -> dict[str, Any]:
+    """Mean and std of the distances from the centres (opacity >= ``opacity_min``) to ``mesh``."""
+    import numpy as np
+
+    from ..compare import compare_points_to_mesh, load_mesh
+    from ..ply import read_gaussians_ply
+
+    ply = read_gaussians_ply(point_cloud)
+    opacities = 1.0 / (1.0 + np.exp(-np.asarray(ply.opacity_logit, dtype=np.float64)))
+    vertices, faces = load_mesh(mesh)
+    summary = compare_points_to_mesh(ply.means, vertices, faces, opacities=opacities, opacity_min=opacity_min,
+                                     n_surface_samples=surface_samples).summary
+    filtered = summary["gaussians_to_mesh_filtered"]
+    return {"distance_mean": filtered["mean"], "distance_std": filtered["std"],
+            "distance_count": filtered["count"], "fscore": summary["fscore"]}
+
+
+def render_seconds_per_frame(run_dir: Path) -> Optional[float]:
+    """Mean wall time of rendering each held-out view (training views if none) of a finished run."""
+    import torch
+
+    from ..train.evaluate import load_run
+    from ..train.rendering import render_view
+
+    config, data, model, backend, device = load_run(run_dir)
+    views = data.test or data.train
+    if not views:
+        return None
+    background = torch.tensor(config.background, dtype=torch.float32, device=device)
+    with torch.no_grad():
+        params = model.render_params(model.max_sh_degree)
+        times = []
+        for view in views:
+            start = time.perf_counter()
+            render_view(params, view.viewmat.to(device), view.K.to(device), view.width, view.height,
+                        background=background, backend=backend, num_threads=config.threads or None,
+                        antialiased=config.baselines.antialiased, eps2d=config.baselines.eps2d)
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+            times.append(time.perf_counter() - start)
+    return float(sum(times) / len(times))
+
+
+def run_task(task: RunTask) -> dict[str, Any]:
+    """Train ``task`` (or resume it), measure it and write its summary; returns the summary.
+
+    A finished task (summary present) returns its stored summary without training.
+    """
+    from ..config import config_from_dict
+    from ..io_utils import atomic_write_json
+    from ..train import train
+    from ..train.config import TrainConfig
+
+    if task.finished():
+        return {**task.load_summary(), "skipped": True}
+    values = {**task.config, "scene": str(task.scene), "out": str(task.out), "resume": True}
+    config = config_from_dict(TrainConfig, values)
+    started = time.perf_counter()
+    result = train(config)
+    wall_s = time.perf_counter() - started
+    if result.status != "completed":
+        from ..errors import ESGSError
+
+        raise ESGSError(f"run {task.name} ended with status {result.status}", path=task.out,
+                        hint="run the experiment again to resume it")
+    metrics = result.metrics or {}
+    summary: dict[str, Any] = {
+        "name": task.name, "variant": task.variant, "seed": task.seed, "scene": task.scene_name or str(task.scene),
+        "status": result.status, "steps": result.step, "n_gaussians": result.n_gaussians,
+        "psnr": metrics.get("psnr"), "ssim": metrics.get("ssim"), "lpips": metrics.get("lpips"),
+        "train_s": result.elapsed_s, "wall_s": wall_s, "peak_memory_mib": peak_memory_mib(),
+        "distance_mean": None, "distance_std": None,
+    }
+    if task.mesh is not None and Path(task.mesh).is_file():
+        summary.update(geometry_figures(result.point_cloud, Path(task.mesh)))
+    if task.measure_render:
+        summary["render_s_per_frame"] = render_seconds_per_frame(Path(task.out))
+    atomic_write_json(task.summary_path, summary)
+    return summary
