@@ -6,18 +6,25 @@ from pathlib import Path
 
 HELP = "compute depth/normal prior maps for a scene (priors/<method>/)"
 
-METHODS = ("sfm",)
+METHODS = ("sfm", "ndn")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scene", type=Path, help="scene folder (images/ + sparse/0)")
     parser.add_argument("--method", choices=METHODS, default="sfm",
-                        help="sfm: sparse depth from the COLMAP points each view observes")
+                        help="sfm: sparse depth from the COLMAP points each view observes; "
+                             "ndn: dense relative depth and normals from the NDN diffusion network")
     parser.add_argument("--max-error-px", type=float, default=2.0, help="drop points with a larger reprojection error")
     parser.add_argument("--min-track-length", type=int, default=2, help="drop points seen in fewer views")
+    parser.add_argument("--weights", type=Path, default=None,
+                        help="ndn: weights file or model folder (default: $ESGS_NDN_WEIGHTS)")
+    parser.add_argument("--steps", type=int, default=None, help="ndn: DDIM steps (default: the model's)")
+    parser.add_argument("--seed", type=int, default=0, help="ndn: seed of the starting noise")
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.method == "ndn":
+        return _run_ndn(args)
     from ..colmap import read_model
     from ..priors.sfm import write_sfm_priors
     from ..progress import ConsoleProgress
@@ -28,4 +35,22 @@ def run(args: argparse.Namespace) -> int:
                              min_track_length=args.min_track_length)
     bar.close()
     print(f"wrote {args.method} priors for {count} views to {args.scene / 'priors' / args.method}")
+    return 0
+
+
+def _run_ndn(args: argparse.Namespace) -> int:
+    import os
+
+    from ..errors import CheckpointError
+    from ..ndn.infer import write_ndn_priors
+    from ..progress import ConsoleProgress
+
+    weights = args.weights or (Path(os.environ["ESGS_NDN_WEIGHTS"]) if os.environ.get("ESGS_NDN_WEIGHTS") else None)
+    if weights is None:
+        raise CheckpointError("no NDN weights given", hint="pass --weights PATH (a weights.pt or a model folder from "
+                              "`esgs ndn train`) or set ESGS_NDN_WEIGHTS; no pre-trained weights ship yet")
+    bar = ConsoleProgress()
+    count = write_ndn_priors(args.scene, weights, steps=args.steps, seed=args.seed, progress=bar)
+    bar.close()
+    print(f"wrote ndn priors for {count} views to {args.scene / 'priors' / 'ndn'}")
     return 0

@@ -1,0 +1,119 @@
+"""``esgs ndn``: build NDN training data, train the network, evaluate it.
+
+- ``esgs ndn build-data --out DIR --scenes N``: render synthetic scenes (``esgs scene`` in
+  child processes) into npz shards of view triples (resumable);
+- ``esgs ndn train DATA --out MODEL_DIR [--steps N] [--resume]``: train, with checkpoints;
+- ``esgs ndn eval MODEL_DIR DATA``: AbsRel / delta1 (after scale-shift alignment) and normal
+  angular errors on the held-out split.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+HELP = "NDN diffusion prior: build training data, train, evaluate"
+
+
+def _resolution(text: str) -> tuple[int, int]:
+    try:
+        width, height = (int(part) for part in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WxH such as 160x90, got {text!r}") from None
+    if width <= 0 or height <= 0:
+        raise argparse.ArgumentTypeError(f"width and height must be positive, got {text!r}")
+    return width, height
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ..config import add_dataclass_arguments
+    from ..ndn.config import NDNDiffusionConfig, NDNModelConfig, NDNTrainConfig
+
+    sub = parser.add_subparsers(dest="ndn_command", metavar="ACTION", required=True)
+    build = sub.add_parser("build-data", help="render synthetic scenes into NDN training shards (resumable)")
+    build.add_argument("--out", type=Path, required=True, help="data folder (shards/ and manifest.json)")
+    build.add_argument("--scenes", type=int, required=True, help="training scenes to render")
+    build.add_argument("--heldout", type=int, default=1, help="held-out scenes (seeds never used in training)")
+    build.add_argument("--presets", nargs="+", default=None, help="training presets (default: all without sky)")
+    build.add_argument("--heldout-presets", nargs="+", default=[], help="presets used only for held-out scenes")
+    build.add_argument("--views", type=int, default=8, help="views per scene")
+    build.add_argument("--resolution", type=_resolution, default=(160, 90), help="render size WxH (default 160x90)")
+    build.add_argument("--samples", type=int, default=8, help="Cycles samples per pixel")
+    build.add_argument("--working-size", type=int, default=128, help="long side of the stored triples in pixels")
+    build.add_argument("--multiple", type=int, default=4, help="stored sizes are multiples of this (2**(levels-1))")
+    build.add_argument("--keep-scenes", action="store_true", help="keep the rendered scene folders under OUT/scenes")
+
+    train = sub.add_parser("train", help="train the NDN network on DATA/shards/train_*.npz")
+    train.add_argument("data", type=Path, help="data folder from build-data")
+    train.add_argument("--out", type=Path, required=True, help="model folder (config, checkpoints, weights.pt)")
+    train.add_argument("--resume", action="store_true", help="continue from the latest checkpoint in --out")
+    add_dataclass_arguments(train, NDNTrainConfig)
+    add_dataclass_arguments(train, NDNModelConfig)
+    add_dataclass_arguments(train, NDNDiffusionConfig)
+
+    evaluate = sub.add_parser("eval", help="score a model on a data split (default: heldout)")
+    evaluate.add_argument("model", type=Path, help="model folder or weights file")
+    evaluate.add_argument("data", type=Path, help="data folder from build-data")
+    evaluate.add_argument("--split", default="heldout", help="shard split to score (heldout or train)")
+    evaluate.add_argument("--steps", type=int, default=None, help="DDIM steps (default: the model's)")
+    evaluate.add_argument("--seed", type=int, default=0, help="seed of the starting noise")
+    evaluate.add_argument("--limit", type=int, default=0, help="score only the first N triples (0 = all)")
+    evaluate.add_argument("--json", type=Path, default=None, help="also write the scores to this JSON file")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..progress import ConsoleProgress
+
+    bar = ConsoleProgress()
+    try:
+        if args.ndn_command == "build-data":
+            from ..ndn.data import TRAIN_PRESETS, build_dataset
+
+            manifest = build_dataset(args.out, args.scenes, heldout=args.heldout,
+                                     presets=tuple(args.presets or TRAIN_PRESETS),
+                                     heldout_presets=tuple(args.heldout_presets), views=args.views,
+                                     width=args.resolution[0], height=args.resolution[1], samples=args.samples,
+                                     working_size=args.working_size, multiple=args.multiple,
+                                     keep_scenes=args.keep_scenes, progress=bar)
+            print(f"wrote {len(manifest['scenes'])} scene shards to {args.out / 'shards'}")
+            return 0
+        if args.ndn_command == "train":
+            return _train(args, bar)
+        from ..io_utils import atomic_write_json
+        from ..ndn.infer import evaluate_ndn
+
+        scores = evaluate_ndn(args.model, args.data, split=args.split, steps=args.steps, seed=args.seed,
+                              limit=args.limit, progress=bar)
+        bar.close()
+        print(json.dumps(scores, indent=2))
+        if args.json:
+            atomic_write_json(args.json, scores)
+        return 0
+    finally:
+        bar.close()
+
+
+def _train(args: argparse.Namespace, bar) -> int:
+    from ..config import dataclass_from_args
+    from ..ndn.config import NDNConfig, NDNDiffusionConfig, NDNModelConfig, NDNTrainConfig
+    from ..ndn.train import train_ndn
+    from ..progress import JsonLinesProgress, combine
+
+    model_config = dataclass_from_args(NDNModelConfig, args)
+    manifest_path = args.data / "manifest.json"
+    if args.working_size is None and manifest_path.exists():
+        # inference must resize scenes to the resolution the network was trained at
+        model_config.working_size = int(json.loads(manifest_path.read_text())["working_size"])
+        model_config.validate()
+    config = NDNConfig(model=model_config, diffusion=dataclass_from_args(NDNDiffusionConfig, args))
+    train_config = dataclass_from_args(NDNTrainConfig, args)
+    args.out.mkdir(parents=True, exist_ok=True)
+    events = JsonLinesProgress(args.out / "events.jsonl")
+    try:
+        summary = train_ndn(args.data, args.out, train_config, config, resume=args.resume,
+                            progress=combine(bar, events))
+    finally:
+        events.close()
+    bar.close()
+    print(json.dumps(summary, indent=2))
+    return 0
