@@ -1,0 +1,95 @@
+"""esgs bench through the local process pool: tiny runs, restart skips, retries and failures."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from esgs.core.errors import ConfigError
+from esgs.core.experiments.bench import METHODS, SUITES, plan_bench, run_bench
+from esgs.core.experiments.executor import LocalExecutor, make_executor, run_tasks
+
+from .helpers import make_experiment_scene
+
+TRAIN = {"backend": "cpu", "threads": 1, "lpips": False, "densify_until": 0, "test_every": 3, "save_renders": False,
+         "checkpoint_every": 0, "sh_degree": 1, "init_opacity": 0.7}
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_experiment_scene(tmp_path_factory.mktemp("bench") / "scene")
+
+
+def _flaky(task: dict) -> str:
+    """Fails on the first call for a task (leaves a marker), succeeds on the second; 'always' always fails."""
+    marker = Path(task["marker"])
+    if task.get("always") or not marker.exists():
+        marker.write_text("tried")
+        raise RuntimeError(f"planned failure of {task['name']}")
+    return task["name"]
+
+
+def test_local_executor_retries_a_failed_task_once_and_reports_a_second_failure(tmp_path):
+    tasks = [{"name": "flaky", "marker": str(tmp_path / "a")},
+             {"name": "broken", "marker": str(tmp_path / "b"), "always": True}]
+    with LocalExecutor(2) as executor:
+        outcomes = run_tasks(tasks, _flaky, executor, retries=1)
+    assert [(o.status, o.attempts) for o in outcomes] == [("done", 2), ("failed", 2)]
+    assert outcomes[0].result == "flaky"
+    assert "planned failure of broken" in outcomes[1].error
+
+
+def test_ray_executor_needs_ray_or_says_so():
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        with pytest.raises(ConfigError, match="ray"):
+            make_executor("auto", address="auto")
+    assert isinstance(make_executor("auto"), LocalExecutor)
+
+
+def test_suites_name_their_presets_and_the_plan_skips_methods_without_priors(tmp_path, scene):
+    assert SUITES["quick"].presets == ("cratered_plain",) and SUITES["full"].seeds == (0, 1, 2)
+    bare = tmp_path / "bare"
+    (bare / "sparse").mkdir(parents=True)
+    tasks, notes = plan_bench({"tiny": (scene, 0), "bare": (bare, 1)}, tmp_path / "out", iterations=5)
+    assert len([t for t in tasks if t.scene_name == "tiny"]) == len(METHODS)
+    assert {t.variant for t in tasks if t.scene_name == "bare"} == {"3DGS", "Mip-Splatting", "DropoutGS"}
+    assert len(notes) == 4 and all("bare" in note for note in notes)
+    full = next(t for t in tasks if t.name == "tiny/esgs_full")
+    assert full.config["esgs"]["priors"] == "gt" and full.config["esgs"]["gpdfn"] is True
+
+
+@pytest.mark.slow  # two spawned workers importing torch and the rasterizer: ~25 s on 2 busy cores
+def test_tiny_bench_runs_two_methods_writes_markdown_and_restarts_without_retraining(tmp_path, scene):
+    methods = [m for m in METHODS if m.key in ("3dgs", "dropout_gs")]
+    seen = []
+    with LocalExecutor(2) as executor:
+        report = run_bench(tmp_path / "bench", "quick", executor=executor, scenes={"tiny": (scene, 0)},
+                           methods=methods, iterations=4, train=TRAIN, on_outcome=lambda o: seen.append(o.status))
+    assert sorted(seen) == ["done", "done"] and report["failed"] == []
+    runs = {run["variant"]: run for run in report["runs"]}
+    assert set(runs) == {"3DGS", "DropoutGS"}
+    for run in runs.values():
+        assert run["steps"] == 4 and run["psnr"] > 0 and run["peak_memory_mib"] > 50
+        assert run["render_s_per_frame"] > 0 and run["distance_mean"] > 0
+    markdown = (tmp_path / "bench" / "benchmarks.md").read_text()
+    assert "| DropoutGS |" in markdown and "Machine:" in markdown and "render (ms/frame)" in markdown
+    assert json.loads((tmp_path / "bench" / "benchmarks.json").read_text())["iterations"] == 4
+    seen.clear()
+    with LocalExecutor(1) as executor:
+        again = run_bench(tmp_path / "bench", "quick", executor=executor, scenes={"tiny": (scene, 0)},
+                          methods=methods, iterations=4, train=TRAIN, on_outcome=lambda o: seen.append(o.status))
+    assert seen == ["skipped", "skipped"]
+    assert again["overall"] == json.loads(json.dumps(report["overall"]))
+
+
+def test_a_run_that_keeps_failing_is_reported_in_the_markdown(tmp_path, scene):
+    methods = [m for m in METHODS if m.key == "3dgs"]
+    with LocalExecutor(1) as executor:
+        report = run_bench(tmp_path / "bench", "quick", executor=executor, scenes={"tiny": (scene, 0)},
+                           methods=methods, iterations=4, train={**TRAIN, "sh_degree": 7})
+    assert len(report["failed"]) == 1 and report["failed"][0]["attempts"] == 2
+    assert "sh_degree" in report["failed"][0]["error"]
+    assert "FAILED tiny/3dgs after 2 attempts" in (tmp_path / "bench" / "benchmarks.md").read_text()
