@@ -1,0 +1,357 @@
+"""Rotation-only camera stations: rotations and one shared focal length from feature matches.
+
+Frames taken by one camera turning about (nearly) one point — a rover mast pan/tilt
+sequence, a tripod panorama — have no parallax, so SfM cannot triangulate them. Their
+geometry is fully described by one intrinsic matrix K and one rotation per frame: a pixel
+``x_i`` of frame i and its match ``x_j`` in frame j satisfy ``x_j ~ K R_j R_i^T K^-1 x_i``.
+
+Pipeline: OpenCV SIFT features (saturated pixels masked), ratio-test matches for every pair,
+a RANSAC homography per pair (``H_ij = K R_j R_i^T K^-1``), initial rotations chained along a
+maximum spanning tree of the match graph, then a robust bundle adjustment of all rotations
+and the focal length (scipy ``least_squares``) on the symmetric transfer error. The mosaic
+reprojection error reported is that transfer error, in pixels, over the matches kept.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..colmap.model import Camera
+from ..errors import ConfigError, DatasetError
+from ..progress import ProgressCallback, ProgressEvent, no_progress
+from .common import check_readable, list_images, station_model
+
+
+@dataclass
+class RotationOnlyOptions:
+    """Settings of the rotation-only station estimate."""
+
+    focal_px: float | None = field(default=None, metadata={"help": "initial focal length in pixels (default: the image width)"})
+    refine_focal: bool = field(default=True, metadata={"help": "refine the shared focal length in the adjustment"})
+    refine_principal_point: bool = field(default=False, metadata={"help": "also refine the principal point (default: image centre)"})
+    max_features: int = field(default=3000, metadata={"help": "SIFT features per image"})
+    ratio: float = field(default=0.8, metadata={"help": "Lowe ratio test threshold"})
+    ransac_px: float = field(default=3.0, metadata={"help": "RANSAC homography threshold, pixels"})
+    min_inliers: int = field(default=25, metadata={"help": "homography inliers needed to link two frames"})
+    outlier_px: float = field(default=2.0, metadata={"help": "after adjustment, drop matches with a larger transfer error and adjust again"})
+    saturation_dn: int = field(default=250, metadata={"help": "mask pixels at or above this value (and around them) for features"})
+    overwrite: bool = field(default=False, metadata={"help": "replace an existing output folder"})
+
+    def validate(self) -> None:
+        if self.focal_px is not None and not self.focal_px > 0:
+            raise ConfigError(f"focal_px must be positive, got {self.focal_px}")
+        if not 0.3 <= self.ratio <= 1.0:
+            raise ConfigError(f"ratio {self.ratio} must be in [0.3, 1]")
+        if self.min_inliers < 8:
+            raise ConfigError(f"min_inliers {self.min_inliers} must be at least 8")
+
+
+def _features(gray: np.ndarray, options: RotationOnlyOptions):
+    import cv2
+
+    mask = (gray < options.saturation_dn).astype(np.uint8) * 255
+    # Features on the rim of a saturated region move with the exposure, not the scene.
+    mask = cv2.erode(mask, np.ones((7, 7), np.uint8))
+    sift = cv2.SIFT_create(nfeatures=options.max_features)
+    keypoints, descriptors = sift.detectAndCompute(gray, mask)
+    points = np.array([k.pt for k in keypoints], dtype=np.float64).reshape(-1, 2)
+    return points, descriptors
+
+
+def _match_pair(desc_a, desc_b, ratio: float) -> np.ndarray:
+    """[M, 2] index pairs passing the ratio test in both directions (mutual nearest neighbours)."""
+    if desc_a is None or desc_b is None or len(desc_a) < 2 or len(desc_b) < 2:
+        return np.zeros((0, 2), dtype=np.int64)
+    a, b = desc_a.astype(np.float32), desc_b.astype(np.float32)
+    # Squared distances through one matrix product: much faster than a per-query matcher loop.
+    distances = np.maximum((a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * a @ b.T, 0.0)
+
+    def passing(d: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray]:
+        best = np.argmin(d, axis=axis)
+        first = np.take_along_axis(d, np.expand_dims(best, axis), axis).squeeze(axis)
+        np.put_along_axis(d, np.expand_dims(best, axis), np.inf, axis)
+        second = d.min(axis=axis)
+        np.put_along_axis(d, np.expand_dims(best, axis), first[:, None] if axis == 1 else first[None, :], axis)
+        return best, first < (ratio * ratio) * second  # squared distances
+
+    forward, forward_ok = passing(distances, 1)
+    backward, backward_ok = passing(distances, 0)
+    rows = np.arange(len(a))
+    mutual = forward_ok & backward_ok[forward] & (backward[forward] == rows)
+    return np.stack([rows[mutual], forward[mutual]], axis=1).astype(np.int64)
+
+
+def _nearest_rotation(matrix: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(matrix)
+    rotation = u @ vt
+    if np.linalg.det(rotation) < 0:
+        rotation = u @ np.diag([1.0, 1.0, -1.0]) @ vt
+    return rotation
+
+
+def _intrinsics(focal: float, cx: float, cy: float) -> np.ndarray:
+    return np.array([[focal, 0.0, cx], [0.0, focal, cy], [0.0, 0.0, 1.0]])
+
+
+def _transfer(rot_i: np.ndarray, rot_j: np.ndarray, K: np.ndarray, points_i: np.ndarray) -> np.ndarray:
+    """Pixels [M, 2] of frame i moved into frame j through the two world-to-camera rotations."""
+    rays = np.linalg.solve(K, np.c_[points_i, np.ones(len(points_i))].T)  # [3, M] camera i
+    projected = K @ (rot_j @ (rot_i.T @ rays))
+    return (projected[:2] / projected[2:]).T
+
+
+def estimate_rotations(
+    images: list[np.ndarray],
+    options: RotationOnlyOptions | None = None,
+    progress: ProgressCallback = no_progress,
+) -> dict[str, Any]:
+    """Rotations and a shared pinhole camera for frames taken from one centre.
+
+    images: N grey [H, W] or RGB [H, W, 3] uint8 arrays of one size (pixel coordinates as
+    COLMAP: the top-left pixel's centre at (0.5, 0.5)).
+    Returns plain data: ``registered`` (frame indices in the largest linked group),
+    ``rotations`` ({index: [3, 3] world-to-camera}, the first registered frame = identity),
+    ``focal_px``, ``principal_point``, the error figures (``mean_error_px``, ``median_error_px``,
+    ``rms_error_px`` over the kept matches; ``kept_fraction``), ``pairs`` (linked pairs).
+    """
+    import cv2
+    from scipy.optimize import least_squares
+    from scipy.sparse import lil_matrix
+    from scipy.spatial.transform import Rotation
+
+    options = options or RotationOnlyOptions()
+    options.validate()
+    if len(images) < 2:
+        raise DatasetError(f"a rotation-only station needs at least 2 frames, got {len(images)}")
+    height, width = images[0].shape[:2]
+    if any(image.shape[:2] != (height, width) for image in images):
+        raise DatasetError("frames of a rotation-only station must all have the same size", hint="resize or split them")
+    grays = [cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image for image in images]
+    features = []
+    for index, gray in enumerate(grays):
+        features.append(_features(gray, options))
+        progress(ProgressEvent(index + 1, len(grays), stage="features"))
+
+    # OpenCV keypoints use the pixel-centre-at-0 convention; COLMAP's is 0.5.
+    points = [p + 0.5 for p, _ in features]
+    count = len(images)
+    links: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    all_pairs = [(i, j) for i in range(count) for j in range(i + 1, count)]
+    for step, (i, j) in enumerate(all_pairs):
+        matches = _match_pair(features[i][1], features[j][1], options.ratio)
+        if len(matches) >= options.min_inliers:
+            a, b = points[i][matches[:, 0]], points[j][matches[:, 1]]
+            homography, inliers = cv2.findHomography(a, b, cv2.RANSAC, options.ransac_px, maxIters=4000, confidence=0.999)
+            if homography is not None and int(inliers.sum()) >= options.min_inliers:
+                keep = inliers.ravel().astype(bool)
+                links[(i, j)] = (a[keep], b[keep], homography)
+        progress(ProgressEvent(step + 1, len(all_pairs), stage="match"))
+    if not links:
+        raise DatasetError(
+            "no two frames share enough matched features to be linked",
+            hint="frames must overlap (30 % or more); try a lower --min-inliers or check the images",
+        )
+
+    # Largest connected group, initial rotations along a maximum spanning tree (Prim).
+    weight = {pair: len(link[0]) for pair, link in links.items()}
+    neighbours: dict[int, list[int]] = {k: [] for k in range(count)}
+    for i, j in links:
+        neighbours[i].append(j)
+        neighbours[j].append(i)
+    seen, groups = set(), []
+    for start in range(count):
+        if start in seen:
+            continue
+        group, stack = [], [start]
+        seen.add(start)
+        while stack:
+            node = stack.pop()
+            group.append(node)
+            for other in neighbours[node]:
+                if other not in seen:
+                    seen.add(other)
+                    stack.append(other)
+        groups.append(sorted(group))
+    registered = max(groups, key=len)
+    if len(registered) < 2:
+        raise DatasetError("no two frames could be linked by a homography", hint="check overlap and image content")
+
+    cx, cy = width / 2.0, height / 2.0
+    focal = float(options.focal_px or width)
+    K = _intrinsics(focal, cx, cy)
+    K_inv = np.linalg.inv(K)
+    root = registered[0]
+    rotations = {root: np.eye(3)}
+    while len(rotations) < len(registered):
+        best = None
+        for (i, j), w in weight.items():
+            if (i in rotations) != (j in rotations) and (best is None or w > best[1]):
+                best = ((i, j), w)
+        (i, j), _ = best
+        relative = _nearest_rotation(K_inv @ links[(i, j)][2] @ K)  # R_j R_i^T
+        if i in rotations:
+            rotations[j] = relative @ rotations[i]
+        else:
+            rotations[i] = relative.T @ rotations[j]
+
+    pairs = [pair for pair in links if pair[0] in rotations]
+    order = {image: position for position, image in enumerate(registered)}
+    free = [image for image in registered if image != root]  # the root fixes the world frame
+    n_rot = 3 * len(free)
+    n_intr = (1 if options.refine_focal else 0) + (2 if options.refine_principal_point else 0)
+
+    def unpack(x: np.ndarray):
+        rots = {root: np.eye(3)}
+        for position, image in enumerate(free):
+            rots[image] = Rotation.from_rotvec(x[3 * position : 3 * position + 3]).as_matrix()
+        f, px, py = focal, cx, cy
+        tail = x[n_rot:]
+        if options.refine_focal:
+            f, tail = tail[0], tail[1:]
+        if options.refine_principal_point:
+            px, py = tail[0], tail[1]
+        return rots, _intrinsics(f, px, py)
+
+    def stacked(data):
+        """Matches of all pairs as flat arrays: first image, second image, pixels in each."""
+        first = np.concatenate([np.full(len(a), i) for (i, _), (a, _) in data.items()])
+        second = np.concatenate([np.full(len(a), j) for (_, j), (a, _) in data.items()])
+        return first, second, np.concatenate([a for a, _ in data.values()]), np.concatenate([b for _, b in data.values()])
+
+    def all_transfers(x: np.ndarray, flat) -> tuple[np.ndarray, np.ndarray]:
+        """[M, 2] pixels of each match moved i->j and j->i."""
+        rots, K_now = unpack(x)
+        table = np.stack([rots.get(k, np.eye(3)) for k in range(count)])
+        first, second, a, b = flat
+        K_inv_now = np.linalg.inv(K_now)
+
+        def move(points, source, target):
+            rays = np.c_[points, np.ones(len(points))] @ K_inv_now.T
+            world = np.einsum("mji,mj->mi", table[source], rays)  # R_source^T ray
+            projected = np.einsum("mij,mj->mi", table[target], world) @ K_now.T
+            return projected[:, :2] / projected[:, 2:]
+
+        return move(a, first, second), move(b, second, first)
+
+    def residuals(x: np.ndarray, flat) -> np.ndarray:
+        to_second, to_first = all_transfers(x, flat)
+        return np.concatenate([(to_second - flat[3]).ravel(), (to_first - flat[2]).ravel()])
+
+    def sparsity(flat):
+        first, second = flat[0], flat[1]
+        rows = len(first)
+        pattern = lil_matrix((4 * rows, n_rot + n_intr), dtype=np.int8)
+        free_position = {image: position for position, image in enumerate(free)}
+        for block in range(2):  # residual layout: [i->j x, y per match], then [j->i x, y per match]
+            for coordinate in range(2):
+                row_index = block * 2 * rows + 2 * np.arange(rows) + coordinate
+                for images_of_match in (first, second):
+                    for image, position in free_position.items():
+                        hit = row_index[images_of_match == image]
+                        for k in range(3):
+                            pattern[hit, 3 * position + k] = 1
+                if n_intr:
+                    for k in range(n_intr):
+                        pattern[row_index, n_rot + k] = 1
+        return pattern
+
+    x0 = [Rotation.from_matrix(rotations[image]).as_rotvec() for image in free]
+    x = np.concatenate(x0 + [np.array([focal] if options.refine_focal else [])] + ([np.array([cx, cy])] if options.refine_principal_point else []))
+    data = {pair: (links[pair][0], links[pair][1]) for pair in pairs}
+    total_matches = sum(len(a) for a, _ in data.values())
+    flat = stacked(data)
+    for round_index in range(3):
+        result = least_squares(
+            residuals, x, args=(flat,), jac_sparsity=sparsity(flat), loss="huber", f_scale=1.0, x_scale="jac", max_nfev=60, method="trf"
+        )
+        x = result.x
+        progress(ProgressEvent(round_index + 1, 3, stage="adjust", metrics={"cost": float(result.cost)}))
+        to_second, to_first = all_transfers(x, flat)
+        error = 0.5 * (np.linalg.norm(to_second - flat[3], axis=1) + np.linalg.norm(to_first - flat[2], axis=1))
+        if round_index == 0:
+            all_errors = error
+        good = error <= options.outlier_px
+        if good.all():
+            break
+        flat = tuple(array[good] for array in flat)
+
+    rots, K_now = unpack(x)
+    to_second, to_first = all_transfers(x, flat)
+    errors = np.concatenate([np.linalg.norm(to_second - flat[3], axis=1), np.linalg.norm(to_first - flat[2], axis=1)])
+    kept_pairs = len(set(zip(flat[0].tolist(), flat[1].tolist())))
+    return {
+        "registered": registered,
+        "unregistered": [k for k in range(count) if k not in order],
+        "rotations": rots,
+        "focal_px": float(K_now[0, 0]),
+        "principal_point": [float(K_now[0, 2]), float(K_now[1, 2])],
+        "image_size": [int(width), int(height)],
+        "pairs": kept_pairs,
+        "matches": int(len(flat[0])),
+        "kept_fraction": float(len(flat[0]) / max(total_matches, 1)),
+        "first_pass_median_error_px": float(np.median(all_errors)),
+        "mean_error_px": float(errors.mean()),
+        "median_error_px": float(np.median(errors)),
+        "rms_error_px": float(np.sqrt(np.mean(errors**2))),
+        "p95_error_px": float(np.percentile(errors, 95)),
+    }
+
+
+def scene_from_rotation_only(
+    images_dir: str | Path,
+    out_dir: str | Path,
+    options: RotationOnlyOptions | None = None,
+    progress: ProgressCallback = no_progress,
+    names: list[str] | None = None,
+) -> dict[str, Any]:
+    """Estimate a rotation-only station from the images in ``images_dir`` and write a scene folder.
+
+    ``out_dir/images`` holds the registered frames, ``out_dir/sparse/0`` one PINHOLE camera
+    and their rotations (every camera centre at the origin, no 3D points: one station cannot
+    triangulate), ``out_dir/rotation_report.json`` the report returned. ``names`` restricts
+    the frames used (file names inside ``images_dir``). Built atomically.
+    """
+    import shutil
+
+    from ..colmap.io import write_model
+    from ..imageio import read_image
+    from ..io_utils import atomic_directory, atomic_write_json
+
+    options = options or RotationOnlyOptions()
+    options.validate()
+    files = list_images(images_dir)
+    if names is not None:
+        wanted = set(names)
+        missing = wanted - {f.name for f in files}
+        if missing:
+            raise DatasetError(f"images not found: {sorted(missing)[:5]}", path=images_dir)
+        files = [f for f in files if f.name in wanted]
+    check_readable(files)
+    estimate = estimate_rotations([read_image(f) for f in files], options, progress)
+    registered = estimate["registered"]
+    width, height = estimate["image_size"]
+    focal = estimate["focal_px"]
+    camera = Camera(1, "PINHOLE", width, height, np.array([focal, focal, *estimate["principal_point"]]))
+    report = {
+        key: value for key, value in estimate.items() if key not in ("rotations", "registered", "unregistered")
+    }
+    report.update(
+        registered=[files[k].name for k in registered],
+        unregistered=[files[k].name for k in estimate["unregistered"]],
+        horizontal_fov_deg=2.0 * math.degrees(math.atan(width / 2.0 / focal)),
+        limits="one camera station: no parallax, no triangulated points; geometry must come from priors",
+    )
+    with atomic_directory(out_dir, overwrite=options.overwrite) as staging:
+        (staging / "images").mkdir()
+        for k in registered:
+            shutil.copyfile(files[k], staging / "images" / files[k].name)
+        model = station_model(
+            camera, [files[k].name for k in registered], [estimate["rotations"][k] for k in registered], source=str(Path(out_dir) / "sparse" / "0")
+        )
+        write_model(model, staging / "sparse" / "0", binary=True)
+        atomic_write_json(staging / "rotation_report.json", report)
+    return report

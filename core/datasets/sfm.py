@@ -1,0 +1,236 @@
+"""Scene folders from a set of photographs: structure from motion with pycolmap (CPU).
+
+``scene_from_images`` runs SIFT extraction, exhaustive or sequential matching and
+incremental mapping in a temporary workspace, checks that the result is one reliable model
+(enough matches, real parallax, one connected model, most images registered), undistorts it
+to PINHOLE cameras when the camera model has distortion, and writes the scene folder
+(``images/``, ``sparse/0``, ``sfm_report.json``) atomically. Every failure raises
+:class:`DatasetError` saying what went wrong and what to try; nothing is left half-written.
+"""
+from __future__ import annotations
+
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import ConfigError, DatasetError
+from ..progress import ProgressCallback, ProgressEvent, no_progress
+from .common import check_readable, list_images
+
+CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+
+
+@dataclass
+class SfmOptions:
+    """Settings of ``esgs dataset from-images``."""
+
+    matcher: str = field(default="exhaustive", metadata={"help": "exhaustive (every pair) or sequential (neighbours in name order)"})
+    single_camera: bool = field(default=False, metadata={"help": "all images share one camera (same sensor, lens and zoom)"})
+    camera_model: str = field(default="SIMPLE_RADIAL", metadata={"help": "COLMAP camera model: " + ", ".join(CAMERA_MODELS)})
+    max_image_size: int = field(default=3200, metadata={"help": "images are downscaled to this size for feature extraction"})
+    max_features: int = field(default=8192, metadata={"help": "SIFT features per image"})
+    sequential_overlap: int = field(default=10, metadata={"help": "sequential matcher: neighbours matched on each side"})
+    min_matches: int = field(default=15, metadata={"help": "verified matches for a pair of images to count as linked"})
+    min_registered_fraction: float = field(default=0.5, metadata={"help": "fail when fewer images than this fraction get a pose"})
+    min_triangulation_angle_deg: float = field(default=2.0, metadata={"help": "fail when the median triangulation angle is below this (no parallax)"})
+    overwrite: bool = field(default=False, metadata={"help": "replace an existing output folder"})
+
+    def validate(self) -> None:
+        if self.matcher not in ("exhaustive", "sequential"):
+            raise ConfigError(f"matcher {self.matcher!r} must be 'exhaustive' or 'sequential'")
+        if self.camera_model not in CAMERA_MODELS:
+            raise ConfigError(f"camera model {self.camera_model!r} is not one of {', '.join(CAMERA_MODELS)}")
+        if not 0.0 < self.min_registered_fraction <= 1.0:
+            raise ConfigError(f"min_registered_fraction {self.min_registered_fraction} must be in (0, 1]")
+
+
+def _median_triangulation_angle_deg(reconstruction) -> float:
+    """Median over 3D points of the largest angle between two rays of its track (degrees)."""
+    centres = {image_id: np.asarray(image.projection_center()) for image_id, image in reconstruction.images.items() if image.has_pose}
+    angles = []
+    for point in reconstruction.points3D.values():
+        ids = [element.image_id for element in point.track.elements if element.image_id in centres]
+        if len(ids) < 2:
+            continue
+        rays = np.stack([np.asarray(point.xyz) - centres[i] for i in ids])
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        cosines = np.clip(rays @ rays.T, -1.0, 1.0)
+        angles.append(np.degrees(np.arccos(cosines.min())))
+    return float(np.median(angles)) if angles else 0.0
+
+
+def _pair_statistics(database_path: Path) -> dict[str, Any]:
+    """Counts of verified pairs by two-view configuration, read from the COLMAP database."""
+    import pycolmap
+
+    configurations: dict[str, int] = {}
+    linked = 0
+    with pycolmap.Database.open(str(database_path)) as database:
+        pair_ids, geometries = database.read_two_view_geometries()
+        for geometry in geometries:
+            if len(geometry.inlier_matches) == 0:
+                continue
+            linked += 1
+            name = geometry.config.name
+            configurations[name] = configurations.get(name, 0) + 1
+        images = database.num_images()
+    return {"verified_pairs": linked, "configurations": configurations, "images": images}
+
+
+def _rotation_only_hint() -> str:
+    return (
+        "the images look like a rotation-only set (camera turned about one point: no parallax). "
+        "Use `esgs dataset rotation-only IMAGES --focal-px F` for a rotation-only model, or take images from several positions"
+    )
+
+
+def scene_from_images(
+    images_dir: str | Path,
+    out_dir: str | Path,
+    options: SfmOptions | None = None,
+    progress: ProgressCallback = no_progress,
+) -> dict[str, Any]:
+    """Structure from motion on the images of ``images_dir``; write a scene folder at ``out_dir``.
+
+    Returns the report (also saved as ``out_dir/sfm_report.json``): registered and
+    unregistered image names, number of models, points, mean reprojection error (px),
+    median triangulation angle (degrees), camera model written. Raises DatasetError when
+    SfM fails or its result is unreliable.
+    """
+    import pycolmap
+
+    from ..colmap.io import from_pycolmap, write_model
+    from ..colmap.undistort import undistort_model
+    from ..io_utils import atomic_directory, atomic_write_json
+
+    options = options or SfmOptions()
+    options.validate()
+    images_dir = Path(images_dir)
+    files = list_images(images_dir)
+    if len(files) < 2:
+        raise DatasetError(
+            f"structure from motion needs at least 2 images, found {len(files)}",
+            path=images_dir,
+            hint="add overlapping photographs taken from different positions",
+        )
+    check_readable(files)
+    progress(ProgressEvent(0, 4, stage="sfm", message="features"))
+    with tempfile.TemporaryDirectory(prefix="esgs_sfm_") as workspace_name:
+        workspace = Path(workspace_name)
+        database = workspace / "database.db"
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = options.camera_model
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.max_image_size = options.max_image_size
+        extraction.sift.max_num_features = options.max_features
+        pycolmap.extract_features(
+            database,
+            images_dir,
+            image_names=[f.name for f in files],
+            camera_mode=pycolmap.CameraMode.SINGLE if options.single_camera else pycolmap.CameraMode.AUTO,
+            reader_options=reader,
+            extraction_options=extraction,
+            device=pycolmap.Device.cpu,
+        )
+        progress(ProgressEvent(1, 4, stage="sfm", message="matching"))
+        if options.matcher == "sequential":
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap = options.sequential_overlap
+            pycolmap.match_sequential(database, pairing_options=pairing, device=pycolmap.Device.cpu)
+        else:
+            pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
+        pairs = _pair_statistics(database)
+        if pairs["images"] < len(files):
+            raise DatasetError(
+                f"features could be extracted from only {pairs['images']} of {len(files)} images", path=images_dir,
+                hint="check that the images are valid photographs",
+            )
+        rotation_like = sum(pairs["configurations"].get(k, 0) for k in ("PANORAMIC", "PLANAR_OR_PANORAMIC"))
+        if pairs["verified_pairs"] == 0:
+            raise DatasetError(
+                "no pair of images shares enough verified feature matches",
+                path=images_dir,
+                hint="images must overlap (about 60 % between neighbours) and show textured surfaces; "
+                "with the sequential matcher, name the images in capture order",
+            )
+        progress(ProgressEvent(2, 4, stage="sfm", message="mapping"))
+        mapping = pycolmap.IncrementalPipelineOptions()
+        mapping.min_num_matches = options.min_matches
+        mapping.min_model_size = 2 if len(files) < 10 else min(10, len(files) // 3)
+        (workspace / "sparse").mkdir()
+        reconstructions = pycolmap.incremental_mapping(database, images_dir, workspace / "sparse", mapping)
+        reconstructions = {k: r for k, r in reconstructions.items() if r.num_reg_images() >= 2}
+        rotation_share = rotation_like / max(pairs["verified_pairs"], 1)
+        if not reconstructions:
+            if rotation_share > 0.5:
+                raise DatasetError(f"SfM could not initialise: {rotation_like} of {pairs['verified_pairs']} verified pairs are "
+                                   "related by a pure rotation", path=images_dir, hint=_rotation_only_hint())
+            raise DatasetError(
+                f"SfM could not build a model ({pairs['verified_pairs']} verified image pairs)",
+                path=images_dir,
+                hint="too few or unreliable matches: add images with more overlap and parallax, or try --single-camera",
+            )
+        names_by_model = {
+            key: sorted(image.name for image in r.images.values() if image.has_pose) for key, r in reconstructions.items()
+        }
+        if len(reconstructions) > 1:
+            sizes = ", ".join(f"{len(v)} images (e.g. {v[0]})" for v in names_by_model.values())
+            raise DatasetError(
+                f"SfM found {len(reconstructions)} disconnected models: {sizes}",
+                path=images_dir,
+                hint="the groups do not overlap enough; add linking images or process each group separately",
+            )
+        key, reconstruction = next(iter(reconstructions.items()))
+        registered = names_by_model[key]
+        unregistered = sorted(set(f.name for f in files) - set(registered))
+        angle = _median_triangulation_angle_deg(reconstruction)
+        if reconstruction.num_points3D() == 0 or angle < options.min_triangulation_angle_deg:
+            raise DatasetError(
+                f"SfM model has almost no parallax: median triangulation angle {angle:.2f} deg "
+                f"(< {options.min_triangulation_angle_deg}), {reconstruction.num_points3D()} points",
+                path=images_dir,
+                hint=_rotation_only_hint(),
+            )
+        if len(registered) < options.min_registered_fraction * len(files):
+            raise DatasetError(
+                f"SfM registered only {len(registered)} of {len(files)} images; unregistered: {unregistered[:10]}",
+                path=images_dir,
+                hint="add overlapping images, try the exhaustive matcher, or remove images of other places",
+            )
+        model = from_pycolmap(reconstruction, source=str(Path(out_dir) / "sparse" / "0"))
+        _, _, errors, _ = model.points_arrays()
+        report = {
+            "images": len(files),
+            "registered": registered,
+            "unregistered": unregistered,
+            "models": len(reconstructions),
+            "points": len(model.points),
+            "mean_reprojection_error_px": float(errors.mean()) if len(errors) else 0.0,
+            "median_triangulation_angle_deg": angle,
+            "verified_pairs": pairs["verified_pairs"],
+            "pair_configurations": pairs["configurations"],
+            "camera_model_estimated": sorted({c.model for c in model.cameras.values()}),
+            "matcher": options.matcher,
+        }
+        progress(ProgressEvent(3, 4, stage="sfm", message="writing"))
+        distorted = any(not camera.is_pinhole for camera in model.cameras.values())
+        with atomic_directory(out_dir, overwrite=options.overwrite) as staging:
+            if distorted:
+                # undistort_model builds its own folder atomically; build it inside ours.
+                model = undistort_model(model, images_dir, staging / "scene")
+                for child in (staging / "scene").iterdir():
+                    shutil.move(str(child), staging / child.name)
+                (staging / "scene").rmdir()
+            else:
+                (staging / "images").mkdir()
+                for name in registered:
+                    shutil.copyfile(images_dir / name, staging / "images" / name)
+                write_model(model, staging / "sparse" / "0", binary=True)
+            report["camera_model_written"] = sorted({c.model for c in model.cameras.values()})
+            atomic_write_json(staging / "sfm_report.json", report)
+    progress(ProgressEvent(4, 4, stage="sfm", kind="done", message="done"))
+    return report
