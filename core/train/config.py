@@ -37,7 +37,7 @@ class TrainConfig:
     width: int = field(default=0, metadata=_help("target image width in pixels; overrides --resolution when > 0"))
     test_every: int = field(default=8, metadata=_help("every Nth image (sorted by name, index %% N == 0) is held out; 0 = no test split"))
     mask_source: str = field(default="auto", metadata=_help(
-        "priors/<source>/mask/ to use as sky masks: a source name, 'auto' (first found of gt, labels, ndn, sfm) or 'none'"))
+        "priors/<source>/mask/ to use as sky masks: a source name, 'auto' (first found of gt, labels, ndn; never the sparse sfm masks) or 'none'"))
     background: tuple[float, ...] = field(default=(0.0, 0.0, 0.0), metadata=_help("background colour, RGB in [0, 1]"))
 
     # --- run control ----------------------------------------------------------------

@@ -20,7 +20,9 @@ import torch
 
 from ..errors import DatasetError
 
-MASK_SOURCES = ("gt", "labels", "ndn", "sfm")
+# Sources whose masks mark sky / no surface. "sfm" is not one: its mask marks the sparse pixels
+# that have a depth sample, and using it for the photometric loss would blank most of the image.
+MASK_SOURCES = ("gt", "labels", "ndn")
 
 
 @dataclass

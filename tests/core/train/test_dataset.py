@@ -109,3 +109,13 @@ def test_from_points_scale_colour_and_opacity():
     assert np.allclose((model.params["sh_dc"][:, 0].detach().numpy() * SH_C0 + 0.5), rgb, atol=1e-6)
     assert model.params["sh_rest"].shape == (50, 15, 3) and not model.params["sh_rest"].any()
     assert torch.equal(model.unit_quats(), torch.tensor([[1.0, 0, 0, 0]]).repeat(50, 1))
+
+
+def test_auto_mask_never_takes_sparse_sfm_masks(tmp_path):
+    from esgs.core.train.dataset import find_mask_source
+
+    (tmp_path / "priors" / "sfm" / "mask").mkdir(parents=True)
+    assert find_mask_source(tmp_path, "auto") is None
+    (tmp_path / "priors" / "gt" / "mask").mkdir(parents=True)
+    assert find_mask_source(tmp_path, "auto") == "gt"
+    assert find_mask_source(tmp_path, "sfm") == "sfm"  # still possible when asked for by name
