@@ -69,3 +69,17 @@ def test_ablation_runs_writes_tables_and_skips_finished_runs_on_restart(scene, t
                          on_run=lambda task, status: statuses.append(status))
     assert statuses == ["skipped"] * 12
     assert again["studies"] == json.loads(json.dumps(table["studies"]))
+
+
+def test_ablate_command_runs_the_priors_none_grid_and_reports(scene, tmp_path, capsys):
+    from esgs.core.cli import main
+
+    out = tmp_path / "cli"
+    code = main(["ablate", str(scene), "--out", str(out), "--iterations", "2", "--priors", "none", "--fused-k", "3",
+                 "--backend", "cpu", "--threads", "1", "--no-lpips"])
+    assert code == 0
+    table = json.loads((out / "ablation.json").read_text())
+    # without priors: 3DGS and GPDFN only, in every study
+    assert [row["run"] for row in table["studies"]["grid"]] == ["3dgs", "gpdfn3"]
+    assert {row["run"] for row in table["studies"]["priors"]} == {"gpdfn3", "depth-normal-gpdfn3-gt"}
+    assert "wrote" in capsys.readouterr().out
