@@ -31,6 +31,8 @@ class SfmOptions:
     matcher: str = field(default="exhaustive", metadata={"help": "exhaustive (every pair) or sequential (neighbours in name order)"})
     single_camera: bool = field(default=False, metadata={"help": "all images share one camera (same sensor, lens and zoom)"})
     camera_model: str = field(default="SIMPLE_RADIAL", metadata={"help": "COLMAP camera model: " + ", ".join(CAMERA_MODELS)})
+    camera_params: str = field(default="", metadata={"help": "known intrinsics in COLMAP order for --camera-model, comma-separated (e.g. PINHOLE: fx,fy,cx,cy)"})
+    refine_intrinsics: bool = field(default=True, metadata={"help": "refine focal length and distortion in bundle adjustment (turn off for calibrated cameras)"})
     max_image_size: int = field(default=3200, metadata={"help": "images are downscaled to this size for feature extraction"})
     max_features: int = field(default=8192, metadata={"help": "SIFT features per image"})
     sequential_overlap: int = field(default=10, metadata={"help": "sequential matcher: neighbours matched on each side"})
@@ -46,6 +48,18 @@ class SfmOptions:
             raise ConfigError(f"camera model {self.camera_model!r} is not one of {', '.join(CAMERA_MODELS)}")
         if not 0.0 < self.min_registered_fraction <= 1.0:
             raise ConfigError(f"min_registered_fraction {self.min_registered_fraction} must be in (0, 1]")
+        if self.camera_params:
+            from ..colmap.camera_models import model_info
+
+            try:
+                values = [float(v) for v in self.camera_params.split(",")]
+            except ValueError:
+                raise ConfigError(f"camera_params {self.camera_params!r} must be comma-separated numbers") from None
+            expected = model_info(self.camera_model).num_params
+            if len(values) != expected:
+                raise ConfigError(f"camera model {self.camera_model} takes {expected} parameters, camera_params has {len(values)}")
+        elif not self.refine_intrinsics:
+            raise ConfigError("refine_intrinsics=False needs camera_params (the known intrinsics)")
 
 
 def _median_triangulation_angle_deg(reconstruction) -> float:
@@ -75,7 +89,8 @@ def _pair_statistics(database_path: Path) -> dict[str, Any]:
             if len(geometry.inlier_matches) == 0:
                 continue
             linked += 1
-            name = geometry.config.name
+            config = geometry.config
+            name = config.name if hasattr(config, "name") else pycolmap.TwoViewGeometryConfiguration(int(config)).name
             configurations[name] = configurations.get(name, 0) + 1
         images = database.num_images()
     return {"verified_pairs": linked, "configurations": configurations, "images": images}
@@ -124,6 +139,8 @@ def scene_from_images(
         database = workspace / "database.db"
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = options.camera_model
+        if options.camera_params:
+            reader.camera_params = options.camera_params
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.max_image_size = options.max_image_size
         extraction.sift.max_num_features = options.max_features
@@ -161,14 +178,23 @@ def scene_from_images(
         mapping = pycolmap.IncrementalPipelineOptions()
         mapping.min_num_matches = options.min_matches
         mapping.min_model_size = 2 if len(files) < 10 else min(10, len(files) // 3)
+        if not options.refine_intrinsics:
+            mapping.ba_refine_focal_length = False
+            mapping.ba_refine_extra_params = False
+            mapping.mapper.abs_pose_refine_focal_length = False
+            mapping.mapper.abs_pose_refine_extra_params = False
         (workspace / "sparse").mkdir()
         reconstructions = pycolmap.incremental_mapping(database, images_dir, workspace / "sparse", mapping)
         reconstructions = {k: r for k, r in reconstructions.items() if r.num_reg_images() >= 2}
         rotation_share = rotation_like / max(pairs["verified_pairs"], 1)
         if not reconstructions:
             if rotation_share > 0.5:
-                raise DatasetError(f"SfM could not initialise: {rotation_like} of {pairs['verified_pairs']} verified pairs are "
-                                   "related by a pure rotation", path=images_dir, hint=_rotation_only_hint())
+                raise DatasetError(
+                    f"SfM could not initialise: {rotation_like} of {pairs['verified_pairs']} verified pairs are related by a "
+                    "homography, i.e. a pure rotation (no parallax) or a flat scene seen from too little baseline",
+                    path=images_dir,
+                    hint=_rotation_only_hint(),
+                )
             raise DatasetError(
                 f"SfM could not build a model ({pairs['verified_pairs']} verified image pairs)",
                 path=images_dir,
@@ -216,6 +242,11 @@ def scene_from_images(
             "camera_model_estimated": sorted({c.model for c in model.cameras.values()}),
             "matcher": options.matcher,
         }
+        if rotation_share > 0.5 and options.refine_intrinsics:
+            report["warning"] = (
+                "most image pairs are related by a homography (flat scene or small baseline): the focal length is poorly "
+                "determined by self-calibration; pass the known intrinsics (--camera-params, --fixed-intrinsics)"
+            )
         progress(ProgressEvent(3, 4, stage="sfm", message="writing"))
         distorted = any(not camera.is_pinhole for camera in model.cameras.values())
         with atomic_directory(out_dir, overwrite=options.overwrite) as staging:

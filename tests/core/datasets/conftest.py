@@ -33,3 +33,13 @@ def panorama_file(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("panorama") / "pano.png"
     write_png(path, textured_panorama())
     return path
+
+
+@pytest.fixture(scope="module")
+def panorama_views(panorama_file, tmp_path_factory):
+    """12 views 320x240 (60 deg, 50 % overlap) with exact cameras, cut from a textured panorama."""
+    scene = tmp_path_factory.mktemp("views") / "scene"
+    from esgs.core.datasets import PanoramaOptions, scene_from_panorama
+
+    scene_from_panorama(panorama_file, scene, PanoramaOptions(width=320, height=240, fov_deg=60.0, overlap=0.5))
+    return scene
