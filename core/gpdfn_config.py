@@ -11,7 +11,7 @@ class GPDFNConfig:
     """Settings of the fusion module."""
 
     fused_k: int = field(default=3, metadata={"help": "Gaussians fused per Gaussian, itself included (1 = off; paper best: 3)"})
-    hidden: int = field(default=32, metadata={"help": "width of the 1D convolutions"})
+    hidden: int = field(default=16, metadata={"help": "width of the 1D convolutions"})
     voxel_size: float = field(default=0.0, metadata={"help": "voxel side in scene units (0 = automatic from Gaussian spacing)"})
     max_shift_voxels: float = field(default=1.0, metadata={"help": "largest learned correction of a sampling offset, in voxels"})
     lr: float = field(default=1e-3, metadata={"help": "Adam learning rate of the module's weights"})
