@@ -114,7 +114,7 @@ def train_method(config: DemoConfig, scene: Path, name: str, esgs: dict, progres
 
     run = config.out / "runs" / name
     result_path = run / "result.json"
-    if result_path.is_file() and json.loads(result_path.read_text()).get("status") == "finished":
+    if result_path.is_file() and json.loads(result_path.read_text()).get("status") in ("completed", "time_limit"):
         progress(ProgressEvent(0, 1, name, kind="message", message=f"{name}: reusing finished run {run}"))
         return json.loads(result_path.read_text())
     train_config = TrainConfig(scene=scene, out=run, iterations=config.iterations, max_gaussians=config.max_gaussians,
