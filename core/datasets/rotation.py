@@ -30,7 +30,7 @@ from .common import check_readable, list_images, station_model
 class RotationOnlyOptions:
     """Settings of the rotation-only station estimate."""
 
-    focal_px: float | None = field(default=None, metadata={"help": "initial focal length in pixels (default: the image width)"})
+    focal_px: float | None = field(default=None, metadata={"help": "rough focal length in pixels; the search for the initial value spans 0.7-1.4x of it (default: a wide search)"})
     refine_focal: bool = field(default=True, metadata={"help": "refine the shared focal length in the adjustment"})
     refine_principal_point: bool = field(default=False, metadata={"help": "also refine the principal point (default: image centre)"})
     max_features: int = field(default=3000, metadata={"help": "SIFT features per image"})
@@ -97,11 +97,178 @@ def _intrinsics(focal: float, cx: float, cy: float) -> np.ndarray:
     return np.array([[focal, 0.0, cx], [0.0, focal, cy], [0.0, 0.0, 1.0]])
 
 
+def _inverse_intrinsics(K: np.ndarray) -> np.ndarray:
+    """Closed-form inverse of a zero-skew intrinsic matrix (np.linalg.inv is slow for many tiny calls)."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    return np.array([[1.0 / fx, 0.0, -cx / fx], [0.0, 1.0 / fy, -cy / fy], [0.0, 0.0, 1.0]])
+
+
+def focal_from_homographies(homographies: list[np.ndarray], weights: list[float], cx: float, cy: float, low: float, high: float) -> float:
+    """The focal length (pixels) that makes ``K^-1 H K`` most nearly a rotation for all pairs.
+
+    Each inter-frame homography of a rotating camera is ``K R K^-1``; with the wrong focal
+    length ``K^-1 H K`` is not orthogonal. A log-spaced search over [low, high] picks the
+    focal length with the smallest weighted median of ``|M M^T - I|`` (M scaled to det 1).
+    """
+    candidates = np.geomspace(low, high, 241)
+    weights_array = np.asarray(weights, dtype=np.float64)
+    scores = []
+    for focal in candidates:
+        K = _intrinsics(focal, cx, cy)
+        K_inv = _inverse_intrinsics(K)
+        errors = []
+        for homography in homographies:
+            M = K_inv @ homography @ K
+            determinant = np.linalg.det(M)
+            M = M / np.cbrt(determinant) if determinant != 0 else M
+            errors.append(np.linalg.norm(M @ M.T - np.eye(3)))
+        errors = np.asarray(errors)
+        order = np.argsort(errors)
+        cumulative = np.cumsum(weights_array[order])
+        scores.append(errors[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])
+    return float(candidates[int(np.argmin(scores))])
+
+
 def _transfer(rot_i: np.ndarray, rot_j: np.ndarray, K: np.ndarray, points_i: np.ndarray) -> np.ndarray:
     """Pixels [M, 2] of frame i moved into frame j through the two world-to-camera rotations."""
-    rays = np.linalg.solve(K, np.c_[points_i, np.ones(len(points_i))].T)  # [3, M] camera i
+    rays = _inverse_intrinsics(K) @ np.c_[points_i, np.ones(len(points_i))].T  # [3, M] camera i
     projected = K @ (rot_j @ (rot_i.T @ rays))
     return (projected[:2] / projected[2:]).T
+
+
+def _skew(vectors: np.ndarray) -> np.ndarray:
+    """[M, 3] -> [M, 3, 3] cross-product matrices."""
+    out = np.zeros(vectors.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -vectors[..., 2], vectors[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = vectors[..., 2], -vectors[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -vectors[..., 1], vectors[..., 0]
+    return out
+
+
+def _station_residuals(rotations, free, flat, intrinsics, refine_focal, refine_principal_point, jacobian):
+    """Transfer residuals [2 * M, 2] (matches i->j, then j->i) and optionally their Jacobian [2 * M, 2, P].
+
+    Parameters P: a rotation correction (3) per free image, applied on the left
+    (``R <- exp(w) R``), then the focal length and the principal point when refined.
+    """
+    focal, cx, cy = intrinsics
+    first, second, points_first, points_second = flat
+    keys = sorted(rotations)
+    index = {key: k for k, key in enumerate(keys)}
+    table = np.stack([rotations[key] for key in keys])
+    column = np.full(len(keys), -1)
+    for position, image in enumerate(free):
+        column[index[image]] = 3 * position
+    n_rot = 3 * len(free)
+    n_params = n_rot + (1 if refine_focal else 0) + (2 if refine_principal_point else 0)
+    residual_parts, jacobian_parts = [], []
+    for source, target, source_points, target_points in ((first, second, points_first, points_second), (second, first, points_second, points_first)):
+        source_index = np.array([index[k] for k in source.tolist()], dtype=np.int64) if len(source) else np.zeros(0, np.int64)
+        target_index = np.array([index[k] for k in target.tolist()], dtype=np.int64) if len(target) else np.zeros(0, np.int64)
+        rotation_source, rotation_target = table[source_index], table[target_index]
+        rays = np.stack([(source_points[:, 0] - cx) / focal, (source_points[:, 1] - cy) / focal, np.ones(len(source_points))], axis=1)
+        relative = np.einsum("mij,mkj->mik", rotation_target, rotation_source)  # R_target R_source^T
+        moved = np.einsum("mij,mj->mi", relative, rays)
+        depth = moved[:, 2]
+        projected = focal * moved[:, :2] / depth[:, None] + np.array([cx, cy])
+        residual_parts.append(projected - target_points)
+        if not jacobian:
+            continue
+        count = len(source_points)
+        d_projection = np.zeros((count, 2, 3))  # d projected / d moved
+        d_projection[:, 0, 0] = d_projection[:, 1, 1] = focal / depth
+        d_projection[:, 0, 2] = -focal * moved[:, 0] / depth**2
+        d_projection[:, 1, 2] = -focal * moved[:, 1] / depth**2
+        block = np.zeros((count, 2, n_params + 3))  # 3 spare columns absorb the fixed root image
+        rows = np.arange(count)[:, None, None]
+        coordinates = np.arange(2)[None, :, None]
+        # Target rotation exp(w) R: d moved = -[moved]x w.
+        target_columns = np.where(column[target_index] >= 0, column[target_index], n_params)
+        block[rows, coordinates, target_columns[:, None, None] + np.arange(3)] += -d_projection @ _skew(moved)
+        # Source rotation: R_source^T = R^T exp(-w), so d moved = R_target R_source^T [ray]x w.
+        source_columns = np.where(column[source_index] >= 0, column[source_index], n_params)
+        block[rows, coordinates, source_columns[:, None, None] + np.arange(3)] += d_projection @ relative @ _skew(rays)
+        through_rays = np.einsum("mij,mjk->mik", d_projection, relative)  # d projected / d ray
+        next_column = n_rot
+        if refine_focal:
+            d_ray = np.stack([-(source_points[:, 0] - cx) / focal**2, -(source_points[:, 1] - cy) / focal**2, np.zeros(count)], axis=1)
+            block[:, :, next_column] = moved[:, :2] / depth[:, None] + np.einsum("mij,mj->mi", through_rays, d_ray)
+            next_column += 1
+        if refine_principal_point:
+            block[:, 0, next_column] += 1.0
+            block[:, 1, next_column + 1] += 1.0
+            block[:, :, next_column] += -through_rays[:, :, 0] / focal
+            block[:, :, next_column + 1] += -through_rays[:, :, 1] / focal
+        jacobian_parts.append(block[:, :, :n_params])
+    residuals = np.concatenate(residual_parts)
+    return residuals, (np.concatenate(jacobian_parts) if jacobian else None)
+
+
+def station_errors(rotations: dict[int, np.ndarray], intrinsics: tuple[float, float, float], flat) -> np.ndarray:
+    """[2 * M] transfer errors (pixels) of every match, i->j then j->i."""
+    residuals, _ = _station_residuals(rotations, [], flat, intrinsics, False, False, False)
+    return np.linalg.norm(residuals, axis=1)
+
+
+def _huber(errors: np.ndarray, scale: float) -> float:
+    return float(np.where(errors <= scale, 0.5 * errors**2, scale * (errors - 0.5 * scale)).sum())
+
+
+def adjust_station(
+    rotations: dict[int, np.ndarray],
+    free: list[int],
+    flat,
+    intrinsics: tuple[float, float, float],
+    *,
+    refine_focal: bool = True,
+    refine_principal_point: bool = False,
+    huber_px: float = 1.0,
+    iterations: int = 100,
+) -> tuple[dict[int, np.ndarray], tuple[float, float, float], float]:
+    """Levenberg-Marquardt on the robust (Huber) symmetric transfer error, analytic Jacobian.
+
+    rotations: {image: [3, 3] world-to-camera}; only ``free`` images move. flat: (first [M],
+    second [M], pixels in first [M, 2], pixels in second [M, 2]). intrinsics: (focal, cx, cy).
+    Rotations are updated on the left by small rotation vectors, re-linearised every step.
+    Returns the new rotations, intrinsics and final robust cost.
+    """
+    from scipy.spatial.transform import Rotation
+
+    def cost_of(rots, intr):
+        return _huber(station_errors(rots, intr, flat), huber_px)
+
+    cost = cost_of(rotations, intrinsics)
+    damping = 1e-3
+    for _ in range(iterations):
+        residuals, jacobian = _station_residuals(rotations, free, flat, intrinsics, refine_focal, refine_principal_point, True)
+        errors = np.linalg.norm(residuals, axis=1)
+        weights = np.where(errors <= huber_px, 1.0, huber_px / np.maximum(errors, 1e-12))  # IRLS form of Huber
+        J = jacobian.reshape(-1, jacobian.shape[-1])
+        w = np.repeat(weights, 2)
+        normal = J.T @ (J * w[:, None])
+        gradient = J.T @ (w * residuals.ravel())
+        improved = False
+        while damping < 1e8:
+            step = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-12), -gradient)
+            candidate = dict(rotations)
+            for position, image in enumerate(free):
+                candidate[image] = Rotation.from_rotvec(step[3 * position : 3 * position + 3]).as_matrix() @ rotations[image]
+            tail = step[3 * len(free) :]
+            focal, cx, cy = intrinsics
+            if refine_focal:
+                focal, tail = focal + tail[0], tail[1:]
+            if refine_principal_point:
+                cx, cy = cx + tail[0], cy + tail[1]
+            new_cost = cost_of(candidate, (focal, cx, cy))
+            if new_cost < cost:
+                improved = cost - new_cost > 1e-10 * cost
+                rotations, intrinsics, cost = candidate, (focal, cx, cy), new_cost
+                damping = max(damping / 3.0, 1e-9)
+                break
+            damping *= 4.0
+        if not improved:
+            break
+    return rotations, intrinsics, cost
 
 
 def estimate_rotations(
@@ -119,9 +286,6 @@ def estimate_rotations(
     ``rms_error_px`` over the kept matches; ``kept_fraction``), ``pairs`` (linked pairs).
     """
     import cv2
-    from scipy.optimize import least_squares
-    from scipy.sparse import lil_matrix
-    from scipy.spatial.transform import Rotation
 
     options = options or RotationOnlyOptions()
     options.validate()
@@ -181,9 +345,16 @@ def estimate_rotations(
         raise DatasetError("no two frames could be linked by a homography", hint="check overlap and image content")
 
     cx, cy = width / 2.0, height / 2.0
-    focal = float(options.focal_px or width)
+    # The spanning tree's rotations need a focal length close to the truth: search it around
+    # the given value (or over a wide range) with the homographies of the linked pairs.
+    in_group = [pair for pair in links if pair[0] in registered]
+    guess = float(options.focal_px or width)
+    low, high = (0.7 * guess, 1.4 * guess) if options.focal_px else (0.25 * width, 6.0 * width)
+    focal = guess
+    if options.refine_focal:
+        focal = focal_from_homographies([links[p][2] for p in in_group], [weight[p] for p in in_group], cx, cy, low, high)
     K = _intrinsics(focal, cx, cy)
-    K_inv = np.linalg.inv(K)
+    K_inv = _inverse_intrinsics(K)
     root = registered[0]
     rotations = {root: np.eye(3)}
     while len(rotations) < len(registered):
@@ -199,79 +370,24 @@ def estimate_rotations(
             rotations[i] = relative.T @ rotations[j]
 
     pairs = [pair for pair in links if pair[0] in rotations]
+    free = [image for image in registered if image != root]  # the root fixes the world frame
     order = {image: position for position, image in enumerate(registered)}
     free = [image for image in registered if image != root]  # the root fixes the world frame
-    n_rot = 3 * len(free)
-    n_intr = (1 if options.refine_focal else 0) + (2 if options.refine_principal_point else 0)
-
-    def unpack(x: np.ndarray):
-        rots = {root: np.eye(3)}
-        for position, image in enumerate(free):
-            rots[image] = Rotation.from_rotvec(x[3 * position : 3 * position + 3]).as_matrix()
-        f, px, py = focal, cx, cy
-        tail = x[n_rot:]
-        if options.refine_focal:
-            f, tail = tail[0], tail[1:]
-        if options.refine_principal_point:
-            px, py = tail[0], tail[1]
-        return rots, _intrinsics(f, px, py)
-
-    def stacked(data):
-        """Matches of all pairs as flat arrays: first image, second image, pixels in each."""
-        first = np.concatenate([np.full(len(a), i) for (i, _), (a, _) in data.items()])
-        second = np.concatenate([np.full(len(a), j) for (_, j), (a, _) in data.items()])
-        return first, second, np.concatenate([a for a, _ in data.values()]), np.concatenate([b for _, b in data.values()])
-
-    def all_transfers(x: np.ndarray, flat) -> tuple[np.ndarray, np.ndarray]:
-        """[M, 2] pixels of each match moved i->j and j->i."""
-        rots, K_now = unpack(x)
-        table = np.stack([rots.get(k, np.eye(3)) for k in range(count)])
-        first, second, a, b = flat
-        K_inv_now = np.linalg.inv(K_now)
-
-        def move(points, source, target):
-            rays = np.c_[points, np.ones(len(points))] @ K_inv_now.T
-            world = np.einsum("mji,mj->mi", table[source], rays)  # R_source^T ray
-            projected = np.einsum("mij,mj->mi", table[target], world) @ K_now.T
-            return projected[:, :2] / projected[:, 2:]
-
-        return move(a, first, second), move(b, second, first)
-
-    def residuals(x: np.ndarray, flat) -> np.ndarray:
-        to_second, to_first = all_transfers(x, flat)
-        return np.concatenate([(to_second - flat[3]).ravel(), (to_first - flat[2]).ravel()])
-
-    def sparsity(flat):
-        first, second = flat[0], flat[1]
-        rows = len(first)
-        pattern = lil_matrix((4 * rows, n_rot + n_intr), dtype=np.int8)
-        free_position = {image: position for position, image in enumerate(free)}
-        for block in range(2):  # residual layout: [i->j x, y per match], then [j->i x, y per match]
-            for coordinate in range(2):
-                row_index = block * 2 * rows + 2 * np.arange(rows) + coordinate
-                for images_of_match in (first, second):
-                    for image, position in free_position.items():
-                        hit = row_index[images_of_match == image]
-                        for k in range(3):
-                            pattern[hit, 3 * position + k] = 1
-                if n_intr:
-                    for k in range(n_intr):
-                        pattern[row_index, n_rot + k] = 1
-        return pattern
-
-    x0 = [Rotation.from_matrix(rotations[image]).as_rotvec() for image in free]
-    x = np.concatenate(x0 + [np.array([focal] if options.refine_focal else [])] + ([np.array([cx, cy])] if options.refine_principal_point else []))
     data = {pair: (links[pair][0], links[pair][1]) for pair in pairs}
     total_matches = sum(len(a) for a, _ in data.values())
-    flat = stacked(data)
+    flat = (
+        np.concatenate([np.full(len(a), i) for (i, _), (a, _) in data.items()]),
+        np.concatenate([np.full(len(a), j) for (_, j), (a, _) in data.items()]),
+        np.concatenate([a for a, _ in data.values()]),
+        np.concatenate([b for _, b in data.values()]),
+    )
+    intrinsics = (focal, cx, cy)
     for round_index in range(3):
-        result = least_squares(
-            residuals, x, args=(flat,), jac_sparsity=sparsity(flat), loss="huber", f_scale=1.0, x_scale="jac", max_nfev=60, method="trf"
+        rotations, intrinsics, cost = adjust_station(
+            rotations, free, flat, intrinsics, refine_focal=options.refine_focal, refine_principal_point=options.refine_principal_point
         )
-        x = result.x
-        progress(ProgressEvent(round_index + 1, 3, stage="adjust", metrics={"cost": float(result.cost)}))
-        to_second, to_first = all_transfers(x, flat)
-        error = 0.5 * (np.linalg.norm(to_second - flat[3], axis=1) + np.linalg.norm(to_first - flat[2], axis=1))
+        progress(ProgressEvent(round_index + 1, 3, stage="adjust", metrics={"cost": cost}))
+        error = station_errors(rotations, intrinsics, flat).reshape(2, -1).mean(axis=0)
         if round_index == 0:
             all_errors = error
         good = error <= options.outlier_px
@@ -279,9 +395,9 @@ def estimate_rotations(
             break
         flat = tuple(array[good] for array in flat)
 
-    rots, K_now = unpack(x)
-    to_second, to_first = all_transfers(x, flat)
-    errors = np.concatenate([np.linalg.norm(to_second - flat[3], axis=1), np.linalg.norm(to_first - flat[2], axis=1)])
+    rots = rotations
+    K_now = _intrinsics(*intrinsics)
+    errors = station_errors(rotations, intrinsics, flat)
     kept_pairs = len(set(zip(flat[0].tolist(), flat[1].tolist())))
     return {
         "registered": registered,

@@ -37,6 +37,8 @@ class SfmOptions:
     max_features: int = field(default=8192, metadata={"help": "SIFT features per image"})
     sequential_overlap: int = field(default=10, metadata={"help": "sequential matcher: neighbours matched on each side"})
     min_matches: int = field(default=15, metadata={"help": "verified matches for a pair of images to count as linked"})
+    init_min_triangulation_angle_deg: float = field(default=4.0, metadata={"help": "initial pair: minimum triangulation angle (COLMAP's 16 picked a wrong, planar-ambiguous start on rover traverses)"})
+    init_min_inliers: int = field(default=50, metadata={"help": "initial pair: minimum verified matches"})
     min_registered_fraction: float = field(default=0.5, metadata={"help": "fail when fewer images than this fraction get a pose"})
     min_triangulation_angle_deg: float = field(default=2.0, metadata={"help": "fail when the median triangulation angle is below this (no parallax)"})
     overwrite: bool = field(default=False, metadata={"help": "replace an existing output folder"})
@@ -178,6 +180,12 @@ def scene_from_images(
         mapping = pycolmap.IncrementalPipelineOptions()
         mapping.min_num_matches = options.min_matches
         mapping.min_model_size = 2 if len(files) < 10 else min(10, len(files) // 3)
+        # Rover traverses look forward: allow forward motion for the initial pair, and a
+        # smaller initial angle. With COLMAP's defaults a synthetic traverse of flat terrain
+        # started from a wrong (planar-ambiguous) pair: 0.6 px error but 10-15 degree errors.
+        mapping.mapper.init_min_tri_angle = options.init_min_triangulation_angle_deg
+        mapping.mapper.init_min_num_inliers = options.init_min_inliers
+        mapping.mapper.init_max_forward_motion = 1.0
         if not options.refine_intrinsics:
             mapping.ba_refine_focal_length = False
             mapping.ba_refine_extra_params = False
@@ -242,11 +250,6 @@ def scene_from_images(
             "camera_model_estimated": sorted({c.model for c in model.cameras.values()}),
             "matcher": options.matcher,
         }
-        if rotation_share > 0.5 and options.refine_intrinsics:
-            report["warning"] = (
-                "most image pairs are related by a homography (flat scene or small baseline): the focal length is poorly "
-                "determined by self-calibration; pass the known intrinsics (--camera-params, --fixed-intrinsics)"
-            )
         progress(ProgressEvent(3, 4, stage="sfm", message="writing"))
         distorted = any(not camera.is_pinhole for camera in model.cameras.values())
         with atomic_directory(out_dir, overwrite=options.overwrite) as staging:
