@@ -33,6 +33,7 @@ class ESGSConfig:
     use_masks: bool = field(default=True, metadata={"help": "exclude sky/no-surface pixels from prior losses (the sky fix)"})
     max_prior_depth: float = field(default=0.0, metadata={"help": "ignore prior depths beyond this (scene units; 0 = no limit)"})
     gpdfn_lr: float = field(default=1e-3, metadata={"help": "learning rate of the GPDFN weights"})
+    gpdfn_hidden: int = field(default=16, metadata={"help": "width of GPDFN's 1D convolutions (saved with the run)"})
 
     def validate(self) -> None:
         if (self.depth or self.normal) and not self.priors:
@@ -46,7 +47,7 @@ class ESGSConfig:
         self.gpdfn_config().validate()
 
     def gpdfn_config(self) -> GPDFNConfig:
-        return GPDFNConfig(fused_k=self.fused_k, lr=self.gpdfn_lr)
+        return GPDFNConfig(fused_k=self.fused_k, lr=self.gpdfn_lr, hidden=self.gpdfn_hidden)
 
     @property
     def enabled(self) -> bool:
