@@ -3,16 +3,14 @@ from __future__ import annotations
 
 import bpy
 
+from ._section import ESGSSection
 
-class ESGS_PT_import(bpy.types.Panel):
+
+class ESGS_PT_import(ESGSSection, bpy.types.Panel):
     """Bring COLMAP scenes in (and Blender cameras out)."""
 
     bl_label = "Import"
     bl_idname = "ESGS_PT_import"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "ESGS"
-    bl_parent_id = "ESGS_PT_main"
 
     def draw(self, context: bpy.types.Context) -> None:
         layout = self.layout

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import bpy
 
+from ._section import ESGSSection
+
 from ..esgs_addon import gaussian_nodes
 from ..esgs_addon.compare_mesh import last_comparison
 from ..esgs_addon.gaussians_import import is_gaussian_object
@@ -13,15 +15,11 @@ _DISPLAY = ("Ellipsoids", "Opacity Min", "Max Display", "Point Radius", "Ellipso
 _HEAT = ("Heat Map", "Distance Min", "Distance Max")
 
 
-class ESGS_PT_results(bpy.types.Panel):
+class ESGS_PT_results(ESGSSection, bpy.types.Panel):
     """Trained Gaussians: import, display, and distances to a ground-truth mesh."""
 
     bl_label = "Gaussians"
     bl_idname = "ESGS_PT_results"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "ESGS"
-    bl_parent_id = "ESGS_PT_main"
 
     def draw(self, context: bpy.types.Context) -> None:
         layout = self.layout

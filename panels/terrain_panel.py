@@ -3,16 +3,14 @@ from __future__ import annotations
 
 import bpy
 
+from ._section import ESGSSection
 
-class ESGS_PT_terrain(bpy.types.Panel):
+
+class ESGS_PT_terrain(ESGSSection, bpy.types.Panel):
     """Generate a synthetic Mars scene and render it to a scene folder with ground truth."""
 
     bl_label = "Synthetic Mars Scene"
     bl_idname = "ESGS_PT_terrain"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "ESGS"
-    bl_parent_id = "ESGS_PT_main"
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context: bpy.types.Context) -> None:

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import bpy
 
+from ._section import ESGSSection
+
 from ..core.errors import ESGSError
 from ..core.jobs import format_duration
 from ..esgs_addon import training_job
@@ -10,15 +12,11 @@ from ..esgs_addon import training_job
 ORDER = 110  # after the import panel
 
 
-class ESGS_PT_training(bpy.types.Panel):
+class ESGS_PT_training(ESGSSection, bpy.types.Panel):
     """Train Gaussians on the imported scene in a separate process."""
 
     bl_label = "Training"
     bl_idname = "ESGS_PT_training"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "ESGS"
-    bl_parent_id = "ESGS_PT_main"
 
     def draw(self, context: bpy.types.Context) -> None:
         layout = self.layout
