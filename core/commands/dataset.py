@@ -55,6 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rotation.add_argument("--focal-px", type=float, default=None, help="initial focal length in pixels (default: image width)")
     rotation.add_argument("--fixed-focal", action="store_true", help="keep the focal length fixed")
     rotation.add_argument("--refine-principal-point", action="store_true", help="also refine the principal point")
+    rotation.add_argument("--max-features", type=int, default=3000, help="SIFT features per frame")
     rotation.add_argument("--names", nargs="+", default=None, help="use only these file names from the folder")
     rotation.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
 
@@ -84,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
             from ..datasets.rotation import RotationOnlyOptions, scene_from_rotation_only
 
             options = RotationOnlyOptions(focal_px=args.focal_px, refine_focal=not args.fixed_focal,
-                                          refine_principal_point=args.refine_principal_point, overwrite=args.overwrite)
+                                          refine_principal_point=args.refine_principal_point, max_features=args.max_features,
+                                          overwrite=args.overwrite)
             report = scene_from_rotation_only(args.images, args.out, options, progress=bar, names=args.names)
             shown = {k: v for k, v in report.items() if k != "registered"}
             shown["registered"] = len(report["registered"])

@@ -8,7 +8,7 @@ geometry is fully described by one intrinsic matrix K and one rotation per frame
 Pipeline: OpenCV SIFT features (saturated pixels masked), ratio-test matches for every pair,
 a RANSAC homography per pair (``H_ij = K R_j R_i^T K^-1``), initial rotations chained along a
 maximum spanning tree of the match graph, then a robust bundle adjustment of all rotations
-and the focal length (scipy ``least_squares``) on the symmetric transfer error. The mosaic
+and the focal length (Levenberg-Marquardt, analytic Jacobian) on the symmetric transfer error. The mosaic
 reprojection error reported is that transfer error, in pixels, over the matches kept.
 """
 from __future__ import annotations
@@ -313,7 +313,8 @@ def estimate_rotations(
             if homography is not None and int(inliers.sum()) >= options.min_inliers:
                 keep = inliers.ravel().astype(bool)
                 links[(i, j)] = (a[keep], b[keep], homography)
-        progress(ProgressEvent(step + 1, len(all_pairs), stage="match"))
+        if j == count - 1:  # one event per row of pairs keeps the console quiet
+            progress(ProgressEvent(step + 1, len(all_pairs), stage="match"))
     if not links:
         raise DatasetError(
             "no two frames share enough matched features to be linked",

@@ -26,7 +26,7 @@ def textured_panorama(width: int = 2048, seed: int = 0) -> np.ndarray:
     return np.clip(image, 0, 255).astype(np.uint8)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def panorama_file(tmp_path_factory) -> Path:
     from esgs.core.imageio import write_png
 
@@ -35,7 +35,7 @@ def panorama_file(tmp_path_factory) -> Path:
     return path
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def panorama_views(panorama_file, tmp_path_factory):
     """12 views 320x240 (60 deg, 50 % overlap) with exact cameras, cut from a textured panorama."""
     scene = tmp_path_factory.mktemp("views") / "scene"

@@ -65,3 +65,32 @@ def test_navcam_station_mosaic_error_is_below_one_pixel(tmp_path):
     # The README's rough focal length from the 45 degree field of view: 610-620 px.
     assert 600.0 < report["focal_px"] < 640.0
     assert report["kept_fraction"] > 0.4
+
+
+@pytest.mark.parametrize("refine_principal_point", [False, True])
+def test_adjustment_jacobian_matches_finite_differences(refine_principal_point):
+    from scipy.spatial.transform import Rotation
+
+    from esgs.core.datasets.rotation import _station_residuals
+
+    rng = np.random.default_rng(0)
+    rotations = {k: Rotation.from_rotvec(rng.normal(scale=0.4, size=3)).as_matrix() for k in range(3)}
+    free = [1, 2]
+    first, second = np.array([0, 0, 1, 1, 2]), np.array([1, 2, 2, 0, 0])
+    flat = (first, second, rng.uniform(50, 250, (5, 2)), rng.uniform(50, 250, (5, 2)))
+    intrinsics = (300.0, 150.0, 140.0)
+    residuals, jacobian = _station_residuals(rotations, free, flat, intrinsics, True, refine_principal_point, True)
+    step = 1e-6
+    for column in range(jacobian.shape[-1]):
+        delta = np.zeros(jacobian.shape[-1])
+        delta[column] = step
+        moved = dict(rotations)
+        for position, image in enumerate(free):
+            moved[image] = Rotation.from_rotvec(delta[3 * position : 3 * position + 3]).as_matrix() @ rotations[image]
+        focal, cx, cy = intrinsics
+        focal += delta[6]
+        if refine_principal_point:
+            cx, cy = cx + delta[7], cy + delta[8]
+        shifted, _ = _station_residuals(moved, free, flat, (focal, cx, cy), True, refine_principal_point, False)
+        numeric = (shifted - residuals) / step
+        np.testing.assert_allclose(jacobian[:, :, column], numeric, rtol=1e-4, atol=1e-4)
