@@ -64,3 +64,24 @@ def station_model(camera: Camera, names: list[str], world_to_camera: list[np.nda
     for index, (name, rotation) in enumerate(zip(names, world_to_camera), start=1):
         images[index] = Image(index, name, camera.camera_id, matrix_to_quat_wxyz(np.asarray(rotation, dtype=np.float64)), np.zeros(3))
     return ColmapModel({camera.camera_id: camera}, images, {}, source=source)
+
+
+def scene_provenance(source: str, images: list[str], *, units: str, points3d: int, report: str, extra: dict | None = None) -> dict:
+    """The ``scene.json`` record of a scene folder built from real images (see docs/scene_format.md)."""
+    from ... import __version__
+
+    record = {
+        "format": "esgs-scene",
+        "format_version": 1,
+        "source": source,
+        "generator": f"esgs.core.datasets ({source})",
+        "esgs_version": __version__,
+        "units": units,
+        "camera_frame": "opencv (x right, y down, z forward); poses world-to-camera as COLMAP",
+        "images": sorted(images),
+        "sparse": "sparse/0" if source != "strip" else None,
+        "points3d": int(points3d),
+        "report": report,
+    }
+    record.update(extra or {})
+    return record

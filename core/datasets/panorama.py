@@ -26,7 +26,7 @@ import numpy as np
 from ..colmap.model import Camera
 from ..errors import ConfigError, DatasetError
 from ..progress import ProgressCallback, ProgressEvent, no_progress
-from .common import rotation_x, rotation_y, station_model
+from .common import rotation_x, rotation_y, scene_provenance, station_model
 
 
 @dataclass
@@ -199,6 +199,10 @@ def scene_from_panorama(
             "on them if the strip was taken from several positions"
         )
         atomic_write_json(staging / "panorama_report.json", report)
+        names = sorted(p.name for p in (staging / "images").iterdir())
+        atomic_write_json(staging / "scene.json", scene_provenance(
+            "panorama" if equirectangular else "strip", names, units="none: one station, no scale", points3d=0,
+            report="panorama_report.json", extra={"panorama": str(panorama_path)}))
     return report
 
 

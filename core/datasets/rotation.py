@@ -23,7 +23,7 @@ import numpy as np
 from ..colmap.model import Camera
 from ..errors import ConfigError, DatasetError
 from ..progress import ProgressCallback, ProgressEvent, no_progress
-from .common import check_readable, list_images, station_model
+from .common import check_readable, list_images, scene_provenance, station_model
 
 
 @dataclass
@@ -471,4 +471,6 @@ def scene_from_rotation_only(
         )
         write_model(model, staging / "sparse" / "0", binary=True)
         atomic_write_json(staging / "rotation_report.json", report)
+        atomic_write_json(staging / "scene.json", scene_provenance(
+            "rotation-only", report["registered"], units="none: one station, no scale", points3d=0, report="rotation_report.json"))
     return report

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ..progress import ProgressCallback, ProgressEvent, no_progress
-from .common import check_readable, list_images
+from .common import check_readable, list_images, scene_provenance
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 
@@ -266,5 +266,7 @@ def scene_from_images(
                 write_model(model, staging / "sparse" / "0", binary=True)
             report["camera_model_written"] = sorted({c.model for c in model.cameras.values()})
             atomic_write_json(staging / "sfm_report.json", report)
+            atomic_write_json(staging / "scene.json", scene_provenance(
+                "sfm", registered, units="SfM units (arbitrary scale and frame)", points3d=len(model.points), report="sfm_report.json"))
     progress(ProgressEvent(4, 4, stage="sfm", kind="done", message="done"))
     return report

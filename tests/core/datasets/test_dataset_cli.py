@@ -18,6 +18,8 @@ def test_from_panorama_writes_a_scene(panorama_file, tmp_path, capsys):
     model = read_model(tmp_path / "scene" / "sparse" / "0")
     assert len(model.images) == 2 * report["views_per_row"] == len(list((tmp_path / "scene" / "images").iterdir()))
     assert report["overlap"] >= 0.3 and report["rows"] == 2
+    provenance = json.loads((tmp_path / "scene" / "scene.json").read_text())
+    assert provenance["source"] == "panorama" and provenance["images"] == sorted(image.name for image in model.images.values())
     assert "wrote scene folder" in capsys.readouterr().out
 
 
