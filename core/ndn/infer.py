@@ -78,8 +78,13 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path, *, steps: int |
 
     ``weights``: a weights/checkpoint file or a model folder (``weights.pt`` or latest checkpoint).
     """
+    import os
+    import shutil
+    import tempfile
+
     from ..imageio import read_image
-    from ..priors import write_prior_maps
+    from ..io_utils import atomic_directory
+    from ..priors import prior_dir, write_prior_maps
 
     scene_dir = Path(scene_dir)
     model, diffusion, config, _ = load_checkpoint(weights)
@@ -96,12 +101,21 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path, *, steps: int |
     depth_states_all, normal_states_all = np.concatenate(depth_states), np.concatenate(normal_states)
     metadata = {"method": "ndn", "weights": str(weights), "ddim_steps": str(steps or config.diffusion.sample_steps),
                 "seed": str(seed)}
-    for index, name in enumerate(triples.names):
-        image = read_image(scene_dir / "images" / name)
-        image = np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
-        depth, normal, mask = maps_from_states(depth_states_all[index, 0], normal_states_all[index], image)
-        write_prior_maps(scene_dir, "ndn", name, depth=depth, normal=normal, mask=mask, relative_depth=True,
-                         units="relative", metadata=metadata)
+    # all maps go to a staging folder that replaces priors/ndn only when complete: a failure
+    # never leaves a mix of old and new views
+    (scene_dir / "priors").mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=".ndn.work.", dir=scene_dir / "priors"))
+    try:
+        for index, name in enumerate(triples.names):
+            image = read_image(scene_dir / "images" / name)
+            image = np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
+            depth, normal, mask = maps_from_states(depth_states_all[index, 0], normal_states_all[index], image)
+            write_prior_maps(work, "ndn", name, depth=depth, normal=normal, mask=mask, relative_depth=True,
+                             units="relative", metadata=metadata)
+        with atomic_directory(prior_dir(scene_dir, "ndn"), overwrite=True) as staging:
+            os.replace(prior_dir(work, "ndn"), staging)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
     progress(ProgressEvent(total, total, "ndn-infer", kind="done"))
     return total
 

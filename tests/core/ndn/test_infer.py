@@ -86,6 +86,7 @@ def test_priors_command_writes_ndn_maps_in_the_standard_format(scene, tmp_path, 
     first = load_prior_maps(scene, "ndn", "view_001.png").depth.copy()
     assert main(["priors", str(scene), "--method", "ndn", "--weights", str(weights), "--steps", "2"]) == 0
     np.testing.assert_array_equal(load_prior_maps(scene, "ndn", "view_001.png").depth, first)  # seeded
+    assert sorted(p.name for p in (scene / "priors").iterdir()) == ["gt", "ndn"]  # no staging left
 
 
 def test_priors_command_without_weights_is_a_clear_error(scene, capsys, monkeypatch):
@@ -108,3 +109,28 @@ def test_cli_train_and_eval(scene, tmp_path, capsys):
     capsys.readouterr()
     assert main(["ndn", "eval", str(tmp_path / "m"), str(data), "--limit", "1", "--json", str(tmp_path / "s.json")]) == 0
     assert json.loads((tmp_path / "s.json").read_text())["views"] == 1
+
+
+def test_a_failed_run_keeps_the_previous_priors(scene, tmp_path, monkeypatch):
+    from esgs.core.ndn import infer
+
+    torch.manual_seed(0)
+    model, _ = build_model(tiny_config())
+    weights = save_checkpoint(tmp_path / "weights.pt", model, tiny_config())
+    infer.write_ndn_priors(scene, weights, steps=1)
+    before = {p.relative_to(scene): p.read_bytes() for p in (scene / "priors" / "ndn").rglob("*") if p.is_file()}
+    calls = []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("disk full")
+        return original(*args, **kwargs)
+
+    original = infer.maps_from_states
+    monkeypatch.setattr(infer, "maps_from_states", failing)
+    with pytest.raises(RuntimeError, match="disk full"):
+        infer.write_ndn_priors(scene, weights, steps=1, seed=9)
+    after = {p.relative_to(scene): p.read_bytes() for p in (scene / "priors" / "ndn").rglob("*") if p.is_file()}
+    assert after == before and len(before) == 12
+    assert sorted(p.name for p in (scene / "priors").iterdir()) == ["gt", "ndn"]
