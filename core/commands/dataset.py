@@ -34,6 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     images.add_argument("--camera-model", choices=CAMERA_MODELS, default="SIMPLE_RADIAL", help="COLMAP camera model to estimate")
     images.add_argument("--camera-params", default="", help="known intrinsics in COLMAP order, comma-separated")
     images.add_argument("--fixed-intrinsics", action="store_true", help="keep --camera-params fixed (calibrated camera)")
+    images.add_argument("--verbose", action="store_true", help="show pycolmap's log")
     images.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
 
     pano = actions.add_parser("from-panorama", help="pinhole views (and their cameras) from an equirectangular panorama or strip")
@@ -69,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
             from ..datasets.sfm import SfmOptions, scene_from_images
 
             options = SfmOptions(matcher=args.matcher, single_camera=args.single_camera, camera_model=args.camera_model,
-                                  camera_params=args.camera_params, refine_intrinsics=not args.fixed_intrinsics, overwrite=args.overwrite)
+                                  camera_params=args.camera_params, refine_intrinsics=not args.fixed_intrinsics,
+                                  verbose=args.verbose, overwrite=args.overwrite)
             report = scene_from_images(args.images, args.out, options, progress=bar)
             shown = {k: v for k, v in report.items() if k != "registered"}
             shown["registered"] = len(report["registered"])

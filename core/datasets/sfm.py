@@ -34,6 +34,7 @@ class SfmOptions:
     camera_params: str = field(default="", metadata={"help": "known intrinsics in COLMAP order for --camera-model, comma-separated (e.g. PINHOLE: fx,fy,cx,cy)"})
     refine_intrinsics: bool = field(default=True, metadata={"help": "refine focal length and distortion in bundle adjustment (turn off for calibrated cameras)"})
     max_image_size: int = field(default=3200, metadata={"help": "images are downscaled to this size for feature extraction"})
+    verbose: bool = field(default=False, metadata={"help": "show pycolmap's own log (otherwise only its errors)"})
     max_features: int = field(default=8192, metadata={"help": "SIFT features per image"})
     sequential_overlap: int = field(default=10, metadata={"help": "sequential matcher: neighbours matched on each side"})
     min_matches: int = field(default=15, metadata={"help": "verified matches for a pair of images to count as linked"})
@@ -120,10 +121,6 @@ def scene_from_images(
     """
     import pycolmap
 
-    from ..colmap.io import from_pycolmap, write_model
-    from ..colmap.undistort import undistort_model
-    from ..io_utils import atomic_directory, atomic_write_json
-
     options = options or SfmOptions()
     options.validate()
     images_dir = Path(images_dir)
@@ -135,6 +132,22 @@ def scene_from_images(
             hint="add overlapping photographs taken from different positions",
         )
     check_readable(files)
+    previous_level = pycolmap.logging.minloglevel
+    if not options.verbose:
+        pycolmap.logging.minloglevel = 2  # errors only: the report says what matters
+    try:
+        return _run_sfm(files, images_dir, Path(out_dir), options, progress)
+    finally:
+        pycolmap.logging.minloglevel = previous_level
+
+
+def _run_sfm(files: list[Path], images_dir: Path, out_dir: Path, options: SfmOptions, progress: ProgressCallback) -> dict[str, Any]:
+    import pycolmap
+
+    from ..colmap.io import from_pycolmap, write_model
+    from ..colmap.undistort import undistort_model
+    from ..io_utils import atomic_directory, atomic_write_json
+
     progress(ProgressEvent(0, 4, stage="sfm", message="features"))
     with tempfile.TemporaryDirectory(prefix="esgs_sfm_") as workspace_name:
         workspace = Path(workspace_name)
