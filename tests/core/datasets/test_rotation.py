@@ -54,6 +54,7 @@ def test_frames_that_do_not_overlap_are_refused(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.shared_data
 def test_navcam_station_mosaic_error_is_below_one_pixel(tmp_path):
     root = require_shared("mars_navcam_pan")
     with open(root / "frames.csv", newline="") as handle:
