@@ -32,7 +32,7 @@ class NDNDiffusionConfig:
 
     timesteps: int = field(default=1000, metadata={"help": "diffusion steps T of the forward process"})
     schedule: str = field(default="cosine", metadata={"help": "beta schedule: cosine or linear"})
-    prediction: str = field(default="epsilon", metadata={"help": "what the network predicts: epsilon or v"})
+    prediction: str = field(default="v", metadata={"help": "what the network predicts: v (default) or epsilon"})
     sample_steps: int = field(default=15, metadata={"help": "DDIM steps at inference (eta = 0, deterministic)"})
     coarse_fraction: float = field(default=0.5, metadata={
         "help": "normal branch: the noisiest fraction of the T steps (N/T) is denoised coarsely, without "
