@@ -34,12 +34,17 @@ class BenchSuite:
     resolution: str
     samples: int
     iterations: int
+    points_per_view: int = 2000
     description: str = ""
+
+    def scene_folder_name(self, preset: str, seed: int) -> str:
+        """Cache key of a scene: everything that changes what ``esgs scene`` makes."""
+        return f"{preset}_s{seed}_{self.views}v_{self.resolution}_{self.samples}spp_{self.points_per_view}p"
 
 
 SUITES = {
     "quick": BenchSuite("quick", presets=("cratered_plain",), seeds=(0,), views=10, resolution="160x90", samples=8,
-                        iterations=300, description="one small scene, one seed, 300 steps: a few minutes on a laptop CPU"),
+                        iterations=300, points_per_view=300, description="one small scene, one seed, 300 steps: ~15 minutes on 2 busy cores"),
     "full": BenchSuite("full", presets=("cratered_plain", "dune_field", "rocky_slope", "crater_survey_nadir"),
                        seeds=(0, 1, 2), views=30, resolution="480x270", samples=32, iterations=7000,
                        description="4 presets x 3 seeds at 480x270, 7,000 steps: hours on a CPU, best on a GPU cluster"),
@@ -77,12 +82,12 @@ METHODS = (
 
 def make_scene(preset: str, seed: int, suite: BenchSuite, scenes_dir: Path) -> Path:
     """``esgs scene`` into ``scenes_dir/<preset>_s<seed>`` unless it is there (the folder appears complete)."""
-    folder = Path(scenes_dir) / f"{preset}_s{seed}"
+    folder = Path(scenes_dir) / suite.scene_folder_name(preset, seed)
     if (folder / "sparse").is_dir():
         return folder
     command = [sys.executable, "-m", "esgs.core.cli", "scene", "--preset", preset, "--seed", str(seed),
                "--views", str(suite.views), "--resolution", suite.resolution, "--samples", str(suite.samples),
-               "--out", str(folder)]
+               "--points-per-view", str(suite.points_per_view), "--out", str(folder)]
     completed = subprocess.run(command, capture_output=True, text=True)
     if completed.returncode != 0:
         raise ESGSError(f"esgs scene failed for {preset} seed {seed}: {completed.stdout[-500:]}{completed.stderr[-1500:]}",
@@ -136,9 +141,9 @@ def bench_markdown(report: dict) -> str:
              f"GPU: {machine['gpu'] or 'none'}. Executor: {report['executor']}.", "",
              f"Scenes: `esgs scene` presets {', '.join(suite['presets'])} x seeds "
              f"{', '.join(map(str, suite['seeds']))} ({suite['views']} views, {suite['resolution']}, "
-             f"{suite['samples']} samples); every method trains {report['iterations']} steps with the same seed "
-             "as its scene. Quality on the held-out views (every 8th image); distances from the Gaussian "
-             "centres with opacity >= 0.5 to mesh/ground_truth.ply (scene units, metres). Train time is "
+             f"{suite['samples']} samples, {suite['points_per_view']} SfM points per view); every method "
+             f"trains {report['iterations']} steps with the same seed as its scene. Quality on the held-out "
+             "views (every 8th image); distances from the Gaussian centres with opacity >= 0.5 to mesh/ground_truth.ply (scene units, metres). Train time is "
              "training only; peak RSS is the run's process (ru_maxrss); render time is one held-out "
              "frame, mean over the held-out views. Mean ± std over scenes and seeds.", "",
              f"Command: `{report['command']}`", "", "## All scenes", "",
@@ -195,7 +200,8 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
         per_scene[scene_name] = aggregate([s for s in summaries if s["scene"] == scene_name], keys)
     report = {
         "suite": {"name": suite.name, "presets": list(suite.presets), "seeds": list(suite.seeds), "views": suite.views,
-                  "resolution": suite.resolution, "samples": suite.samples, "iterations": suite.iterations},
+                  "resolution": suite.resolution, "samples": suite.samples, "points_per_view": suite.points_per_view,
+                  "iterations": suite.iterations},
         "iterations": iterations, "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M"),
         "machine": machine_description(), "executor": type(executor).__name__, "command": command or "run_bench(...)",
         "overall": aggregate(summaries, keys), "per_scene": per_scene, "runs": summaries, "notes": notes,
