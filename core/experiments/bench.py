@@ -143,8 +143,8 @@ def bench_markdown(report: dict) -> str:
              f"{', '.join(map(str, suite['seeds']))} ({suite['views']} views, {suite['resolution']}, "
              f"{suite['samples']} samples, {suite['points_per_view']} SfM points per view); every method "
              f"trains {report['iterations']} steps with the same seed as its scene. Quality on the held-out "
-             "views (every 8th image); distances from the Gaussian centres with opacity >= 0.5 to mesh/ground_truth.ply (scene units, metres). Train time is "
-             "training only; peak RSS is the run's process (ru_maxrss); render time is one held-out "
+             "views (every 8th image); distances from the Gaussian centres with opacity >= 0.5 to "
+             "mesh/ground_truth.ply (scene units, metres). Train time is training only; peak RSS is the run's process (ru_maxrss); render time is one held-out "
              "frame, mean over the held-out views. Mean ± std over scenes and seeds.", "",
              f"Command: `{report['command']}`", "", "## All scenes", "",
              markdown_table(report["overall"], QUALITY_COLUMNS), "",
