@@ -27,21 +27,13 @@ def _resolution(text: str) -> tuple[int, int]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ..config import add_dataclass_arguments
-    from ..ndn.config import NDNDiffusionConfig, NDNModelConfig, NDNTrainConfig
+    from ..ndn.config import NDNDataConfig, NDNDiffusionConfig, NDNModelConfig, NDNTrainConfig
 
     sub = parser.add_subparsers(dest="ndn_command", metavar="ACTION", required=True)
     build = sub.add_parser("build-data", help="render synthetic scenes into NDN training shards (resumable)")
     build.add_argument("--out", type=Path, required=True, help="data folder (shards/ and manifest.json)")
-    build.add_argument("--scenes", type=int, required=True, help="training scenes to render")
-    build.add_argument("--heldout", type=int, default=1, help="held-out scenes (seeds never used in training)")
-    build.add_argument("--presets", nargs="+", default=None, help="training presets (default: all without sky)")
-    build.add_argument("--heldout-presets", nargs="+", default=[], help="presets used only for held-out scenes")
-    build.add_argument("--views", type=int, default=8, help="views per scene")
-    build.add_argument("--resolution", type=_resolution, default=(160, 90), help="render size WxH (default 160x90)")
-    build.add_argument("--samples", type=int, default=8, help="Cycles samples per pixel")
-    build.add_argument("--working-size", type=int, default=128, help="long side of the stored triples in pixels")
-    build.add_argument("--multiple", type=int, default=4, help="stored sizes are multiples of this (2**(levels-1))")
-    build.add_argument("--keep-scenes", action="store_true", help="keep the rendered scene folders under OUT/scenes")
+    add_dataclass_arguments(build, NDNDataConfig)
+    build.add_argument("--resolution", type=_resolution, default=None, help="render size WxH (sets --width/--height)")
 
     train = sub.add_parser("train", help="train the NDN network on DATA/shards/train_*.npz")
     train.add_argument("data", type=Path, help="data folder from build-data")
@@ -67,14 +59,17 @@ def run(args: argparse.Namespace) -> int:
     bar = ConsoleProgress()
     try:
         if args.ndn_command == "build-data":
-            from ..ndn.data import TRAIN_PRESETS, build_dataset
+            from dataclasses import asdict
 
-            manifest = build_dataset(args.out, args.scenes, heldout=args.heldout,
-                                     presets=tuple(args.presets or TRAIN_PRESETS),
-                                     heldout_presets=tuple(args.heldout_presets), views=args.views,
-                                     width=args.resolution[0], height=args.resolution[1], samples=args.samples,
-                                     working_size=args.working_size, multiple=args.multiple,
-                                     keep_scenes=args.keep_scenes, progress=bar)
+            from ..config import dataclass_from_args
+            from ..ndn.config import NDNDataConfig
+            from ..ndn.data import build_dataset
+
+            if args.resolution:
+                args.width, args.height = args.resolution
+            settings = asdict(dataclass_from_args(NDNDataConfig, args))
+            scenes = settings.pop("scenes")
+            manifest = build_dataset(args.out, scenes, progress=bar, **settings)
             print(f"wrote {len(manifest['scenes'])} scene shards to {args.out / 'shards'}")
             return 0
         if args.ndn_command == "train":

@@ -78,6 +78,38 @@ class NDNTrainConfig:
 
 
 @dataclass
+class NDNDataConfig:
+    """What ``esgs ndn build-data`` renders and stores."""
+
+    scenes: int = field(default=12, metadata={"help": "training scenes to render"})
+    heldout: int = field(default=1, metadata={"help": "held-out scenes (seeds never used in training)"})
+    presets: tuple[str, ...] = field(default=("cratered_plain", "crater_survey_nadir", "dune_field", "layered_outcrop",
+                                              "rocky_slope", "navcam_panorama"),
+                                     metadata={"help": "training presets, cycled (default: all without sky)"})
+    heldout_presets: tuple[str, ...] = field(default=(), metadata={"help": "presets used only for held-out scenes"})
+    views: int = field(default=8, metadata={"help": "views per scene"})
+    width: int = field(default=160, metadata={"help": "render width in pixels"})
+    height: int = field(default=90, metadata={"help": "render height in pixels"})
+    samples: int = field(default=8, metadata={"help": "Cycles samples per pixel"})
+    working_size: int = field(default=128, metadata={"help": "long side of the stored triples in pixels"})
+    multiple: int = field(default=4, metadata={"help": "stored sizes are multiples of this (2**(levels-1))"})
+    keep_scenes: bool = field(default=False, metadata={"help": "keep the rendered scene folders under OUT/scenes"})
+
+    def validate(self) -> None:
+        for name in ("scenes", "heldout"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name} must not be negative, got {getattr(self, name)}")
+        for name in ("views", "width", "height", "samples", "working_size", "multiple"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be positive, got {getattr(self, name)}")
+        if not self.presets:
+            raise ConfigError("at least one training preset is needed")
+        leaked = sorted(set(self.presets) & set(self.heldout_presets))
+        if leaked:
+            raise ConfigError(f"held-out presets {leaked} are also training presets")
+
+
+@dataclass
 class NDNConfig:
     """Model and diffusion settings saved with the weights (what inference needs)."""
 

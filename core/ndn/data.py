@@ -27,10 +27,10 @@ import numpy as np
 from ..errors import DatasetError
 from ..io_utils import atomic_path, atomic_write_json
 from ..progress import ProgressCallback, ProgressEvent, no_progress
+from .config import NDNDataConfig
 
 SHARD_FORMAT = "esgs-ndn-shard-1"
-TRAIN_PRESETS = ("cratered_plain", "crater_survey_nadir", "dune_field", "layered_outcrop", "rocky_slope",
-                 "navcam_panorama")
+TRAIN_PRESETS = NDNDataConfig().presets  # every preset without sky
 HELDOUT_SEED_OFFSET = 100_000  # held-out scenes use seeds >= this; training scenes never do
 
 
@@ -222,6 +222,9 @@ def build_dataset(out_dir: str | Path, scenes: int, *, heldout: int = 1, presets
     import shutil
     import tempfile
 
+    NDNDataConfig(scenes=scenes, heldout=heldout, presets=tuple(presets), heldout_presets=tuple(heldout_presets),
+                  views=views, width=width, height=height, samples=samples, working_size=working_size,
+                  multiple=multiple, keep_scenes=keep_scenes).validate()
     out_dir = Path(out_dir)
     (out_dir / "shards").mkdir(parents=True, exist_ok=True)
     plan = plan_scenes(scenes, heldout, tuple(presets), tuple(heldout_presets))

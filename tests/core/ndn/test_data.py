@@ -93,3 +93,34 @@ def test_held_out_seeds_never_appear_in_training():
     assert len(train) == 14 and len(heldout) == 3 and len(set(train)) == 14
     assert all(s < HELDOUT_SEED_OFFSET for _, s in train) and all(s >= HELDOUT_SEED_OFFSET for _, s in heldout)
     assert "rover_horizon" not in {p for p, _ in train}
+
+
+def test_build_data_resumes_and_checks_its_settings(scene, tmp_path, monkeypatch):
+    import subprocess
+
+    from esgs.core.errors import ConfigError
+    from esgs.core.ndn import data as data_module
+
+    out = tmp_path / "data"
+    triples = scene_triples(scene, 32, 2)
+    write_shard(out / "shards" / "train_dune_field_1.npz", triples, {})  # left by an interrupted build
+    rendered = []
+
+    def fake_render(command, **kwargs):
+        # stands in for `esgs scene`: copy the fixture scene to --out
+        import shutil
+
+        rendered.append((command[command.index("--preset") + 1], int(command[command.index("--seed") + 1])))
+        shutil.copytree(scene, command[command.index("--out") + 1])
+        return subprocess.CompletedProcess(command, 0, "", "")
+
+    monkeypatch.setattr(data_module.subprocess, "run", fake_render)
+    manifest = data_module.build_dataset(out, 2, heldout=1, presets=("dune_field", "rocky_slope"), working_size=32,
+                                         multiple=2)
+    assert rendered == [("rocky_slope", 1), ("dune_field", HELDOUT_SEED_OFFSET)]  # the existing shard is skipped
+    assert sorted(p.name for p in (out / "shards").iterdir()) == [
+        "heldout_dune_field_100000.npz", "train_dune_field_1.npz", "train_rocky_slope_1.npz"]
+    assert len(manifest["scenes"]) == 3 and not [p for p in out.iterdir() if p.name.startswith(".")]
+    assert load_shards(out, "heldout")["views"].shape == (4, 9, 18, 32)
+    with pytest.raises(ConfigError, match="also training presets"):
+        data_module.build_dataset(out, 1, presets=("dune_field",), heldout_presets=("dune_field",))
