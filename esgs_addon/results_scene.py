@@ -76,7 +76,7 @@ def build_results_blend(scene_dir: str | Path, run_dir: str | Path, out_dir: str
         raise DatasetError("the run has no point_cloud.ply", path=ply_path, hint="train first (esgs train)")
     out_dir.mkdir(parents=True, exist_ok=True)
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    from ... import register
+    from .. import register
 
     register()
     imported = import_colmap_scene(scene_dir, ColmapImportOptions(import_points=False))
