@@ -113,10 +113,11 @@ def train_method(config: DemoConfig, scene: Path, name: str, esgs: dict, progres
     from .train import TrainConfig, train
 
     run = config.out / "runs" / name
-    result_path = run / "result.json"
-    if result_path.is_file() and json.loads(result_path.read_text()).get("status") in ("completed", "time_limit"):
+    result_path = run / "train_result.json"
+    if result_path.is_file() and json.loads(result_path.read_text()).get("status") in ("completed", "time_limit") \
+            and (run / "metrics.json").is_file():
         progress(ProgressEvent(0, 1, name, kind="message", message=f"{name}: reusing finished run {run}"))
-        return json.loads(result_path.read_text())
+        return _run_summary(run)
     train_config = TrainConfig(scene=scene, out=run, iterations=config.iterations, max_gaussians=config.max_gaussians,
                                threads=config.threads, resume=(run / "checkpoints").is_dir(),
                                esgs=config_from_dict(ESGSConfig, esgs), progress_every=20)
@@ -129,8 +130,16 @@ def train_method(config: DemoConfig, scene: Path, name: str, esgs: dict, progres
     def relabel(event: ProgressEvent) -> None:
         progress(ProgressEvent(event.step, event.total, f"train {name}", dict(event.metrics), event.kind, event.message))
 
-    result = train(train_config, progress=relabel, hooks=hooks)
-    return json.loads((run / "result.json").read_text()) if (run / "result.json").is_file() else result.to_dict()
+    train(train_config, progress=relabel, hooks=hooks)
+    return _run_summary(run)
+
+
+def _run_summary(run: Path) -> dict:
+    """What the report needs of a finished run: its train_result.json plus metrics.json."""
+    summary = json.loads((run / "train_result.json").read_text())
+    metrics_path = run / "metrics.json"
+    summary["metrics"] = json.loads(metrics_path.read_text()) if metrics_path.is_file() else None
+    return summary
 
 
 def mesh_distances(scene: Path, run: Path, opacity_min: float = 0.5, threshold: float = 0.05) -> dict:
