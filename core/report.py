@@ -183,6 +183,13 @@ def _geometry_figure(config: Any, scene: Path, out: Path) -> Optional[str]:
     return path.name
 
 
+def _is_synthetic(scene: Path) -> bool:
+    try:
+        return json.loads((scene / "scene.json").read_text()).get("source") == "synthetic"
+    except (OSError, json.JSONDecodeError):
+        return False
+
+
 def write_report(config: Any, scene: Path, runs: dict[str, dict], distances: dict[str, dict],
                  blender: Optional[dict], timings: dict[str, float]) -> Path:
     """Write ``OUT/report.md`` and its pictures under ``OUT/report/``; returns the Markdown path."""
@@ -194,6 +201,9 @@ def write_report(config: Any, scene: Path, runs: dict[str, dict], distances: dic
              f"{platform.processor() or platform.machine()} ({time.strftime('%Y-%m-%d %H:%M')}). "
              f"ESGS used the `{config.priors}` priors"
              f"{' and GPDFN' if config.gpdfn else ''}. Every 8th view (sorted by name) is held out.", ""]
+    if config.priors == "sfm" and _is_synthetic(scene):
+        lines += ["Note: in a synthetic scene the COLMAP points are sampled on the true surface, so the `sfm` "
+                  "prior here is sparse but exact depth; on real images it carries SfM's errors.", ""]
 
     lines += ["## Metrics", "",
               "| method | PSNR (dB) | SSIM | LPIPS | Gaussians | train time (s) | mean dist | std dist | F-score |",
