@@ -10,7 +10,7 @@ HELP = "compare 3DGS, Mip-Splatting, DropoutGS, ESGS ablations and ESGS on synth
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--suite", choices=("quick", "full"), default="quick",
-                        help="quick: cratered_plain seed 0, 10 views 160x90, 300 points/view, 300 steps (~15 min on 2 busy cores); "
+                        help="quick: cratered_plain seed 0, 10 views 160x90, 300 points/view, 300 steps (~8 min on 2 busy cores); "
                              "full: cratered_plain, dune_field, rocky_slope, crater_survey_nadir x seeds 0 1 2, "
                              "30 views 480x270, 7000 steps")
     parser.add_argument("--out", type=Path, required=True, help="bench folder (scenes/, runs/, benchmarks.md)")

@@ -44,7 +44,7 @@ class BenchSuite:
 
 SUITES = {
     "quick": BenchSuite("quick", presets=("cratered_plain",), seeds=(0,), views=10, resolution="160x90", samples=8,
-                        iterations=300, points_per_view=300, description="one small scene, one seed, 300 steps: ~15 minutes on 2 busy cores"),
+                        iterations=300, points_per_view=300, description="one small scene, one seed, 300 steps: ~8 minutes on 2 busy cores"),
     "full": BenchSuite("full", presets=("cratered_plain", "dune_field", "rocky_slope", "crater_survey_nadir"),
                        seeds=(0, 1, 2), views=30, resolution="480x270", samples=32, iterations=7000,
                        description="4 presets x 3 seeds at 480x270, 7,000 steps: hours on a CPU, best on a GPU cluster"),
