@@ -362,3 +362,17 @@ def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if len(faces) == 0:
         raise DatasetError("the file holds no triangles", path=path, hint="give a surface mesh")
     return np.asarray(mesh.vertices, dtype=np.float64), faces.astype(np.int64)
+
+
+def compare_ply_to_mesh(gaussians_path: str | Path, mesh_path: str | Path, **options) -> MeshComparison:
+    """:func:`compare_points_to_mesh` for a 3DGS PLY file against a mesh file.
+
+    ``options`` are those of :func:`compare_points_to_mesh` (opacity_min, threshold_m, ...);
+    the opacities come from the PLY (activated).
+    """
+    from .ply import read_gaussians_ply
+
+    gaussians = read_gaussians_ply(gaussians_path)
+    vertices, faces = load_mesh(mesh_path)
+    return compare_points_to_mesh(np.asarray(gaussians.means, dtype=np.float64), vertices, faces,
+                                  opacities=gaussians.opacities(), **options)

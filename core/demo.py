@@ -16,7 +16,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
-import numpy as np
 
 from .errors import ConfigError, ESGSError
 from .progress import ProgressCallback, ProgressEvent, no_progress
@@ -144,13 +143,10 @@ def _run_summary(run: Path) -> dict:
 
 def mesh_distances(scene: Path, run: Path, opacity_min: float = 0.5, threshold: float = 0.05) -> dict:
     """Gaussian-centre <-> ground-truth mesh statistics of a run (core only, no Blender)."""
-    from .compare import compare_points_to_mesh, load_mesh
-    from .ply import read_gaussians_ply
+    from .compare import compare_ply_to_mesh
 
-    gaussians = read_gaussians_ply(run / "point_cloud.ply")
-    vertices, faces = load_mesh(scene / "mesh" / "ground_truth.ply")
-    result = compare_points_to_mesh(gaussians.means.astype(np.float64), vertices, faces,
-                                    opacities=gaussians.opacities(), opacity_min=opacity_min, threshold_m=threshold)
+    result = compare_ply_to_mesh(run / "point_cloud.ply", scene / "mesh" / "ground_truth.ply",
+                                 opacity_min=opacity_min, threshold_m=threshold)
     return result.summary
 
 

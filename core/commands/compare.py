@@ -22,15 +22,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from ..compare import compare_points_to_mesh, load_mesh
+    from ..compare import compare_ply_to_mesh
     from ..io_utils import atomic_write_json
-    from ..ply import read_gaussians_ply
 
-    gaussians = read_gaussians_ply(args.gaussians)
-    vertices, faces = load_mesh(args.mesh)
-    result = compare_points_to_mesh(gaussians.means, vertices, faces, opacities=gaussians.opacities(),
-                                    opacity_min=args.opacity_min, threshold_m=args.threshold,
-                                    n_surface_samples=args.samples, seed=args.seed)
+    result = compare_ply_to_mesh(args.gaussians, args.mesh, opacity_min=args.opacity_min,
+                                 threshold_m=args.threshold, n_surface_samples=args.samples, seed=args.seed)
     summary = dict(result.summary, gaussians_file=str(args.gaussians), mesh_file=str(args.mesh))
     if args.out:
         atomic_write_json(args.out, summary)

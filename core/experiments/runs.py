@@ -55,16 +55,9 @@ def peak_memory_mib() -> float:
 def geometry_figures(point_cloud: Path, mesh: Path, *, opacity_min: float = 0.5,
                      surface_samples: int = 20_000) -> dict[str, Any]:
     """Mean and std of the distances from the centres (opacity >= ``opacity_min``) to ``mesh``."""
-    import numpy as np
+    from ..compare import compare_ply_to_mesh
 
-    from ..compare import compare_points_to_mesh, load_mesh
-    from ..ply import read_gaussians_ply
-
-    ply = read_gaussians_ply(point_cloud)
-    opacities = 1.0 / (1.0 + np.exp(-np.asarray(ply.opacity_logit, dtype=np.float64)))
-    vertices, faces = load_mesh(mesh)
-    summary = compare_points_to_mesh(ply.means, vertices, faces, opacities=opacities, opacity_min=opacity_min,
-                                     n_surface_samples=surface_samples).summary
+    summary = compare_ply_to_mesh(point_cloud, mesh, opacity_min=opacity_min, n_surface_samples=surface_samples).summary
     filtered = summary["gaussians_to_mesh_filtered"]
     return {"distance_mean": filtered["mean"], "distance_std": filtered["std"],
             "distance_count": filtered["count"], "fscore": summary["fscore"]}
