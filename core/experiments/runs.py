@@ -106,7 +106,8 @@ def run_task(task: RunTask) -> dict[str, Any]:
     started = time.perf_counter()
     result = train(config)
     wall_s = time.perf_counter() - started
-    if result.status != "completed":
+    # a time budget (max_minutes) ends a run early on purpose: that run is finished too
+    if result.status not in (("completed", "time_limit") if config.max_minutes else ("completed",)):
         from ..errors import ESGSError
 
         raise ESGSError(f"run {task.name} ended with status {result.status}", path=task.out,
@@ -114,7 +115,8 @@ def run_task(task: RunTask) -> dict[str, Any]:
     metrics = result.metrics or {}
     summary: dict[str, Any] = {
         "name": task.name, "variant": task.variant, "seed": task.seed, "scene": task.scene_name or str(task.scene),
-        "status": result.status, "steps": result.step, "n_gaussians": result.n_gaussians,
+        "status": result.status, "steps": result.step, "iterations": config.iterations,
+        "max_minutes": config.max_minutes or None, "n_gaussians": result.n_gaussians,
         "psnr": metrics.get("psnr"), "ssim": metrics.get("ssim"), "lpips": metrics.get("lpips"),
         "train_s": result.elapsed_s, "wall_s": wall_s, "peak_memory_mib": peak_memory_mib(),
         "distance_mean": None, "distance_std": None,
