@@ -14,6 +14,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="seeds (default: 0)")
     parser.add_argument("--priors", default="",
                         help="prior source of the grid and K studies (default: first of gt, labels, ndn, sfm)")
+    parser.add_argument("--studies", default="grid,priors,fused_k",
+                        help="comma-separated studies to run: grid, priors, fused_k (default: all three)")
     parser.add_argument("--fused-k", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="K values of the GPDFN study")
     parser.add_argument("--width", type=int, default=0, help="train at this image width (0 = full size)")
     parser.add_argument("--threads", type=int, default=0, help="CPU threads per run (0 = library default)")
@@ -29,7 +31,8 @@ def run(args: argparse.Namespace) -> int:
 
     train = {"width": args.width, "threads": args.threads, "backend": args.backend, "lpips": args.lpips}
     table = run_ablation(args.scene, args.out, iterations=args.iterations, seeds=args.seeds, priors=args.priors,
-                         fused_ks=args.fused_k, train=train, on_run=report)
+                         fused_ks=args.fused_k, train=train, on_run=report,
+                         studies=[name.strip() for name in args.studies.split(",") if name.strip()])
     print(f"wrote {Path(args.out) / 'ablation.md'}")
     for item in table["failed"]:
         print(f"FAILED {item['run']}: {item['error']}")

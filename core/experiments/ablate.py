@@ -5,7 +5,8 @@ Three studies, every run at the same step count and seeds, each in its own folde
 
 - **grid**: 3DGS; +depth; +normal; +depth+normal; +all (depth + normal + GPDFN, K = 3),
   with the priors of ``priors`` (default: the first of gt, labels, ndn, sfm in SCENE/priors);
-- **priors**: full ESGS with each prior source that exists (none = GPDFN only);
+- **priors**: the 3DGS baseline, then full ESGS with each prior source that exists (none =
+  GPDFN only; gt last, the upper bound);
 - **fused_k**: full ESGS with K = 1..5 fused Gaussians (K = 1 is GPDFN off).
 
 Results: ``OUT/ablation.md`` and ``OUT/ablation.json`` (mean and std over seeds of SSIM,
@@ -23,6 +24,8 @@ from .tables import QUALITY_COLUMNS, aggregate, markdown_table
 
 #: Prior sources in the order of the paper's prior-source study (none first).
 PRIOR_SOURCES = ("none", "sfm", "ndn", "labels", "gt")
+#: The studies, in the order of the tables.
+STUDIES = ("grid", "priors", "fused_k")
 #: Preference when no source is named.
 DEFAULT_PRIOR_ORDER = ("gt", "labels", "ndn", "sfm")
 MESH_PATH = Path("mesh") / "ground_truth.ply"
@@ -69,8 +72,12 @@ def _variant(study: str, label: str, *, source: str = "", depth: bool = False, n
     return Variant(study, label, key, tuple(sorted(esgs.items())))
 
 
-def ablation_variants(scene: Path, priors: str = "", fused_ks: Sequence[int] = (1, 2, 3, 4, 5)) -> list[Variant]:
-    """Every (study, variant) of the ablation on ``scene``; see the module docstring."""
+def ablation_variants(scene: Path, priors: str = "", fused_ks: Sequence[int] = (1, 2, 3, 4, 5),
+                      studies: Sequence[str] = STUDIES) -> list[Variant]:
+    """Every (study, variant) of the chosen ``studies`` on ``scene``; see the module docstring."""
+    unknown = [name for name in studies if name not in STUDIES]
+    if unknown or not studies:
+        raise ConfigError(f"unknown or no studies {', '.join(unknown)}".rstrip(), hint=f"choose among {', '.join(STUDIES)}")
     found = available_priors(scene)
     if priors and priors != "none" and priors not in found:
         raise DatasetError(f"no prior maps for source {priors!r} (depth/ or normal/)", path=Path(scene) / "priors" / priors,
@@ -89,6 +96,7 @@ def ablation_variants(scene: Path, priors: str = "", fused_ks: Sequence[int] = (
         variants.append(_variant("grid", "+depth+normal", source=source, depth=True, normal=True))
     variants.append(_variant("grid", "+all (depth+normal+GPDFN)" if kinds else "+GPDFN", source=source,
                              depth=depth, normal=normal, fused_k=3))
+    variants.append(_variant("priors", "3DGS"))
     for name in PRIOR_SOURCES:
         if name == "none":
             variants.append(_variant("priors", "none", fused_k=3))
@@ -99,14 +107,15 @@ def ablation_variants(scene: Path, priors: str = "", fused_ks: Sequence[int] = (
         if not 1 <= k <= 5:
             raise ConfigError(f"fused K must be in 1..5, got {k}")
         variants.append(_variant("fused_k", f"K={k}", source=source, depth=depth, normal=normal, fused_k=k))
-    return variants
+    return [variant for variant in variants if variant.study in studies]
 
 
 def plan_ablation(scene: Path, out: Path, *, iterations: int, seeds: Sequence[int], priors: str = "",
-                  fused_ks: Sequence[int] = (1, 2, 3, 4, 5), train: Optional[dict] = None) -> tuple[list[Variant], list[RunTask]]:
+                  fused_ks: Sequence[int] = (1, 2, 3, 4, 5), train: Optional[dict] = None,
+                  studies: Sequence[str] = STUDIES) -> tuple[list[Variant], list[RunTask]]:
     """The variants and the (deduplicated) run tasks of an ablation."""
     scene, out = Path(scene), Path(out)
-    variants = ablation_variants(scene, priors, fused_ks)
+    variants = ablation_variants(scene, priors, fused_ks, studies)
     mesh = scene / MESH_PATH
     tasks: dict[tuple[str, int], RunTask] = {}
     for variant in variants:
@@ -138,12 +147,13 @@ STUDY_TITLES = {"grid": "Ablation grid", "priors": "Prior sources", "fused_k": "
 
 def run_ablation(scene: str | Path, out: str | Path, *, iterations: int = 3000, seeds: Sequence[int] = (0,),
                  priors: str = "", fused_ks: Sequence[int] = (1, 2, 3, 4, 5), train: Optional[dict] = None,
-                 on_run: Optional[Callable[[RunTask, str], None]] = None) -> dict:
+                 on_run: Optional[Callable[[RunTask, str], None]] = None, studies: Sequence[str] = STUDIES) -> dict:
     """Run (or finish) the ablation of ``scene`` into ``out``; returns the table (also written).
 
     Runs train in this process one after another; a finished run (summary.json) is not
     repeated, a failed one is reported in the table's ``failed`` list and the others go on.
-    ``train``: further TrainConfig values for every run (width, threads, backend, lpips...).
+    ``train``: further TrainConfig values for every run (width, threads, backend, lpips...);
+    ``studies``: which of :data:`STUDIES` to run.
     """
     from ..io_utils import atomic_write_json, atomic_write_text
     from .runs import run_task
@@ -152,7 +162,7 @@ def run_ablation(scene: str | Path, out: str | Path, *, iterations: int = 3000, 
     if not (scene / "sparse").is_dir():
         raise DatasetError("not a scene folder (no sparse/)", path=scene, hint="make one with esgs scene or esgs colmap")
     variants, tasks = plan_ablation(scene, out, iterations=iterations, seeds=seeds, priors=priors,
-                                    fused_ks=fused_ks, train=train)
+                                    fused_ks=fused_ks, train=train, studies=studies)
     summaries: dict[str, list[dict]] = {}
     failed = []
     for task in tasks:

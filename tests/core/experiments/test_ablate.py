@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from esgs.core.errors import DatasetError
+from esgs.core.errors import ConfigError, DatasetError
 from esgs.core.experiments.ablate import ablation_variants, plan_ablation, run_ablation
 from esgs.core.experiments.tables import mean_std
 
@@ -27,7 +27,7 @@ def test_variants_follow_the_paper_and_share_identical_runs(scene, tmp_path):
     grid = [(v.label, v.key) for v in variants if v.study == "grid"]
     assert grid == [("3DGS", "3dgs"), ("+depth", "depth-gt"), ("+normal", "normal-gt"),
                     ("+depth+normal", "depth-normal-gt"), ("+all (depth+normal+GPDFN)", "depth-normal-gpdfn3-gt")]
-    assert [v.label for v in variants if v.study == "priors"] == ["none", "gt"]
+    assert [v.label for v in variants if v.study == "priors"] == ["3DGS", "none", "gt"]
     k_keys = [v.key for v in variants if v.study == "fused_k"]
     assert k_keys[0] == "depth-normal-gt" and k_keys[2] == "depth-normal-gpdfn3-gt" and len(k_keys) == 5
     _, tasks = plan_ablation(scene, tmp_path, iterations=10, seeds=[0, 1])
@@ -35,6 +35,16 @@ def test_variants_follow_the_paper_and_share_identical_runs(scene, tmp_path):
     assert len(tasks) == 18 and len({task.out for task in tasks}) == 18
     with pytest.raises(DatasetError, match="labels"):
         ablation_variants(scene, priors="labels")
+
+
+def test_studies_can_be_chosen_and_the_prior_study_has_the_3dgs_baseline(scene, tmp_path):
+    variants = ablation_variants(scene, studies=["priors"])
+    assert {v.study for v in variants} == {"priors"}
+    assert [(v.label, v.key) for v in variants] == [("3DGS", "3dgs"), ("none", "gpdfn3"), ("gt", "depth-normal-gpdfn3-gt")]
+    _, tasks = plan_ablation(scene, tmp_path, iterations=10, seeds=[0, 1, 2], studies=["priors"])
+    assert sorted(task.name for task in tasks)[:3] == ["3dgs/seed0", "3dgs/seed1", "3dgs/seed2"] and len(tasks) == 9
+    with pytest.raises(ConfigError, match="fused"):
+        ablation_variants(scene, studies=["fused"])
 
 
 def test_mean_std_over_seeds():
@@ -76,10 +86,11 @@ def test_ablate_command_runs_the_priors_none_grid_and_reports(scene, tmp_path, c
 
     out = tmp_path / "cli"
     code = main(["ablate", str(scene), "--out", str(out), "--iterations", "2", "--priors", "none", "--fused-k", "3",
-                 "--backend", "cpu", "--threads", "1", "--no-lpips"])
+                 "--backend", "cpu", "--threads", "1", "--no-lpips", "--studies", "grid,priors"])
     assert code == 0
     table = json.loads((out / "ablation.json").read_text())
     # without priors: 3DGS and GPDFN only, in every study
     assert [row["run"] for row in table["studies"]["grid"]] == ["3dgs", "gpdfn3"]
-    assert {row["run"] for row in table["studies"]["priors"]} == {"gpdfn3", "depth-normal-gpdfn3-gt"}
+    assert list(table["studies"]) == ["grid", "priors"]
+    assert {row["run"] for row in table["studies"]["priors"]} == {"3dgs", "gpdfn3", "depth-normal-gpdfn3-gt"}
     assert "wrote" in capsys.readouterr().out
