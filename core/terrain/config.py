@@ -188,6 +188,7 @@ class RigConfig:
     look_offset_deg: float = field(default=0.0, metadata=_help("rover: camera yaw relative to the driving direction (90 = looking left)"))
     yaw_sweep_deg: float = field(default=0.0, metadata=_help("rover: views alternate left/centre/right by this much (widens coverage)"))
     pivot_offset_m: float = field(default=0.0, metadata=_help("panorama: camera distance from the pan axis (0 = pure rotation, no parallax)"))
+    pan_overlap: float = field(default=0.0, metadata=_help("panorama: least share of the horizontal field of view that neighbouring pointings overlap; too few views then cover less than sweep_deg (0 = always spread over sweep_deg)"))
     center_x_m: float = field(default=0.0, metadata=_help("site centre x (station, orbit target, aerial grid centre)"))
     center_y_m: float = field(default=0.0, metadata=_help("site centre y"))
     jitter_deg: float = field(default=0.0, metadata=_help("random yaw/pitch perturbation per view, degrees"))
@@ -206,6 +207,7 @@ class RigConfig:
         _require(0 < self.sweep_deg <= 360.0, s + "sweep_deg", "must be in (0, 360]", self.sweep_deg)
         for name in ("wander_m", "yaw_sweep_deg", "pivot_offset_m", "jitter_deg", "min_clearance_m", "stereo_baseline_m"):
             _require(getattr(self, name) >= 0, s + name, "must not be negative", getattr(self, name))
+        _require(0.0 <= self.pan_overlap < 1.0, s + "pan_overlap", "must be in [0, 1)", self.pan_overlap)
         if self.stereo_baseline_m > 0:
             _require(self.views >= 2 and self.views % 2 == 0, s + "views",
                      "must be even (left/right pairs) when rig.stereo_baseline_m is set", self.views)

@@ -11,9 +11,11 @@ Kinds (``RigConfig.kind``):
 * ``rover_traverse``: a mast camera ``height_m`` above the ground, driving ``spacing_m``
   between views along a gently curving path centred on the site, looking forward with
   ``pitch_deg``; ``yaw_sweep_deg`` alternates views left / centre / right.
-* ``station_panorama``: one mast position, the camera pans through ``sweep_deg``.
-  With ``pivot_offset_m = 0`` it is a pure rotation: no parallax, so SfM cannot
-  triangulate it (real panoramas have a small offset; set ``pivot_offset_m`` ~0.2-0.5).
+* ``station_panorama``: one mast position, the camera pans through ``sweep_deg``
+  (``pan_overlap`` > 0 keeps neighbouring frames overlapping, narrowing the sweep when there
+  are too few views). With ``pivot_offset_m = 0`` and no stereo baseline it is a pure
+  rotation: no parallax, so SfM cannot triangulate it (real mast heads sit off the pan axis,
+  ``pivot_offset_m`` ~0.2-0.5, and Navcams are stereo pairs, ``stereo_baseline_m`` 0.424).
 * ``orbit``: a circle (or arc of ``sweep_deg``) of radius ``radius_m``, ``height_m`` above
   the site centre, every view aimed at the site centre.
 * ``aerial_oblique``: aim points on a serpentine grid over a square of half-size
@@ -147,8 +149,31 @@ def _grid_offsets(views: int, radius: float) -> list[tuple[float, float, int]]:
     return result[:views]
 
 
-def _positions_and_angles(rig: RigConfig, terrain: Terrain, rng: np.random.Generator):
-    """Camera positions [V, 3], yaws [V], pitches [V] (radians) and orbit target or None."""
+def panorama_yaw_offsets_deg(sweep_deg: float, pointings: int, fov_deg: float, pan_overlap: float) -> np.ndarray:
+    """Pan angles [pointings] of a station panorama, degrees from ``heading_deg``.
+
+    A full circle starts at the heading and steps 360 / pointings; a partial sweep is centred
+    on the heading. With ``pan_overlap`` > 0 the step is at most ``fov_deg * (1 - pan_overlap)``:
+    neighbouring frames then always share that much of the horizontal field of view (as rover
+    panoramas are planned, so frames can be tied together), and too few pointings cover less
+    than ``sweep_deg``, centred on the heading.
+    """
+    index = np.arange(pointings, dtype=np.float64)
+    full_circle = sweep_deg >= 360.0
+    step = 360.0 / pointings if full_circle else (sweep_deg / (pointings - 1) if pointings > 1 else 0.0)
+    if pan_overlap > 0 and step > fov_deg * (1.0 - pan_overlap):
+        step = fov_deg * (1.0 - pan_overlap)
+        full_circle = False
+    if full_circle:
+        return step * index
+    return step * (index - (pointings - 1) / 2.0)
+
+
+def _positions_and_angles(rig: RigConfig, terrain: Terrain, rng: np.random.Generator, fov_deg: float = 60.0):
+    """Camera positions [V, 3], yaws [V], pitches [V] (radians) and orbit target or None.
+
+    ``fov_deg``: the horizontal field of view (for the panorama's overlap).
+    """
     views = rig.views
     center = np.array([rig.center_x_m, rig.center_y_m])
     heading = math.radians(rig.heading_deg)
@@ -178,11 +203,7 @@ def _positions_and_angles(rig: RigConfig, terrain: Terrain, rng: np.random.Gener
         positions[:, :2] = xy
         positions[:, 2] = terrain.height_at(xy[:, 0], xy[:, 1]) + rig.height_m
     elif rig.kind == "station_panorama":
-        sweep = math.radians(rig.sweep_deg)
-        if rig.sweep_deg >= 360.0:
-            yaws = heading + sweep * np.arange(views) / views
-        else:
-            yaws = heading - sweep / 2 + (sweep * np.arange(views) / (views - 1) if views > 1 else np.zeros(views))
+        yaws = heading + np.radians(panorama_yaw_offsets_deg(rig.sweep_deg, views, fov_deg, rig.pan_overlap))
         ground = float(terrain.height_at(center[0], center[1]))
         positions[:, 0] = center[0] + rig.pivot_offset_m * np.cos(yaws)
         positions[:, 1] = center[1] + rig.pivot_offset_m * np.sin(yaws)
@@ -246,7 +267,8 @@ def make_camera_rig(rig: RigConfig, render: RenderConfig, terrain: Terrain, seed
     if rig.stereo_baseline_m > 0:
         # Stereo: views / 2 pointings, each seen by a left and a right camera (parallel
         # axes, centres ``stereo_baseline_m`` apart along the horizontal right axis).
-        positions, yaws, pitches, target = _positions_and_angles(dataclasses.replace(rig, views=rig.views // 2), terrain, rng)
+        positions, yaws, pitches, target = _positions_and_angles(dataclasses.replace(rig, views=rig.views // 2), terrain, rng,
+                                                              render.fov_deg)
         right = np.stack([np.sin(yaws), -np.cos(yaws), np.zeros_like(yaws)], axis=1)
         half = 0.5 * rig.stereo_baseline_m
         positions = np.stack([positions - half * right, positions + half * right], axis=1).reshape(-1, 3)
@@ -254,7 +276,7 @@ def make_camera_rig(rig: RigConfig, render: RenderConfig, terrain: Terrain, seed
         positions[:, 2] = np.maximum(positions[:, 2], floor)
         yaws, pitches = np.repeat(yaws, 2), np.repeat(pitches, 2)
     else:
-        positions, yaws, pitches, target = _positions_and_angles(rig, terrain, rng)
+        positions, yaws, pitches, target = _positions_and_angles(rig, terrain, rng, render.fov_deg)
     K = intrinsics(render)
     poses = []
     for index in range(rig.views):

@@ -242,3 +242,41 @@ def test_ground_depth_matches_a_flat_plane():
     np.testing.assert_allclose(depth, expected, rtol=1e-6)
     # The image centre looks 30 deg down: z-depth there = 2 / sin(30 deg).
     assert depth[0] == pytest.approx(4.0, rel=1e-6)
+
+
+def test_panorama_overlap_narrows_a_sweep_too_wide_for_its_views():
+    terrain = hilly_terrain()
+
+    def pan_angles(**changes):
+        poses = make_camera_rig(rig("station_panorama", jitter_deg=0.0, heading_deg=20.0, **changes), RENDER, terrain)
+        return np.degrees(np.unwrap([math.atan2(p.forward[1], p.forward[0]) for p in poses]))
+
+    # 6 views over 360 deg step 60 deg: a 60 deg camera would leave no overlap at all.
+    np.testing.assert_allclose(np.diff(pan_angles(views=6)), 60.0, atol=1e-9)
+    # At least 40 % overlap: steps of 36 deg, the narrower sweep centred on the heading.
+    narrowed = pan_angles(views=6, pan_overlap=0.4)
+    np.testing.assert_allclose(np.diff(narrowed), 36.0, atol=1e-9)
+    assert narrowed.mean() == pytest.approx(20.0, abs=1e-9)
+    # Enough views already overlap: the full circle from the heading is kept.
+    full = pan_angles(views=30, pan_overlap=0.4)
+    np.testing.assert_allclose(np.diff(full), 12.0, atol=1e-9)
+    assert full[0] == pytest.approx(20.0, abs=1e-9)
+    # A partial sweep is narrowed the same way (6 views over 270 deg: step 54 -> 36 deg).
+    np.testing.assert_allclose(np.diff(pan_angles(views=6, sweep_deg=270.0, pan_overlap=0.4)), 36.0, atol=1e-9)
+    with pytest.raises(ConfigError, match="rig.pan_overlap"):
+        make_camera_rig(rig("station_panorama", pan_overlap=1.0), RENDER, terrain)
+
+
+def test_navcam_panorama_with_few_views_still_chains_its_pointings():
+    # With 12 views (6 stereo pointings) a 360 deg pan would leave 15 deg gaps between the
+    # 45 deg frames; the preset's pan_overlap keeps neighbouring pointings tied together.
+    config = load_preset("navcam_panorama", seed=3, views=12, resolution=(320, 180))
+    config.validate()
+    terrain = generate_terrain(config.terrain, seed=config.seed)
+    poses = make_camera_rig(config.rig, config.render, terrain, seed=config.seed)
+    left = poses[0::2]
+    overlaps = [ground_overlap(a, b, terrain, samples=20) for a, b in zip(left[:-1], left[1:])]
+    assert min(overlaps) > 0.2
+    # and every pair has parallax: the two centres are a stereo baseline apart
+    for a, b in zip(poses[0::2], poses[1::2]):
+        assert np.linalg.norm(a.camera_center - b.camera_center) == pytest.approx(config.rig.stereo_baseline_m, abs=1e-9)
