@@ -40,11 +40,17 @@ def make_scene(job, out: Path, *, progress=None, save_blend: Path | None = None)
     import bpy
 
     from .render_dataset import render_dataset
-    from .terrain_scene import build_terrain_scene
 
     config = job.scene_config()
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    objects = build_terrain_scene(config, progress=progress)
+    if job.mesh:
+        from .mesh_scene import build_mesh_scene
+
+        objects = build_mesh_scene(config, progress=progress)
+    else:
+        from .terrain_scene import build_terrain_scene
+
+        objects = build_terrain_scene(config, progress=progress)
     result = render_dataset(objects, out, progress=progress, sfm=job.sfm, overwrite=job.overwrite,
                             points_per_view=job.points_per_view)
     if save_blend is not None:

@@ -461,6 +461,8 @@ def render_dataset(objects: dict[str, Any], out_dir: str | Path, *, progress: Ca
             "render": {"engine": "CYCLES", "device": "CPU", "samples": int(config.render.samples),
                        "denoiser": "OPENIMAGEDENOISE", "pixel_filter": "blackman_harris 1.5 px",
                        "seconds": round(time.perf_counter() - start, 2)},
+            # scenes from an external mesh (mesh_scene.py) describe their source and frame here
+            **objects.get("scene_info", {}),
         })
     report(ProgressEvent(total, total, "export", kind="done", message=f"scene folder written: {out_dir}"))
     return out_dir

@@ -38,6 +38,9 @@ class SceneJob:
     points_per_view: int = field(default=2000, metadata={"help": "surface pixels per view lifted to COLMAP points3D"})
     sfm: bool = field(default=False, metadata={"help": "also run pycolmap SfM on the renders into sparse_sfm/0"})
     overwrite: bool = field(default=False, metadata={"help": "replace an existing output folder (only once the new one is complete)"})
+    mesh: str = field(default="", metadata={"help": "render this textured mesh (.glb/.gltf/.obj/.ply) instead of a synthetic preset (docs/mesh_scenes.md)"})
+    rig: str = field(default="traverse", metadata={"help": "with --mesh: camera layout", "choices": ("traverse", "orbit")})
+    mast_height_m: float = field(default=2.0, metadata={"help": "with --mesh --rig traverse: camera height above the surface, metres"})
 
     def validate(self) -> None:
         from ..errors import ConfigError
@@ -51,6 +54,27 @@ class SceneJob:
             raise ConfigError(f"set both width and height (or neither), got {self.width}x{self.height}")
         if self.points_per_view < 1:
             raise ConfigError(f"points_per_view must be positive, got {self.points_per_view}")
+        if self.mesh and self.config:
+            raise ConfigError("--mesh and --config exclude each other", hint="a mesh scene takes its settings from the flags")
+
+    def mesh_scene_config(self) -> Any:
+        """The validated MeshSceneConfig of a ``--mesh`` job (DatasetError for a missing mesh file)."""
+        import dataclasses
+        from pathlib import Path
+
+        from ..mesh_scene import MeshRigConfig, MeshSceneConfig
+
+        base = MeshSceneConfig()
+        render = dataclasses.replace(base.render)
+        if self.width:
+            render.width, render.height = self.width, self.height
+        if self.samples:
+            render.samples = self.samples
+        rig = MeshRigConfig(kind=self.rig, views=self.views or base.rig.views, mast_height_m=self.mast_height_m)
+        config = MeshSceneConfig(mesh=str(Path(self.mesh).expanduser().resolve()), name=Path(self.mesh).stem,
+                                 seed=self.seed if self.seed >= 0 else 0, rig=rig, render=render)
+        config.validate()
+        return config
 
     def scene_config(self) -> Any:
         """The validated SceneConfig this job renders (raises ConfigError for bad settings)."""
@@ -58,6 +82,8 @@ class SceneJob:
         from ..terrain import load_preset, load_scene_config, scene_config_from_dict
 
         self.validate()
+        if self.mesh:
+            return self.mesh_scene_config()
         if not self.config:
             return load_preset(self.preset, seed=self.seed if self.seed >= 0 else None, views=self.views or None,
                                resolution=(self.width, self.height) if self.width else None,
@@ -111,6 +137,8 @@ def child_arguments(job: SceneJob, out: Path) -> list[str]:
                  "--samples", str(job.samples), "--points-per-view", str(job.points_per_view), "--out", str(out)]
     if job.config:
         arguments += ["--config", job.config]
+    if job.mesh:
+        arguments += ["--mesh", job.mesh, "--rig", job.rig, "--mast-height-m", repr(job.mast_height_m)]
     if job.width:
         arguments += ["--resolution", f"{job.width}x{job.height}"]
     arguments.append("--sfm" if job.sfm else "--no-sfm")
