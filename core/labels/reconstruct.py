@@ -1,0 +1,247 @@
+"""A terrain mesh rebuilt on the CPU from a scene's own images and poses (``--reconstruct``).
+
+Never the exact mesh, never trained Gaussians: only ``images/`` and ``sparse/0`` (poses,
+intrinsics; the sparse points give each view's depth range and the ground plane, never
+mesh vertices). Steps:
+
+1. **Depth per view**: multi-view plane-sweep stereo with ZNCC (:mod:`.stereo`), fronto-
+   parallel and ground-parallel planes, each view against its best neighbours.
+2. **Cross-view check**: a depth survives when at least ``min_agreeing`` neighbours'
+   depth maps agree within ``consistency_tolerance`` (relative) at its projection.
+3. **Fusion**: the surviving pixels are lifted to a world point cloud.
+4. **Meshing (2.5D)**: terrain is a height field over its ground plane (a least-squares
+   plane through the fused points). Points are binned on a grid in that plane (cell side:
+   ``cell_factor`` times the median pixel footprint); each cell keeps the median height of
+   its points (robust to stereo outliers), cells whose height departs from their
+   neighbourhood's median by more than ``spike_threshold`` cells are dropped; the cell
+   points are triangulated with a 2D Delaunay triangulation (scipy) and triangles with an
+   edge longer than ``max_edge_cells`` cells are removed, so gaps stay gaps instead of
+   being bridged by long flat triangles. Overhangs cannot be represented (rare on terrain).
+
+The mesh is written to ``SCENE/mesh/reconstructed.ply`` (world frame and units of the COLMAP
+model), with a report of every stage.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import ConfigError, DatasetError
+from ..progress import ProgressCallback, ProgressEvent, no_progress
+from .stereo import StereoOptions, View, consistent_depths, depth_maps
+
+MESH_NAME = "reconstructed.ply"
+
+
+@dataclass
+class ReconstructOptions:
+    """Settings of the CPU mesh reconstruction (see the module docstring)."""
+
+    stereo: StereoOptions = field(default_factory=StereoOptions)
+    consistency_tolerance: float = field(default=0.01, metadata={"help": "relative depth agreement between views"})
+    min_agreeing: int = field(default=1, metadata={"help": "neighbour views that must confirm a depth"})
+    cell_factor: float = field(default=2.0, metadata={"help": "grid cell side in median pixel footprints"})
+    max_edge_cells: float = field(default=4.0, metadata={"help": "remove triangles with a longer edge (in cells)"})
+    spike_threshold: float = field(default=3.0, metadata={"help": "drop cells this many cells above/below their neighbourhood"})
+
+    def validate(self) -> None:
+        self.stereo.validate()
+        if self.consistency_tolerance <= 0:
+            raise ConfigError(f"consistency_tolerance must be positive, got {self.consistency_tolerance}")
+        if self.min_agreeing < 0:
+            raise ConfigError(f"min_agreeing must be >= 0, got {self.min_agreeing}")
+        for name in ("cell_factor", "max_edge_cells", "spike_threshold"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"{name} must be positive, got {getattr(self, name)}")
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    if image.ndim == 2:
+        return image.astype(np.float32)
+    return (image[..., :3].astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32))
+
+
+def fit_ground_plane(points: np.ndarray, camera_centers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(unit normal [3], centroid [3]) of the least-squares plane through ``points`` [N, 3],
+    the normal oriented towards the mean camera centre (the cameras are above the ground)."""
+    centroid = np.median(points, axis=0)
+    _, _, vt = np.linalg.svd(points - points.mean(axis=0), full_matrices=False)
+    normal = vt[2]
+    if (camera_centers.mean(axis=0) - centroid) @ normal < 0:
+        normal = -normal
+    return normal / np.linalg.norm(normal), centroid
+
+
+def load_views(scene_dir: str | Path, margin: float, ground_normal: np.ndarray | None) -> tuple[list[View], Any]:
+    """The scene's views for stereo: grey images, K, poses, depth ranges from the sparse points."""
+    from ..colmap.io import load_scene
+    from ..imageio import read_image
+
+    model, images_dir = load_scene(scene_dir)
+    if not model.images:
+        raise DatasetError("the COLMAP model has no images", path=scene_dir)
+    if len(model.images) < 2:
+        raise DatasetError("one image cannot be reconstructed by stereo", path=scene_dir,
+                           hint="--reconstruct needs overlapping views from different positions; give a --mesh instead")
+    xyz_by_id = {point_id: point.xyz for point_id, point in model.points.items()}
+    views = []
+    for image in model.sorted_images():
+        camera = model.cameras[image.camera_id]
+        if not camera.is_pinhole:
+            raise DatasetError(f"camera {camera.camera_id} is {camera.model}: stereo needs undistorted pinhole views",
+                               path=scene_dir, hint="undistort the scene first (esgs colmap undistort)")
+        ids = [int(i) for i in np.asarray(image.point3d_ids) if int(i) in xyz_by_id]
+        if not ids:  # no tracks stored: every point in front of the camera
+            ids = list(xyz_by_id)
+        if not ids:
+            raise DatasetError("the COLMAP model has no 3D points: the depth range of the views is unknown",
+                               path=scene_dir, hint="run SfM (esgs dataset from-images) so the model has points3D")
+        world_to_camera = image.world_to_camera()
+        xyz = np.array([xyz_by_id[i] for i in ids])
+        in_camera = xyz @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
+        z = in_camera[:, 2]
+        z = z[z > 0]
+        if len(z) < 3:
+            raise DatasetError(f"image {image.name!r} sees fewer than 3 sparse points in front of it", path=scene_dir)
+        near, far = np.percentile(z, [1, 99])
+        ground_offsets = None
+        if ground_normal is not None:
+            offsets = in_camera @ (world_to_camera[:3, :3] @ ground_normal)
+            # the ground normal points at the cameras, so ground points have n.X < 0 in camera frame
+            offsets = -offsets[in_camera[:, 2] > 0]
+            if len(offsets) >= 3 and np.percentile(offsets, 1) > 0:
+                low, high = np.percentile(offsets, [1, 99])
+                ground_offsets = (float(low / margin), float(high * margin))
+        views.append(View(image.name, _grey(read_image(images_dir / image.name)), camera.K(), world_to_camera,
+                          (float(near / margin), float(far * margin)), frozenset(ids), ground_offsets))
+    return views, model
+
+
+def mesh_from_points(points: np.ndarray, normal: np.ndarray, cell: float, max_edge_cells: float,
+                     spike_threshold: float) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """2.5D mesh of ``points`` [N, 3] over the plane with unit ``normal`` [3].
+
+    Returns (vertices [V, 3], triangles [F, 3] int64 counter-clockwise seen from the
+    normal's side, statistics). See the module docstring for the steps.
+    """
+    from scipy.ndimage import median_filter
+    from scipy.spatial import Delaunay
+
+    helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    axis_u = np.cross(normal, helper)
+    axis_u /= np.linalg.norm(axis_u)
+    axis_v = np.cross(normal, axis_u)
+    planar = np.stack([points @ axis_u, points @ axis_v], axis=1)
+    height = points @ normal
+    origin = planar.min(axis=0)
+    cells = np.floor((planar - origin) / cell).astype(np.int64)
+    shape = cells.max(axis=0) + 1
+    if shape[0] * shape[1] > 50_000_000:
+        raise DatasetError(f"the fused points span {shape[0]}x{shape[1]} grid cells; the scene is too large for "
+                           "the 2.5D mesher at this cell size")
+    flat = cells[:, 0] * shape[1] + cells[:, 1]
+    order = np.argsort(flat, kind="stable")
+    flat_sorted = flat[order]
+    starts = np.flatnonzero(np.r_[True, flat_sorted[1:] != flat_sorted[:-1]])
+    counts = np.diff(np.r_[starts, len(flat_sorted)])
+    # median height per cell: sort heights inside each cell (lexsort by cell, then height)
+    order_h = np.lexsort((height, flat))
+    medians = height[order_h][starts + counts // 2]
+    centres_u = np.add.reduceat(planar[order, 0], starts) / counts
+    centres_v = np.add.reduceat(planar[order, 1], starts) / counts
+    cell_ids = flat_sorted[starts]
+    grid = np.full(shape, np.nan)
+    grid.flat[cell_ids] = medians
+    # spikes: compare with the median of the 5x5 neighbourhood (NaN-free via a large fill and a count)
+    filled = np.where(np.isnan(grid), np.nanmedian(medians), grid)
+    local = median_filter(filled, size=5, mode="nearest")
+    spike = np.abs(grid.flat[cell_ids] - local.flat[cell_ids]) > spike_threshold * cell
+    keep = ~spike
+    u, v, h = centres_u[keep], centres_v[keep], medians[keep]
+    if len(u) < 3:
+        raise DatasetError("too few consistent stereo points to build a mesh",
+                           hint="the views may not overlap, or the images lack texture; give a --mesh instead")
+    triangulation = Delaunay(np.stack([u, v], axis=1))
+    triangles = triangulation.simplices.astype(np.int64)
+    vertices = np.outer(u, axis_u) + np.outer(v, axis_v) + np.outer(h, normal)
+    corners = vertices[triangles]
+    edges = np.stack([np.linalg.norm(corners[:, 1] - corners[:, 0], axis=1),
+                      np.linalg.norm(corners[:, 2] - corners[:, 1], axis=1),
+                      np.linalg.norm(corners[:, 0] - corners[:, 2], axis=1)], axis=1)
+    short = edges.max(axis=1) <= max_edge_cells * cell
+    triangles = triangles[short]
+    # orient counter-clockwise seen from the normal's side (face normals towards the cameras)
+    corners = vertices[triangles]
+    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    flip = face_normals @ normal < 0
+    triangles[flip] = triangles[flip][:, [0, 2, 1]]
+    used = np.unique(triangles)
+    remap = -np.ones(len(vertices), np.int64)
+    remap[used] = np.arange(len(used))
+    stats = {"cells": int(len(cell_ids)), "spikes_removed": int(spike.sum()), "triangles": int(len(triangles)),
+             "long_triangles_removed": int((~short).sum()), "cell_size": float(cell)}
+    return vertices[used], remap[triangles], stats
+
+
+def reconstruct_mesh(scene_dir: str | Path, options: ReconstructOptions | None = None, *,
+                     out_path: str | Path | None = None, progress: ProgressCallback = no_progress) -> dict[str, Any]:
+    """Rebuild a terrain mesh from the scene's images and poses and write it as a PLY.
+
+    out_path: default ``SCENE/mesh/reconstructed.ply`` (written atomically). Returns a report
+    ``{"mesh": path, "views", "fused_points", "mesh stats...", "seconds", "options"}``.
+    Raises :class:`DatasetError` for a scene without images, points or overlap.
+    """
+    from .mesh_io import write_mesh
+
+    options = options or ReconstructOptions()
+    options.validate()
+    scene_dir = Path(scene_dir)
+    start = time.perf_counter()
+    from ..colmap.io import read_model
+
+    model = read_model(scene_dir)
+    xyz, _, _, _ = model.points_arrays()
+    centers = np.stack([image.camera_center() for image in model.sorted_images()]) if model.images else np.zeros((0, 3))
+    ground_normal = None
+    if len(xyz) >= 3 and len(centers):
+        ground_normal, _ = fit_ground_plane(xyz, centers)
+    views, model = load_views(scene_dir, options.stereo.depth_margin, ground_normal)
+    total = len(views) + 2
+
+    def sweep_progress(step: int, count: int, name: str) -> None:
+        progress(ProgressEvent(step, total, "stereo", message=f"depth of {name}"))
+
+    depths, neighbours = depth_maps(views, options.stereo, ground_normal_world=ground_normal, progress=sweep_progress)
+    raw_fraction = float(np.mean([np.mean(d > 0) for d in depths]))
+    depths = consistent_depths(views, depths, neighbours, options.consistency_tolerance, options.min_agreeing)
+    points, footprints = [], []
+    for view, depth in zip(views, depths):
+        rows, cols = np.nonzero(depth > 0)
+        z = depth[rows, cols].astype(np.float64)
+        camera_points = (np.stack([cols + 0.5, rows + 0.5, np.ones_like(z)], axis=1) @ np.linalg.inv(view.K).T) * z[:, None]
+        camera_to_world = np.linalg.inv(view.world_to_camera)
+        points.append(camera_points @ camera_to_world[:3, :3].T + camera_to_world[:3, 3])
+        footprints.append(z / view.K[0, 0])
+    points_all = np.concatenate(points) if points else np.zeros((0, 3))
+    if len(points_all) < 3:
+        raise DatasetError("stereo found no consistent depth in any view", path=scene_dir,
+                           hint="the views may not overlap or lack texture; give a --mesh instead")
+    progress(ProgressEvent(len(views) + 1, total, "fuse", message=f"{len(points_all)} fused points",
+                           metrics={"points": float(len(points_all))}))
+    normal, _ = fit_ground_plane(points_all, centers)
+    cell = options.cell_factor * float(np.median(np.concatenate(footprints)))
+    vertices, triangles, stats = mesh_from_points(points_all, normal, cell, options.max_edge_cells,
+                                                  options.spike_threshold)
+    mesh_path = Path(out_path) if out_path is not None else scene_dir / "mesh" / MESH_NAME
+    write_mesh(mesh_path, vertices, triangles)
+    progress(ProgressEvent(total, total, "mesh", kind="done", message=f"mesh written: {mesh_path}",
+                           metrics={"triangles": float(len(triangles))}))
+    return {"mesh": str(mesh_path), "views": len(views), "stereo_fraction": raw_fraction,
+            "consistent_fraction": float(np.mean([np.mean(d > 0) for d in depths])),
+            "fused_points": int(len(points_all)), **stats, "seconds": round(time.perf_counter() - start, 2),
+            "neighbours": {view.name: [views[j].name for j in nbrs] for view, nbrs in zip(views, neighbours)},
+            "options": asdict(options)}
