@@ -1,0 +1,130 @@
+"""The whole label job without Blender in this process: reconstruct (optional), render in a
+Blender child process, report. What ``esgs labels`` runs; scripts can call it too.
+
+The rendering needs the ``bpy`` module, which ``core`` never imports: it runs
+``python -m esgs.esgs_addon.render_labels`` and relays the child's progress lines
+(``ESGS_EVENT <json>``, ``ESGS_ERROR <json>``; the protocol of ``esgs scene``).
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..errors import ConfigError, DatasetError, ESGSError
+from ..progress import ProgressCallback, ProgressEvent, no_progress
+from .fill import FillOptions
+from .reconstruct import MESH_NAME, ReconstructOptions
+
+EVENT_PREFIX = "ESGS_EVENT "
+ERROR_PREFIX = "ESGS_ERROR "
+ACCURACY_NAME = "accuracy.json"
+
+
+@dataclass
+class LabelJob:
+    """One label run: where, from which mesh, and how."""
+
+    scene: Path
+    mesh: Path | None = None
+    reconstruct: bool = False
+    reconstruct_options: ReconstructOptions = field(default_factory=ReconstructOptions)
+    fill: FillOptions = field(default_factory=FillOptions)
+    samples: int = 0
+    smooth: bool = True
+    report: bool = False
+
+    def validate(self) -> None:
+        if (self.mesh is None) == (not self.reconstruct):
+            raise ConfigError("give exactly one of --mesh MESH and --reconstruct")
+        self.reconstruct_options.validate()
+        self.fill.validate()
+        if self.samples < 0:
+            raise ConfigError(f"samples must be >= 0, got {self.samples}")
+
+
+def check_scene(scene: Path) -> int:
+    """Fail early for a scene the renderer could not label; return its number of images."""
+    from ..colmap.io import read_model
+
+    if not Path(scene).is_dir():
+        raise DatasetError("scene folder not found", path=scene, hint="give a folder with images/ and sparse/0")
+    model = read_model(scene)
+    if not model.images:
+        raise DatasetError("the COLMAP model has no images (no cameras to render)", path=scene,
+                           hint="run SfM first (esgs dataset from-images) so every image has a pose")
+    return len(model.images)
+
+
+def run_label_job(job: LabelJob, progress: ProgressCallback = no_progress, *, verbose: bool = False) -> dict[str, Any]:
+    """Reconstruct a mesh if asked, render the labels in a Blender child process, and with
+    ``job.report`` compare them with ``priors/gt``. Returns ``{"labels": labels.json dict,
+    "reconstruction": dict | None, "accuracy": dict | None}``."""
+    import importlib.util
+
+    from ..io_utils import atomic_write_json
+    from ..priors.io import prior_dir
+
+    job.validate()
+    check_scene(job.scene)
+    if job.mesh is not None and not Path(job.mesh).is_file():
+        raise DatasetError("mesh file not found", path=job.mesh, hint="give an existing mesh, or use --reconstruct")
+    if job.report and not (prior_dir(job.scene, "gt") / "depth").is_dir():
+        raise DatasetError("--report needs the ground truth of a synthetic scene (priors/gt/depth)", path=job.scene)
+    if importlib.util.find_spec("bpy") is None:
+        raise ConfigError("rendering labels needs Blender's bpy module, which this Python does not have",
+                          hint="pip install bpy==5.0.1")
+    reconstruction = None
+    metadata: dict[str, str] = {}
+    if job.reconstruct:
+        from .reconstruct import reconstruct_mesh
+
+        mesh = job.scene / "mesh" / MESH_NAME
+        reconstruction = reconstruct_mesh(job.scene, job.reconstruct_options, out_path=mesh, progress=progress)
+        atomic_write_json(mesh.with_suffix(".json"), reconstruction)
+        metadata = {"reconstruction": "plane-sweep ZNCC stereo, cross-view check, 2.5D Delaunay "
+                                      "(esgs.core.labels.reconstruct)",
+                    "reconstruction_report": str(mesh.with_suffix(".json").resolve())}
+        method = "reconstruct"
+    else:
+        mesh = Path(job.mesh)
+        method = "mesh"
+    command = [sys.executable, "-m", "esgs.esgs_addon.render_labels", str(job.scene), "--mesh", str(mesh),
+               "--method", method, "--samples", str(job.samples),
+               "--max-hole-fraction", repr(job.fill.max_hole_fraction), "--edge-radius-px", str(job.fill.edge_radius_px),
+               "--metadata", json.dumps(metadata), "--events-stdout"]
+    if not job.smooth:
+        command.append("--flat")
+    run_child(command, progress, verbose=verbose)
+    labels = json.loads((prior_dir(job.scene, "labels") / "labels.json").read_text())
+    accuracy = None
+    if job.report:
+        from .accuracy import label_accuracy
+
+        accuracy = label_accuracy(job.scene)
+        accuracy["method"] = method
+        atomic_write_json(prior_dir(job.scene, "labels") / ACCURACY_NAME, accuracy)
+    return {"labels": labels, "reconstruction": reconstruction, "accuracy": accuracy}
+
+
+def run_child(command: list[str], progress: ProgressCallback, *, verbose: bool = False) -> None:
+    """Run a Blender child process, relaying its events; raise its error as ours."""
+    error: dict[str, str] | None = None
+    with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1) as child:
+        assert child.stdout is not None
+        for line in child.stdout:
+            if line.startswith(EVENT_PREFIX):
+                progress(ProgressEvent.from_json(line[len(EVENT_PREFIX):]))
+            elif line.startswith(ERROR_PREFIX):
+                error = json.loads(line[len(ERROR_PREFIX):])
+            elif verbose:
+                print(line, end="", file=sys.stderr)
+        status = child.wait()
+    if error is not None:
+        kinds = {"ConfigError": ConfigError, "DatasetError": DatasetError}
+        raise kinds.get(error.get("type", ""), ESGSError)(error.get("message", "label rendering failed"))
+    if status != 0:
+        raise ESGSError(f"label rendering failed (exit status {status})", hint="run again with --verbose to see Blender's log")
