@@ -1,4 +1,4 @@
-"""``esgs bench --suite quick|full --out DIR``: 3DGS, Mip-Splatting, DropoutGS and ESGS compared."""
+"""``esgs bench --suite quick|full|large --out DIR``: 3DGS, Mip-Splatting, DropoutGS and ESGS compared."""
 from __future__ import annotations
 
 import argparse
@@ -9,33 +9,56 @@ HELP = "compare 3DGS, Mip-Splatting, DropoutGS, ESGS ablations and ESGS on synth
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--suite", choices=("quick", "full"), default="quick",
-                        help="quick: cratered_plain seed 0, 10 views 160x90, 300 points/view, 300 steps (~8 min on 2 busy cores); "
-                             "full: cratered_plain, dune_field, rocky_slope, crater_survey_nadir x seeds 0 1 2, "
-                             "30 views 480x270, 7000 steps")
-    parser.add_argument("--out", type=Path, required=True, help="bench folder (scenes/, runs/, benchmarks.md)")
-    parser.add_argument("--iterations", type=int, default=0, help="steps per run (0 = the suite's)")
-    parser.add_argument("--workers", type=int, default=1, help="runs at the same time (local process pool)")
-    parser.add_argument("--address", default=None,
-                        help="Ray cluster address ('auto' = local Ray): run through Ray (needs the ray package)")
+    parser.add_argument("--suite", choices=("quick", "full", "large"), default="quick",
+                        help="quick: cratered_plain seed 0, 10 views 160x90, 300 steps + 0.5 min budgets (~15 min on 2 "
+                             "busy cores); full: cratered_plain, dune_field x seeds 0 1 2, 12 views 320x180, 600 steps "
+                             "+ 1.5 min budgets (~2 h on 2 cores, through Ray); large: 4 presets x 3 seeds, 30 views "
+                             "480x270, 7000 steps + 20 min budgets (for a GPU machine or a Ray cluster)")
+    parser.add_argument("--out", type=Path, required=True, 
+                        help="bench folder (scenes/, runs/, runs_budget/, benchmarks.md)")
+    parser.add_argument("--iterations", type=int, default=0, help="steps per equal-step run (0 = the suite's)")
+    parser.add_argument("--budget-minutes", type=float, default=None,
+                        help="training minutes per equal-budget run (default: the suite's; 0 = no budget comparison)")
+    parser.add_argument("--budget-step-cap", type=int, default=0,
+                        help="step cap (and schedule length) of the budget runs (0 = the suite's: twice --iterations)")
     parser.add_argument("--executor", choices=("auto", "local", "ray"), default="auto",
-                        help="auto: Ray when --address is given, else the local process pool")
-    parser.add_argument("--threads", type=int, default=0, help="CPU threads per run (0 = library default)")
+                        help="local: process pool of --workers; ray: a local Ray instance (nothing to set up) or the "
+                             "cluster at --address; auto: Ray for --address or the full/large suites, else local")
+    parser.add_argument("--address", default=None,
+                        help="address of an existing Ray cluster (e.g. 'auto' or 'HOST:6379'); implies --executor ray")
+    parser.add_argument("--workers", type=int, default=0,
+                        help="runs at the same time (0 = 1 for the local pool, all cores for a local Ray instance)")
+    parser.add_argument("--threads", type=int, default=0,
+                        help="CPU threads per run (0 = library default; under Ray each run reserves "
+                             "max(1, threads) CPUs)")
     parser.add_argument("--backend", default="auto", help="rasterizer backend (auto, cpu, reference, cuda)")
     parser.add_argument("--lpips", action=argparse.BooleanOptionalAction, default=True, help="compute LPIPS")
 
 
+def executor_kind(args: argparse.Namespace) -> str:
+    """The executor the arguments ask for: "auto" resolves to Ray for --address and the big suites."""
+    if args.executor != "auto":
+        return args.executor
+    return "ray" if args.address or args.suite in ("full", "large") else "local"
+
+
 def run(args: argparse.Namespace) -> int:
+    from ..errors import ConfigError
     from ..experiments.bench import run_bench
     from ..experiments.executor import make_executor
 
     def report(outcome) -> None:
         print(f"{outcome.status:>8}  {outcome.task.name}", flush=True)
 
+    kind = executor_kind(args)
+    if args.address and kind != "ray":
+        raise ConfigError("--address needs the Ray executor", hint="drop --executor local, or drop --address")
     train = {"threads": args.threads, "backend": args.backend, "lpips": args.lpips}
-    with make_executor(args.executor, max_workers=args.workers, address=args.address) as executor:
-        result = run_bench(args.out, args.suite, executor=executor, iterations=args.iterations or None, train=train,
-                           command="esgs " + " ".join(sys.argv[1:]), on_outcome=report)
+    with make_executor(kind, max_workers=args.workers, address=args.address,
+                       cpus_per_task=max(1, args.threads)) as executor:
+        result = run_bench(args.out, args.suite, executor=executor, iterations=args.iterations or None,
+                           budget_minutes=args.budget_minutes, budget_step_cap=args.budget_step_cap or None,
+                           train=train, command="esgs " + " ".join(sys.argv[1:]), on_outcome=report)
     print(f"wrote {Path(args.out) / 'benchmarks.md'}")
     for item in result["failed"]:
         print(f"FAILED {item['run']}: {item['error'].splitlines()[0]}")

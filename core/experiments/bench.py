@@ -1,10 +1,12 @@
 """The method comparison (``esgs bench``): 3DGS, Mip-Splatting, DropoutGS, ESGS ablations and
-full ESGS on synthetic scenes, at equal step counts, written as ``OUT/benchmarks.md``.
+full ESGS on synthetic scenes, at equal step counts and at equal wall-clock budgets, written
+as ``OUT/benchmarks.md``.
 
 Scenes are made with ``esgs scene`` in a child process (Blender's ``bpy`` never enters
-this process) and cached under ``OUT/scenes/<preset>_s<seed>``. Each (scene, method,
-seed) is one :class:`~.runs.RunTask` in ``OUT/runs/...``; tasks run through an
-:class:`~.executor.Executor` (local process pool, or Ray with ``--address``), a failed run
+this process) and cached under ``OUT/scenes/<preset>_s<seed>_...``. Each (scene, method,
+seed) is one :class:`~.runs.RunTask` in ``OUT/runs/...`` (equal steps) and, with a budget,
+one more in ``OUT/runs_budget/...`` (equal training time: ``max_minutes`` with a step cap);
+tasks run through an :class:`~.executor.Executor` (local process pool, or Ray), a failed run
 is retried once, and a restart repeats only unfinished runs.
 """
 from __future__ import annotations
@@ -35,7 +37,14 @@ class BenchSuite:
     samples: int
     iterations: int
     points_per_view: int = 2000
+    budget_minutes: float = 0.0
+    budget_step_cap: int = 0
     description: str = ""
+
+    @property
+    def step_cap(self) -> int:
+        """Step cap of the budget runs (0 in the suite = twice the equal-step count)."""
+        return self.budget_step_cap or 2 * self.iterations
 
     def scene_folder_name(self, preset: str, seed: int) -> str:
         """Cache key of a scene: everything that changes what ``esgs scene`` makes."""
@@ -43,11 +52,22 @@ class BenchSuite:
 
 
 SUITES = {
+    # minutes on this 2-core machine: one small scene, one seed
     "quick": BenchSuite("quick", presets=("cratered_plain",), seeds=(0,), views=10, resolution="160x90", samples=8,
-                        iterations=300, points_per_view=300, description="one small scene, one seed, 300 steps: ~8 minutes on 2 busy cores"),
-    "full": BenchSuite("full", presets=("cratered_plain", "dune_field", "rocky_slope", "crater_survey_nadir"),
-                       seeds=(0, 1, 2), views=30, resolution="480x270", samples=32, iterations=7000,
-                       description="4 presets x 3 seeds at 480x270, 7,000 steps: hours on a CPU, best on a GPU cluster"),
+                        iterations=300, points_per_view=300, budget_minutes=0.5,
+                        description="cratered_plain seed 0, 10 views 160x90, 300 steps, and 0.5 min budgets: "
+                                    "~15 minutes on 2 busy cores"),
+    # the comparison of the issue, sized for a 2-core CPU machine (see docs/benchmarks.md)
+    "full": BenchSuite("full", presets=("cratered_plain", "dune_field"), seeds=(0, 1, 2), views=12,
+                       resolution="320x180", samples=16, iterations=600, points_per_view=1000, budget_minutes=1.5,
+                       description="cratered_plain, dune_field x seeds 0 1 2, 12 views 320x180, 600 steps, and "
+                                   "1.5 min budgets: ~2 hours on 2 cores"),
+    # for bigger machines only (a GPU, or a Ray cluster): days on a 2-core CPU
+    "large": BenchSuite("large", presets=("cratered_plain", "dune_field", "rocky_slope", "crater_survey_nadir"),
+                        seeds=(0, 1, 2), views=30, resolution="480x270", samples=32, iterations=7000,
+                        budget_minutes=20.0, budget_step_cap=30_000,
+                        description="4 presets x 3 seeds, 30 views 480x270, 7,000 steps, and 20 min budgets: "
+                                    "for a GPU machine or a Ray cluster"),
 }
 
 
@@ -96,9 +116,20 @@ def make_scene(preset: str, seed: int, suite: BenchSuite, scenes_dir: Path) -> P
 
 
 def plan_bench(scenes: dict[str, tuple[Path, int]], out: Path, *, iterations: int, methods: Sequence[Method] = METHODS,
-               train: Optional[dict] = None) -> tuple[list[RunTask], list[str]]:
-    """Run tasks for every scene (name -> (folder, seed)) and method, and notes on what was left out."""
+               train: Optional[dict] = None, budget_minutes: float = 0.0,
+               budget_step_cap: int = 0) -> tuple[list[RunTask], list[str]]:
+    """Run tasks for every scene (name -> (folder, seed)) and method, and notes on what was left out.
+
+    Equal-step tasks train ``iterations`` steps in ``OUT/runs/<scene>/<method>``. With
+    ``budget_minutes`` > 0 every method also trains in ``OUT/runs_budget/<scene>/<method>``
+    for that much training time (``max_minutes``), up to ``budget_step_cap`` steps (0 =
+    twice ``iterations``); its learning-rate and densification schedules are those of the cap.
+    """
     tasks, notes = [], []
+    modes = [("steps", "runs", {"iterations": iterations})]
+    if budget_minutes > 0:
+        modes.append(("budget", "runs_budget", {"iterations": budget_step_cap or 2 * iterations,
+                                                "max_minutes": float(budget_minutes)}))
     for scene_name, (folder, seed) in scenes.items():
         found = available_priors(folder)
         source = next((s for s in ("gt", "labels", "ndn", "sfm") if s in found), "")
@@ -111,11 +142,13 @@ def plan_bench(scenes: dict[str, tuple[Path, int]], out: Path, *, iterations: in
                     notes.append(f"{method.label} skipped on {scene_name}: no {'/'.join(sorted(needed))} priors")
                     continue
                 esgs["priors"] = source
-            config = {**(train or {}), "iterations": iterations, "seed": seed, "esgs": esgs,
-                      "baselines": dict(method.baselines)}
-            tasks.append(RunTask(name=f"{scene_name}/{method.key}", scene=folder,
-                                 out=Path(out) / "runs" / scene_name / method.key, config=config, variant=method.label,
-                                 seed=seed, scene_name=scene_name, mesh=mesh if mesh.is_file() else None))
+            for mode, folder_name, schedule in modes:
+                config = {**(train or {}), **schedule, "seed": seed, "esgs": esgs, "baselines": dict(method.baselines)}
+                suffix = "" if mode == "steps" else "@budget"
+                tasks.append(RunTask(name=f"{scene_name}/{method.key}{suffix}", scene=folder,
+                                     out=Path(out) / folder_name / scene_name / method.key, config=config,
+                                     variant=method.label, seed=seed, scene_name=scene_name,
+                                     mesh=mesh if mesh.is_file() else None))
     return tasks, notes
 
 
@@ -131,10 +164,25 @@ def machine_description() -> dict[str, Any]:
     return info
 
 
+#: The budget tables also show how far each method got.
+STEPS_COLUMN = (("steps", "steps reached", 0),)
+
+
+def _comparison_markdown(part: dict, title: str) -> list[str]:
+    """The tables of one comparison (equal steps or equal budget): all scenes, then each scene."""
+    extra = STEPS_COLUMN if part.get("budget_minutes") else ()
+    lines = [f"## {title}: all scenes", "", markdown_table(part["overall"], QUALITY_COLUMNS), "",
+             markdown_table(part["overall"], extra + COST_COLUMNS)]
+    for scene_name, rows in part["per_scene"].items():
+        lines += [f"### {title}: {scene_name}", "", markdown_table(rows, QUALITY_COLUMNS + extra + COST_COLUMNS)]
+    return lines
+
+
 def bench_markdown(report: dict) -> str:
     """docs-style Markdown of a bench report (see :func:`run_bench`)."""
     suite = report["suite"]
     machine = report["machine"]
+    budget = report.get("budget")
     lines = [f"# Benchmarks: {suite['name']} suite", "",
              f"Date (UTC): {report['date']}. Machine: {machine['platform']}, {machine['processor']}, "
              f"{machine['cpu_count']} logical CPUs, Python {machine['python']}, torch {machine['torch']}, "
@@ -142,15 +190,18 @@ def bench_markdown(report: dict) -> str:
              f"Scenes: `esgs scene` presets {', '.join(suite['presets'])} x seeds "
              f"{', '.join(map(str, suite['seeds']))} ({suite['views']} views, {suite['resolution']}, "
              f"{suite['samples']} samples, {suite['points_per_view']} SfM points per view); every method "
-             f"trains {report['iterations']} steps with the same seed as its scene. Quality on the held-out "
+             f"trains with the same seed as its scene, {report['iterations']} steps for the equal-step comparison"
+             + (f" and {budget['budget_minutes']:g} minutes of training (at most {budget['step_cap']} steps, the "
+                "schedule of that cap) for the equal-budget one" if budget else "")
+             + ". Quality on the held-out "
              "views (every 8th image); distances from the Gaussian centres with opacity >= 0.5 to "
-             "mesh/ground_truth.ply (scene units, metres). Train time is training only; peak RSS is the run's process (ru_maxrss); render time is one held-out "
-             "frame, mean over the held-out views. Mean ± std over scenes and seeds.", "",
-             f"Command: `{report['command']}`", "", "## All scenes", "",
-             markdown_table(report["overall"], QUALITY_COLUMNS), "",
-             markdown_table(report["overall"], COST_COLUMNS)]
-    for scene_name, rows in report["per_scene"].items():
-        lines += [f"## {scene_name}", "", markdown_table(rows, QUALITY_COLUMNS + COST_COLUMNS)]
+             "mesh/ground_truth.ply (scene units, metres). Train time is training only; peak RSS is the run's "
+             "process (ru_maxrss); render time is one held-out frame, mean over the held-out views. "
+             "Mean ± std over scenes and seeds.", "",
+             f"Command: `{report['command']}`", ""]
+    lines += _comparison_markdown(report, f"At equal step count ({report['iterations']} steps)")
+    if budget:
+        lines += ["", *_comparison_markdown(budget, f"At equal wall-clock budget ({budget['budget_minutes']:g} min)")]
     if report["notes"] or report["failed"]:
         lines += ["## Notes", ""]
         lines += [f"- {note}" for note in report["notes"]]
@@ -160,15 +211,27 @@ def bench_markdown(report: dict) -> str:
     return "\n".join(lines)
 
 
+def _comparison(summaries: list[dict], scene_names: Sequence[str], keys: Sequence[str]) -> dict:
+    """Rows over all scenes and per scene (mean ± std over seeds) of one set of run summaries."""
+    return {"overall": aggregate(summaries, keys),
+            "per_scene": {name: aggregate([s for s in summaries if s["scene"] == name], keys) for name in scene_names},
+            "runs": summaries}
+
+
 def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: Any = None,
               scenes: Optional[dict[str, tuple[Path, int]]] = None, methods: Sequence[Method] = METHODS,
-              iterations: Optional[int] = None, train: Optional[dict] = None, command: str = "",
+              iterations: Optional[int] = None, budget_minutes: Optional[float] = None,
+              budget_step_cap: Optional[int] = None, train: Optional[dict] = None, command: str = "",
               on_outcome: Optional[Callable[[Any], None]] = None) -> dict:
     """Make (or reuse) the suite's scenes, run every method on each, write benchmarks.md/.json.
 
     ``scenes`` (name -> (folder, seed)) replaces the suite's generated scenes (tests,
-    existing folders). ``executor``: an :class:`~.executor.Executor` (default: a local
-    pool of one worker). Returns the report dict (also ``OUT/benchmarks.json``).
+    existing folders). ``iterations``, ``budget_minutes`` (0 = no equal-budget comparison)
+    and ``budget_step_cap`` override the suite's (None = the suite's). ``executor``: an
+    :class:`~.executor.Executor` (default: a local pool of one worker). Returns the report
+    dict (also ``OUT/benchmarks.json``): the equal-step tables at the top level
+    (``overall``, ``per_scene``, ``runs``) and the equal-budget ones under ``budget``
+    (None without a budget).
     """
     from ..io_utils import atomic_write_json, atomic_write_text
     from .executor import LocalExecutor, run_tasks
@@ -180,10 +243,15 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
             raise ConfigError(f"unknown suite {suite!r}", hint=f"use one of {', '.join(SUITES)}")
         suite = SUITES[suite]
     iterations = iterations or suite.iterations
+    budget_minutes = suite.budget_minutes if budget_minutes is None else budget_minutes
+    if budget_minutes < 0:
+        raise ConfigError(f"budget_minutes must be >= 0, got {budget_minutes}")
+    step_cap = budget_step_cap or suite.budget_step_cap or 2 * iterations
     if scenes is None:
         scenes = {f"{preset}_s{seed}": (make_scene(preset, seed, suite, out / "scenes"), seed)
                   for preset in suite.presets for seed in suite.seeds}
-    tasks, notes = plan_bench(scenes, out, iterations=iterations, methods=methods, train=train)
+    tasks, notes = plan_bench(scenes, out, iterations=iterations, methods=methods, train=train,
+                              budget_minutes=budget_minutes, budget_step_cap=step_cap)
     own_executor = executor is None
     executor = executor or LocalExecutor(1)
     try:
@@ -191,21 +259,24 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
     finally:
         if own_executor:
             executor.close()
-    summaries = [outcome.result for outcome in outcomes if outcome.status in ("done", "skipped")]
+    finished = [outcome for outcome in outcomes if outcome.status in ("done", "skipped")]
     failed = [{"run": outcome.task.name, "error": outcome.error or "", "attempts": outcome.attempts}
               for outcome in outcomes if outcome.status == "failed"]
-    keys = [key for key, _, _ in QUALITY_COLUMNS + COST_COLUMNS]
-    per_scene: dict[str, list[dict]] = {}
-    for scene_name in scenes:
-        per_scene[scene_name] = aggregate([s for s in summaries if s["scene"] == scene_name], keys)
+    keys = [key for key, _, _ in QUALITY_COLUMNS + STEPS_COLUMN + COST_COLUMNS]
+    budget_runs = [o.result for o in finished if o.task.config.get("max_minutes")]
+    step_runs = [o.result for o in finished if not o.task.config.get("max_minutes")]
+    budget = None
+    if budget_minutes > 0:
+        budget = {"budget_minutes": budget_minutes, "step_cap": step_cap,
+                  **_comparison(budget_runs, list(scenes), keys)}
     report = {
         "suite": {"name": suite.name, "presets": list(suite.presets), "seeds": list(suite.seeds), "views": suite.views,
                   "resolution": suite.resolution, "samples": suite.samples, "points_per_view": suite.points_per_view,
-                  "iterations": suite.iterations},
+                  "iterations": suite.iterations, "budget_minutes": suite.budget_minutes,
+                  "budget_step_cap": suite.step_cap},
         "iterations": iterations, "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M"),
         "machine": machine_description(), "executor": type(executor).__name__, "command": command or "run_bench(...)",
-        "overall": aggregate(summaries, keys), "per_scene": per_scene, "runs": summaries, "notes": notes,
-        "failed": failed,
+        **_comparison(step_runs, list(scenes), keys), "budget": budget, "notes": notes, "failed": failed,
     }
     atomic_write_json(out / "benchmarks.json", report)
     atomic_write_text(out / "benchmarks.md", bench_markdown(report))

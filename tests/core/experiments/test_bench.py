@@ -61,12 +61,35 @@ def test_suites_name_their_presets_and_the_plan_skips_methods_without_priors(tmp
     assert full.config["esgs"]["priors"] == "gt" and full.config["esgs"]["gpdfn"] is True
 
 
+def test_budget_plan_gives_every_method_the_same_minutes_and_step_cap_in_its_own_folder(tmp_path, scene):
+    tasks, _ = plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=300, budget_minutes=1.5)
+    steps = {t.variant: t for t in tasks if "max_minutes" not in t.config}
+    budget = {t.variant: t for t in tasks if "max_minutes" in t.config}
+    assert set(steps) == set(budget) == {m.label for m in METHODS}
+    for label, task in budget.items():
+        # the cap defaults to twice the equal-step count; both runs share seed, priors and method settings
+        assert task.config["max_minutes"] == 1.5 and task.config["iterations"] == 600
+        assert task.out == tmp_path / "out" / "runs_budget" / "tiny" / task.out.name != steps[label].out
+        assert {k: v for k, v in task.config.items() if k not in ("max_minutes", "iterations")} == \
+            {k: v for k, v in steps[label].config.items() if k != "iterations"}
+    capped, _ = plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=300, budget_minutes=2, budget_step_cap=7)
+    assert {t.config["iterations"] for t in capped if "max_minutes" in t.config} == {7}
+
+
+def test_suites_fit_their_machines():
+    quick, full, large = SUITES["quick"], SUITES["full"], SUITES["large"]
+    assert quick.budget_minutes > 0 and full.budget_minutes > 0 and full.step_cap == 2 * full.iterations
+    # the full suite is sized for this 2-core machine; only the large one asks for more
+    assert len(full.presets) * len(full.seeds) <= 6 and full.resolution == "320x180" and full.views <= 12
+    assert "GPU" in large.description and large.step_cap == 30_000
+
+
 @pytest.mark.slow  # two spawned workers importing torch and the rasterizer: ~25 s on 2 busy cores
 def test_tiny_bench_runs_two_methods_writes_markdown_and_restarts_without_retraining(tmp_path, scene):
     methods = [m for m in METHODS if m.key in ("3dgs", "dropout_gs")]
     seen = []
     with LocalExecutor(2) as executor:
-        report = run_bench(tmp_path / "bench", "quick", executor=executor, scenes={"tiny": (scene, 0)},
+        report = run_bench(tmp_path / "bench", "quick", executor=executor, scenes={"tiny": (scene, 0)}, budget_minutes=0,
                            methods=methods, iterations=4, train=TRAIN, on_outcome=lambda o: seen.append(o.status))
     assert sorted(seen) == ["done", "done"] and report["failed"] == []
     runs = {run["variant"]: run for run in report["runs"]}
@@ -79,7 +102,7 @@ def test_tiny_bench_runs_two_methods_writes_markdown_and_restarts_without_retrai
     assert json.loads((tmp_path / "bench" / "benchmarks.json").read_text())["iterations"] == 4
     seen.clear()
     with LocalExecutor(1) as executor:
-        again = run_bench(tmp_path / "bench", "quick", executor=executor, scenes={"tiny": (scene, 0)},
+        again = run_bench(tmp_path / "bench", "quick", executor=executor, scenes={"tiny": (scene, 0)}, budget_minutes=0,
                           methods=methods, iterations=4, train=TRAIN, on_outcome=lambda o: seen.append(o.status))
     assert seen == ["skipped", "skipped"]
     assert again["overall"] == json.loads(json.dumps(report["overall"]))
@@ -88,7 +111,7 @@ def test_tiny_bench_runs_two_methods_writes_markdown_and_restarts_without_retrai
 def test_a_run_that_keeps_failing_is_reported_in_the_markdown(tmp_path, scene):
     methods = [m for m in METHODS if m.key == "3dgs"]
     with LocalExecutor(1) as executor:
-        report = run_bench(tmp_path / "bench", "quick", executor=executor, scenes={"tiny": (scene, 0)},
+        report = run_bench(tmp_path / "bench", "quick", executor=executor, scenes={"tiny": (scene, 0)}, budget_minutes=0,
                            methods=methods, iterations=4, train={**TRAIN, "sh_degree": 7})
     assert len(report["failed"]) == 1 and report["failed"][0]["attempts"] == 2
     assert "sh_degree" in report["failed"][0]["error"]
