@@ -11,8 +11,9 @@ Which pixels are filled (:func:`fill_region`):
 - every connected region of missing pixels (8-connected) that does NOT touch the image
   border and covers at most ``max_hole_fraction`` of the image: an enclosed hole, ground
   all around it;
-- missing pixels within ``edge_radius_px`` of a rendered pixel, also at the border: ragged
-  mesh edges (0 switches this off).
+- optionally (``edge_radius_px`` > 0; off by default) missing pixels within that many
+  pixels of a rendered one, also at the border: ragged mesh edges. Off by default because
+  next to a horizon it would grow the ground into the sky.
 
 How (:func:`fill_missing`): membrane (Laplace) interpolation of inverse depth and of the
 normal components from the rendered pixels around each hole (:func:`membrane_fill`, one
@@ -44,7 +45,7 @@ class FillOptions:
 
     max_hole_fraction: float = field(default=0.05, metadata={
         "help": "fill enclosed holes up to this fraction of the image area (0 = no hole filling)"})
-    edge_radius_px: int = field(default=3, metadata={
+    edge_radius_px: int = field(default=0, metadata={
         "help": "also fill missing pixels within this many pixels of a rendered one (0 = off)"})
 
     def validate(self) -> None:

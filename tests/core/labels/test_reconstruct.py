@@ -1,0 +1,85 @@
+"""The CPU reconstruction: plane-sweep depth, cross-view check, 2.5D mesh, on numpy-rendered views."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from esgs.core.errors import ConfigError, DatasetError
+from esgs.core.labels.reconstruct import ReconstructOptions, mesh_from_points, reconstruct_mesh
+from esgs.core.labels.stereo import StereoOptions, View, consistent_depths, depth_maps
+
+from .synthetic_views import height_at, render, rover_poses, texture_at, write_scene
+
+FAST = StereoOptions(planes=48, neighbours=3, best_of=2)
+
+
+@pytest.fixture(scope="module")
+def views_and_truth():
+    views, truths = [], []
+    for index, (K, world_to_camera) in enumerate(rover_poses(5)):
+        image, depth = render(K, world_to_camera)
+        views.append(View(f"v{index}", image.astype(np.float32), K, world_to_camera, (1.2, 8.0)))
+        truths.append(depth)
+    return views, truths
+
+
+def test_plane_sweep_recovers_the_depth(views_and_truth):
+    views, truths = views_and_truth
+    depths, neighbours = depth_maps(views, FAST)
+    assert all(len(n) == 3 for n in neighbours)
+    middle, truth = depths[2], truths[2]
+    valid = middle > 0
+    assert valid.mean() > 0.6
+    relative = np.abs(middle[valid] - truth[valid]) / truth[valid]
+    assert np.median(relative) < 0.01
+    # the cross-view check keeps the good pixels and removes the worst ones
+    checked = consistent_depths(views, depths, neighbours, 0.01, 1)[2]
+    kept = checked > 0
+    assert kept.mean() > 0.4
+    kept_error = np.abs(checked[kept] - truth[kept]) / truth[kept]
+    assert np.percentile(kept_error, 95) <= np.percentile(relative, 95)
+
+
+def test_mesh_from_points_follows_the_surface_and_keeps_gaps_open():
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(-2, 2, 40000), rng.uniform(0, 6, 40000)
+    keep = (x + 1.0) ** 2 + (y - 4.0) ** 2 > 0.5 ** 2  # a hole with no points
+    x, y = x[keep], y[keep]
+    points = np.stack([x, y, height_at(x, y)], 1)
+    points[::97, 2] += 2.0  # scattered stereo outliers (1 %): outvoted by the cell medians
+    cluster = np.array([[1.01, 5.01, 1.5]] * 12)  # a cluster of outliers wins its cell's median
+    points = np.concatenate([points, cluster])
+    vertices, triangles, stats = mesh_from_points(points, np.array([0, 0, 1.0]), 0.05, 4.0, 3.0)
+    assert stats["spikes_removed"] >= 1 and vertices[:, 2].max() < 0.45
+    error = np.abs(vertices[:, 2] - height_at(vertices[:, 0], vertices[:, 1]))
+    assert np.median(error) < 0.005 and np.percentile(error, 99) < 0.05
+    centroids = vertices[triangles].mean(axis=1)
+    in_hole = ((centroids[:, 0] + 1.0) ** 2 + (centroids[:, 1] - 4.0) ** 2) < 0.35 ** 2
+    assert not in_hole.any()  # long triangles across the hole were removed
+    normals = np.cross(vertices[triangles[:, 1]] - vertices[triangles[:, 0]], vertices[triangles[:, 2]] - vertices[triangles[:, 0]])
+    assert np.all(normals[:, 2] > 0)  # oriented towards the cameras (up)
+
+
+def test_reconstruct_mesh_of_a_scene_folder(tmp_path):
+    write_scene(tmp_path, 5)
+    options = ReconstructOptions(stereo=FAST)
+    report = reconstruct_mesh(tmp_path, options)
+    import trimesh
+
+    mesh = trimesh.load(tmp_path / "mesh" / "reconstructed.ply", process=False)
+    assert report["mesh"] == str(tmp_path / "mesh" / "reconstructed.ply") and len(mesh.faces) > 500
+    error = np.abs(mesh.vertices[:, 2] - height_at(mesh.vertices[:, 0], mesh.vertices[:, 1]))
+    footprint = 4.0 / 80.0  # one pixel at the typical 4 m range of these 96x64 views
+    assert np.median(error) < 0.5 * footprint and report["fused_points"] > 5000
+    # the mound is in the mesh: vertices near its top are raised
+    top = (mesh.vertices[:, 0] - 0.3) ** 2 + (mesh.vertices[:, 1] - 2.5) ** 2 < 0.15 ** 2
+    assert top.any() and np.median(mesh.vertices[top, 2]) > 0.3
+
+
+def test_reconstruct_refuses_scenes_it_cannot_do(tmp_path):
+    write_scene(tmp_path, 1)
+    with pytest.raises(DatasetError, match="one image"):
+        reconstruct_mesh(tmp_path)
+    with pytest.raises(ConfigError, match="best_of"):
+        ReconstructOptions(stereo=StereoOptions(neighbours=2, best_of=3)).validate()
+    assert not (tmp_path / "mesh").exists()
