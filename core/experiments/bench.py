@@ -59,9 +59,9 @@ SUITES = {
                                     "~15 minutes on 2 busy cores"),
     # the comparison of the issue, sized for a 2-core CPU machine (see docs/benchmarks.md)
     "full": BenchSuite("full", presets=("cratered_plain", "dune_field"), seeds=(0, 1, 2), views=12,
-                       resolution="320x180", samples=16, iterations=600, points_per_view=1000, budget_minutes=1.5,
-                       description="cratered_plain, dune_field x seeds 0 1 2, 12 views 320x180, 600 steps, and "
-                                   "1.5 min budgets: ~2 hours on 2 cores"),
+                       resolution="320x180", samples=16, iterations=500, points_per_view=1000, budget_minutes=1.0,
+                       description="cratered_plain, dune_field x seeds 0 1 2, 12 views 320x180, 500 steps, and "
+                                   "1 min budgets: ~1.5 hours on 2 idle cores (two Ray workers)"),
     # for bigger machines only (a GPU, or a Ray cluster): days on a 2-core CPU
     "large": BenchSuite("large", presets=("cratered_plain", "dune_field", "rocky_slope", "crater_survey_nadir"),
                         seeds=(0, 1, 2), views=30, resolution="480x270", samples=32, iterations=7000,

@@ -116,3 +116,20 @@ def test_a_run_that_keeps_failing_is_reported_in_the_markdown(tmp_path, scene):
     assert len(report["failed"]) == 1 and report["failed"][0]["attempts"] == 2
     assert "sh_degree" in report["failed"][0]["error"]
     assert "FAILED tiny/3dgs after 2 attempts" in (tmp_path / "bench" / "benchmarks.md").read_text()
+
+
+def test_cli_keeps_the_local_pool_for_quick_and_uses_ray_for_the_big_suites_and_an_address():
+    import argparse
+
+    from esgs.core.commands import bench as command
+
+    parser = argparse.ArgumentParser()
+    command.add_arguments(parser)
+    kind = lambda *argv: command.executor_kind(parser.parse_args(["--out", "x", *argv]))  # noqa: E731
+    assert kind() == "local" and kind("--suite", "quick", "--workers", "2") == "local"
+    assert kind("--suite", "full") == "ray" and kind("--suite", "large") == "ray"
+    assert kind("--address", "auto") == "ray" and kind("--suite", "full", "--executor", "local") == "local"
+    args = parser.parse_args(["--out", "x", "--budget-minutes", "0", "--budget-step-cap", "40"])
+    assert args.budget_minutes == 0 and args.budget_step_cap == 40
+    with pytest.raises(ConfigError, match="--address"):
+        command.run(parser.parse_args(["--out", "x", "--address", "auto", "--executor", "local"]))
