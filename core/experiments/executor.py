@@ -149,7 +149,8 @@ class RayExecutor(Executor):
     its run folder (without checkpoints) comes back to ``task.out`` on the driver, so
     summaries, renders and point clouds all land in one place. ``ship_folders=True`` does this
     for every run (tests; hosts sharing a name), ``False`` never (a shared file system).
-    A local instance is shut down by :meth:`close`; an existing cluster is only disconnected.
+    :meth:`close` shuts down a local instance started here and disconnects from a cluster
+    connected here (the cluster keeps running); a Ray already initialised by the caller is left alone.
     """
 
     def __init__(self, address: Optional[str] = None, *, num_cpus: Optional[int] = None,
@@ -164,8 +165,9 @@ class RayExecutor(Executor):
             raise ConfigError("the Ray executor needs the 'ray' package, which is not installed",
                               hint="pip install -r requirements.txt, or use --executor local") from err
         self.ray = ray
-        self.started_here = False
+        self.started_here = False  # True: close() ends what this executor opened
         if not ray.is_initialized():
+            self.started_here = True
             if address:
                 ray.init(address=address, log_to_driver=False)
             else:
@@ -174,7 +176,6 @@ class RayExecutor(Executor):
                 cpus = max(num_cpus or os.cpu_count() or 1, math.ceil(num_cpus_per_task))
                 ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False,
                          object_store_memory=object_store_mib * 1024 * 1024)
-                self.started_here = True
         if ship_folders is None:
             self.ship = "other_hosts" if address else "never"
         else:
