@@ -22,15 +22,25 @@ How we read the paper (its Section 3.4 gives the idea, not every layer):
 
 The head starts at zero, so at initialisation the module is the identity and cannot hurt
 early training. ``fused_k = 1`` means no fusion (the 3DGS baseline, as the paper's Table 9
-row 1). Voxel membership is recomputed at every forward from the current positions, so
-densification and pruning need no special handling.
+row 1). Voxel membership is checked at every forward against the current positions: the
+voxel table (a hash table of the occupied voxels, :mod:`.gpdfn_kernels`) is reused while no
+Gaussian has changed voxel and rebuilt otherwise (after densification, pruning, or any move
+across a voxel face), so the reuse is exact.
+
+Cost (see docs/esgs.md): the first pointwise convolution is linear, so it is applied once per
+voxel and gathered for the sampled rows; the rest of the fused stack has a hand-written
+backward (:class:`_FusionCore`) that avoids the slow paths of the generic one.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 import torch
 from torch import nn
 
+from . import gpdfn_kernels as kernels
 from .gpdfn_config import GPDFNConfig
 
 FEATURE_DIM = 14  # position 3, log-scale 3, quaternion 4, opacity 1, SH DC 3
@@ -53,10 +63,142 @@ def automatic_voxel_size(means: torch.Tensor, sample: int = 20000, seed: int = 0
 
 
 def _voxel_keys(coords: torch.Tensor) -> torch.Tensor:
-    """Pack int64 voxel coordinates [..., 3] into one int64 key (21 bits per axis)."""
+    """Pack int64 voxel coordinates [..., 3] into one int64 key (21 bits per axis, as the kernels)."""
     offset = 1 << 20
     c = (coords + offset).clamp(0, (1 << 21) - 1)
     return (c[..., 0] << 42) | (c[..., 1] << 21) | c[..., 2]
+
+
+@dataclass
+class VoxelTable:
+    """Occupied voxels of one Gaussian set (see :mod:`.gpdfn_kernels`).
+
+    coordinates [N, 3] int64 voxel of each Gaussian; keys [N] int64 packed; inverse [N] int64
+    voxel id of each Gaussian; counts [V] Gaussians per voxel (float); slot_keys / slot_ids:
+    the hash table (NumPy arrays) that :meth:`lookup` probes.
+    """
+
+    voxel_size: float
+    coordinates: torch.Tensor
+    keys: np.ndarray
+    inverse: torch.Tensor
+    counts: torch.Tensor
+    slot_keys: np.ndarray
+    slot_ids: np.ndarray
+
+    @staticmethod
+    def build(means: torch.Tensor, voxel_size: float, previous: Optional["VoxelTable"] = None) -> "VoxelTable":
+        """Voxel table of the centres ``means`` [N, 3] (no gradient).
+
+        ``previous``: the table of an earlier call. When every centre still lies in the voxel
+        it had then (same count, equal keys), its hash table, inverse and counts are reused:
+        they depend only on the keys, so the reuse is exact.
+        """
+        points = means.detach().cpu().contiguous().numpy()
+        coordinates, keys = kernels.voxel_coordinates(points, points.dtype.type(voxel_size))
+        coordinates_t = torch.from_numpy(coordinates).to(means.device)
+        if previous is not None and previous.voxel_size == voxel_size and previous.keys.shape == keys.shape \
+                and previous.counts.dtype == means.dtype and np.array_equal(previous.keys, keys):
+            return VoxelTable(voxel_size, coordinates_t, keys, previous.inverse, previous.counts,
+                              previous.slot_keys, previous.slot_ids)
+        slot_keys, slot_ids, inverse, voxels = kernels.build_table(keys)
+        inverse_t = torch.from_numpy(inverse).to(means.device)
+        counts = torch.bincount(inverse_t, minlength=voxels).to(means.dtype)
+        return VoxelTable(voxel_size, coordinates_t, keys, inverse_t, counts, slot_keys, slot_ids)
+
+    def lookup(self, points: torch.Tensor) -> torch.Tensor:
+        """Voxel id of each point [M, 3] -> [M] int64, -1 where the voxel is empty."""
+        array = points.detach().cpu().contiguous().numpy()
+        found = kernels.lookup(array, array.dtype.type(self.voxel_size), self.slot_keys, self.slot_ids)
+        return torch.from_numpy(found).to(points.device)
+
+
+class _FusionCore(torch.autograd.Function):
+    """Pointwise 1D convolutions, attention and head over the ``[N, K, H]`` fused stack.
+
+    Same maths as ``head(sum_k softmax_k(attention(h_k)) h_k)`` with ``h_k = embed(x_k)``
+    written with autograd, but the first layer comes in already applied: row 0 (the
+    Gaussian itself) as ``own [N, H]`` and rows 1..K-1 (the sampled voxels) as
+    ``weight * voxel_projection[index] + bias1``. The first layer is linear, so applying it
+    to the V voxel features once and gathering costs far less than applying it to N (K - 1)
+    gathered rows. The backward is written by hand with in-place masks and no
+    ``[N, K, H]`` temporaries beyond the saved activations (autograd's generic backward
+    allocated several more; at 100k Gaussians each is ~19 MB of memory traffic).
+
+    Inputs: own [N, H] (first layer of the Gaussian's own row, bias included),
+    voxel_projection [V, H], index [N, K-1] int64 (clamped to valid ids), weight [N, K-1]
+    (kernel weights, 0 for empty voxels), bias1 [H], weight2 [H, H], bias2 [H],
+    attention_weight [H], attention_bias [] , head_weight [O, H], head_bias [O].
+    Output: [N, O].
+    """
+
+    @staticmethod
+    def forward(ctx, own, voxel_projection, index, weight, bias1, weight2, bias2, attention_weight, attention_bias,
+                head_weight, head_bias):
+        count, hidden = own.shape
+        fused = index.shape[1] + 1
+        flat_index = index.reshape(-1)
+        first = torch.empty(count, fused, hidden, dtype=own.dtype, device=own.device)
+        first[:, 0] = own
+        # index_select, not voxel_projection[index]: advanced indexing with a 2D index was ~20x slower
+        gathered = voxel_projection.index_select(0, flat_index).view(count, fused - 1, hidden)
+        torch.mul(gathered, weight.unsqueeze(2), out=first[:, 1:])
+        first[:, 1:] += bias1
+        first.relu_()
+        flat_first = first.view(-1, hidden)
+        second = torch.addmm(bias2, flat_first, weight2.t()).relu_()
+        stack = second.view(count, fused, hidden)
+        # attention kept as [K, N]: a softmax over the short axis of [N, K] was ~10x slower
+        scores = (torch.mv(second, attention_weight) + attention_bias).view(count, fused).t().contiguous()
+        attention = torch.softmax(scores, dim=0)  # [K, N]
+        summary = stack[:, 0] * attention[0].unsqueeze(1)
+        for k in range(1, fused):
+            summary.addcmul_(stack[:, k], attention[k].unsqueeze(1))
+        result = torch.addmm(head_bias, summary, head_weight.t())
+        ctx.save_for_backward(first, second, attention, summary, flat_index, weight, voxel_projection, weight2,
+                              attention_weight, head_weight)
+        return result
+
+    @staticmethod
+    def backward(ctx, grad_result):
+        first, second, attention, summary, flat_index, weight, voxel_projection, weight2, attention_weight, \
+            head_weight = ctx.saved_tensors
+        fused, count = attention.shape
+        hidden = summary.shape[1]
+        grad_result = grad_result.contiguous()
+        grad_head_weight = grad_result.t() @ summary
+        grad_head_bias = grad_result.sum(0)
+        grad_summary = grad_result @ head_weight  # [N, H]
+        stack = second.view(count, fused, hidden)
+        # softmax backward, [K, N]: d score_k = p_k (h_k . g' - summary . g')
+        along = torch.stack([(stack[:, k] * grad_summary).sum(1) for k in range(fused)])
+        grad_scores = attention * (along - (summary * grad_summary).sum(1))
+        grad_scores_rows = grad_scores.t().reshape(-1)  # [N K], the order of ``second``'s rows
+        grad_attention_weight = torch.mv(second.t(), grad_scores_rows)
+        grad_attention_bias = grad_scores_rows.sum()
+        # d h_k = p_k g' + d score_k * attention_weight, then through the second ReLU
+        # (threshold_backward: a boolean-mask fill was ~20x slower)
+        grad_second = torch.empty_like(stack)
+        for k in range(fused):
+            torch.mul(grad_summary, attention[k].unsqueeze(1), out=grad_second[:, k])
+            grad_second[:, k].addcmul_(grad_scores[k].unsqueeze(1), attention_weight)
+        grad_second = torch.ops.aten.threshold_backward(grad_second.view(-1, hidden), second, 0)
+        grad_weight2 = grad_second.t() @ first.view(-1, hidden)
+        grad_bias2 = grad_second.sum(0)
+        grad_first = torch.ops.aten.threshold_backward(grad_second @ weight2, first.view(-1, hidden), 0)
+        grad_first = grad_first.view(count, fused, hidden)
+        grad_own = grad_first[:, 0].contiguous()
+        grad_sampled = grad_first[:, 1:]  # [N, K-1, H]
+        grad_bias1 = grad_first.view(count, -1).sum(0).view(fused, hidden)[1:].sum(0)
+        grad_weight = grad_voxel_projection = None
+        if ctx.needs_input_grad[3]:
+            gathered = voxel_projection.index_select(0, flat_index).view(count, fused - 1, hidden)
+            grad_weight = (grad_sampled * gathered).sum(2)
+        if ctx.needs_input_grad[1]:
+            grad_voxel_projection = torch.zeros_like(voxel_projection).index_add_(
+                0, flat_index, (grad_sampled * weight.unsqueeze(2)).reshape(-1, hidden))
+        return (grad_own, grad_voxel_projection, None, grad_weight, grad_bias1, grad_weight2, grad_bias2,
+                grad_attention_weight, grad_attention_bias.reshape(()), grad_head_weight, grad_head_bias)
 
 
 class GPDFN(nn.Module):
@@ -69,6 +211,7 @@ class GPDFN(nn.Module):
         self.voxel_size = float(self.config.voxel_size)
         neighbours = self.config.fused_k - 1
         self.enabled = neighbours > 0
+        self._table: Optional[VoxelTable] = None  # voxel table of the last forward (exact reuse)
         if not self.enabled:
             return
         directions = [_BASE_DIRECTIONS[i % 4] for i in range(neighbours)]
@@ -92,44 +235,41 @@ class GPDFN(nn.Module):
 
     # ----------------------------------------------------------------------------------
     def gaussian_features(self, means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
-                          opacity_logits: torch.Tensor, sh_dc: torch.Tensor) -> torch.Tensor:
-        """[N, 14] normalised parameter vectors (positions in voxel units inside the voxel)."""
+                          opacity_logits: torch.Tensor, sh_dc: torch.Tensor,
+                          coordinates: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """[N, 14] normalised parameter vectors (positions in voxel units inside the voxel).
+
+        ``coordinates`` [N, 3]: the voxel of each Gaussian when already known (the voxel table's).
+        """
         voxel = self.voxel_size
-        local = means / voxel - torch.floor(means.detach() / voxel) - 0.5
+        if coordinates is None:
+            coordinates = torch.floor(means.detach() / voxel)
+        local = means / voxel - coordinates.to(means.dtype) - 0.5
         unit_quats = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         relative_scale = log_scales - torch.log(torch.tensor(voxel, dtype=means.dtype))
         return torch.cat([local, relative_scale, unit_quats, opacity_logits.reshape(-1, 1), sh_dc], dim=-1)
 
-    def _voxel_table(self, means: torch.Tensor, features: torch.Tensor):
-        coords = torch.floor(means.detach() / self.voxel_size).to(torch.int64)
-        # numpy's unique is ~20x faster than torch's on the CPU for 100k int64 keys
-        unique_np, inverse_np = np.unique(_voxel_keys(coords).cpu().numpy(), return_inverse=True)
-        unique_keys = torch.from_numpy(unique_np).to(means.device)
-        inverse = torch.from_numpy(inverse_np.reshape(-1)).to(means.device)
-        count = torch.zeros(len(unique_keys), dtype=features.dtype).index_add_(
-            0, inverse, torch.ones_like(features[:, 0]))
-        summed = torch.zeros(len(unique_keys), features.shape[1], dtype=features.dtype).index_add_(0, inverse, features)
-        voxel_features = summed / count.unsqueeze(1)
-        centroids = torch.zeros(len(unique_keys), 3, dtype=means.dtype).index_add_(0, inverse, means.detach())
-        return unique_keys, voxel_features, centroids / count.unsqueeze(1)
+    def voxel_table(self, means: torch.Tensor) -> VoxelTable:
+        """The voxel table of ``means`` [N, 3], reusing the last one when no Gaussian changed voxel."""
+        self._table = VoxelTable.build(means, self.voxel_size, self._table)
+        return self._table
 
-    def _sample(self, points: torch.Tensor, unique_keys: torch.Tensor, voxel_features: torch.Tensor,
-                centroids: torch.Tensor) -> torch.Tensor:
-        """Soft read of voxel features at ``points`` [M,3] -> [M, D+1] (last = weight).
+    def sample_voxels(self, points: torch.Tensor, table: VoxelTable,
+                      centroids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Soft read places: points [M, 3] -> (voxel index [M] int64, kernel weight [M]).
 
-        The voxel containing each point is looked up; its feature is weighted by a Gaussian
-        kernel of the distance from the point to the voxel's centroid (in voxel units), so the
-        sampling place (and the learnable offsets behind it) receives gradients. One gather
-        per sample: eight times cheaper than trilinear interpolation over voxel corners, which
-        matters at 100k+ Gaussians on the CPU. Empty voxels give weight 0.
+        The voxel containing each point is looked up; its weight is a Gaussian kernel of the
+        distance from the point to the voxel's centroid (in voxel units), so the sampling place
+        (and the learnable offsets behind it) receives gradients. One read per sample: eight
+        times cheaper than trilinear interpolation over voxel corners. Empty voxels give weight
+        0 (and index 0, a valid row to gather from).
         """
-        keys = _voxel_keys(torch.floor(points.detach() / self.voxel_size).to(torch.int64))
-        index_np = np.searchsorted(unique_keys.cpu().numpy(), keys.cpu().numpy())
-        index = torch.from_numpy(np.minimum(index_np, len(unique_keys) - 1)).to(keys.device)
-        found = (unique_keys[index] == keys).to(voxel_features.dtype).unsqueeze(1)
-        offset = (points - centroids[index]) / self.voxel_size
-        weight = found * torch.exp(-0.5 * (offset * offset).sum(dim=1, keepdim=True))
-        return torch.cat([voxel_features[index] * weight, weight], dim=1)
+        found = table.lookup(points)
+        present = found >= 0
+        index = found.clamp_min(0)
+        offset = (points - centroids.index_select(0, index)) / self.voxel_size
+        weight = torch.exp(-0.5 * (offset * offset).sum(dim=1)) * present.to(points.dtype)
+        return index, weight
 
     def forward(self, means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
                 opacity_logits: torch.Tensor, sh_dc: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -145,17 +285,28 @@ class GPDFN(nn.Module):
             return {"sh_dc": zeros(count, 3), "opacity_logits": zeros(count), "log_scales": zeros(count, 3)}
         if self.voxel_size <= 0:
             self.voxel_size = automatic_voxel_size(means)
-        features = self.gaussian_features(means, log_scales, quats, opacity_logits, sh_dc)
-        unique_keys, voxel_features, centroids = self._voxel_table(means, features)
+        table = self.voxel_table(means)
+        features = self.gaussian_features(means, log_scales, quats, opacity_logits, sh_dc, table.coordinates)
+        voxels = table.counts.shape[0]
+        per_voxel = table.counts.unsqueeze(1)
+        voxel_features = features.new_zeros(voxels, features.shape[1]).index_add_(0, table.inverse, features)
+        voxel_features = voxel_features / per_voxel
+        centroids = means.new_zeros(voxels, 3).index_add_(0, table.inverse, means.detach()) / per_voxel
         neighbours = self.config.fused_k - 1
         delta = torch.tanh(self.offset_head(features)).view(count, neighbours, 3) * self.config.max_shift_voxels
         offsets = (self.base_offsets.unsqueeze(0) + delta) * self.voxel_size  # [N, K-1, 3]
         sample_points = (means.unsqueeze(1) + offsets).reshape(-1, 3)
-        sampled = self._sample(sample_points, unique_keys, voxel_features, centroids).view(count, neighbours, -1)
-        own = torch.cat([features, torch.ones_like(features[:, :1])], dim=1).unsqueeze(1)
-        stacked = torch.cat([own, sampled], dim=1)  # [N, K, D+1]
-        hidden = self.embed(stacked)  # [N, K, H]
-        weights = torch.softmax(self.attention(hidden), dim=1)  # [N, K, 1]
-        fused = (hidden * weights).sum(dim=1)  # [N, H]
-        residual = self.head(fused)
+        index, weight = self.sample_voxels(sample_points, table, centroids)
+        # first pointwise convolution over the [features, weight channel] rows: the own row has
+        # weight channel 1; a sampled row is weight * [voxel feature, 1], so its first layer is
+        # weight * (voxel projection) + bias, with the projection computed once per voxel
+        first = self.embed[0]
+        feature_weight, channel_weight = first.weight[:, :-1], first.weight[:, -1]
+        own = torch.addmm(first.bias + channel_weight, features, feature_weight.t())
+        voxel_projection = torch.addmm(channel_weight, voxel_features, feature_weight.t())
+        second = self.embed[2]
+        residual = _FusionCore.apply(own, voxel_projection, index.view(count, neighbours),
+                                     weight.view(count, neighbours), first.bias, second.weight, second.bias,
+                                     self.attention.weight[0], self.attention.bias[0], self.head.weight,
+                                     self.head.bias)
         return {"sh_dc": residual[:, 0:3], "opacity_logits": residual[:, 3], "log_scales": residual[:, 4:7]}

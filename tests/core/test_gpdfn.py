@@ -1,11 +1,14 @@
-"""GPDFN: identity at start, shapes, determinism, gradients reach the offsets, it learns."""
+"""GPDFN: identity at start, shapes, determinism, gradients reach the offsets, it learns; the fast
+path (hash-table voxels, first layer per voxel, hand-written backward, table reuse) equals a plain
+autograd statement of the same maths."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
 from esgs.core.errors import ConfigError
-from esgs.core.gpdfn import GPDFN, GPDFNConfig
+from esgs.core.gpdfn import GPDFN, GPDFNConfig, VoxelTable, _FusionCore, _voxel_keys
 
 
 def _gaussians(count=500, seed=0):
@@ -50,24 +53,140 @@ def test_deterministic_with_a_seed():
 
 
 def test_soft_sampling_reads_the_containing_voxel_with_a_distance_kernel():
-    from esgs.core.gpdfn import _voxel_keys
-
     module = GPDFN(GPDFNConfig(fused_k=2, voxel_size=2.0))
-    coords = torch.tensor([[0, 0, 0], [1, 0, 0], [5, 5, 5]])
-    keys, order = torch.sort(_voxel_keys(coords))
-    features = torch.arange(3 * 14, dtype=torch.float64).reshape(3, 14)[order]
-    centroids = (coords[order].double() + 0.5) * 2.0
+    # Gaussians in voxels (0,0,0) twice, (1,0,0) and (5,5,5)
+    means = torch.tensor([[0.5, 1.0, 1.0], [1.5, 1.0, 1.0], [3.0, 1.0, 1.0], [11.0, 11.0, 11.0]], dtype=torch.float64)
+    table = VoxelTable.build(means, 2.0)
+    assert table.counts.tolist() == [2.0, 1.0, 1.0] and table.inverse.tolist() == [0, 0, 1, 2]
+    centroids = torch.zeros(3, 3, dtype=torch.float64).index_add_(0, table.inverse, means) / table.counts[:, None]
     query = torch.tensor([[2.5, 1.0, 1.0], [1.0, 1.0, 1.0], [-3.0, 0.0, 0.0]], dtype=torch.float64, requires_grad=True)
-    sampled = module._sample(query, keys, features, centroids)
+    index, weight = module.sample_voxels(query, table, centroids)
     # point 0 lies in voxel (1,0,0), 0.25 voxel from its centroid (3,1,1); point 1 at voxel (0,0,0)'s centroid
     expected_weight = torch.tensor([torch.exp(torch.tensor(-0.5 * 0.25 ** 2)).item(), 1.0, 0.0], dtype=torch.float64)
-    torch.testing.assert_close(sampled[:, -1], expected_weight)
-    torch.testing.assert_close(sampled[1, :-1], features[(order == 0).nonzero()[0, 0]])
-    torch.testing.assert_close(sampled[0, :-1], features[(order == 1).nonzero()[0, 0]] * expected_weight[0])
-    assert torch.all(sampled[2] == 0)  # empty voxel
-    sampled[:, -1].sum().backward()
+    torch.testing.assert_close(weight, expected_weight)
+    assert index[:2].tolist() == [1, 0]  # the empty voxel's index is a valid row; its weight is 0
+    weight.sum().backward()
     # the weight grows toward the centroid (x = 3), and is flat at it
     assert query.grad[0, 0] > 0 and query.grad[1].abs().sum() < 1e-12
+
+
+def test_hash_lookup_matches_a_dictionary_of_voxels():
+    generator = np.random.default_rng(3)
+    means = torch.from_numpy(generator.normal(0, 3, (400, 3)).astype(np.float32))
+    table = VoxelTable.build(means, 0.7)
+    coordinates = torch.floor(means / 0.7).long()
+    voxel_of = {}
+    for n, key in enumerate(_voxel_keys(coordinates).tolist()):
+        voxel_of.setdefault(key, table.inverse[n].item())
+    assert len(voxel_of) == table.counts.shape[0]
+    torch.testing.assert_close(table.coordinates, coordinates)
+    # first appearance order, so ids do not depend on threads
+    assert sorted(voxel_of.values()) == list(range(len(voxel_of)))
+    points = torch.from_numpy(generator.normal(0, 4, (3000, 3)).astype(np.float32))
+    expected = [voxel_of.get(key, -1) for key in _voxel_keys(torch.floor(points / 0.7).long()).tolist()]
+    assert table.lookup(points).tolist() == expected
+    assert 0 < sum(e >= 0 for e in expected) < len(expected)  # both hits and empty voxels were probed
+
+
+def _reference_forward(module: GPDFN, means, log_scales, quats, opacity_logits, sh_dc):
+    """The module's maths in plain autograd: sorted-key voxels, every row through the full embedding."""
+    voxel = module.voxel_size
+    count, neighbours = means.shape[0], module.config.fused_k - 1
+    features = module.gaussian_features(means, log_scales, quats, opacity_logits, sh_dc)
+    keys = _voxel_keys(torch.floor(means.detach() / voxel).long())
+    unique_keys, inverse = torch.unique(keys, return_inverse=True)
+    counts = torch.bincount(inverse).to(means.dtype).unsqueeze(1)
+    voxel_features = features.new_zeros(len(unique_keys), features.shape[1]).index_add(0, inverse, features) / counts
+    centroids = means.new_zeros(len(unique_keys), 3).index_add(0, inverse, means.detach()) / counts
+    delta = torch.tanh(module.offset_head(features)).view(count, neighbours, 3) * module.config.max_shift_voxels
+    points = (means.unsqueeze(1) + (module.base_offsets.unsqueeze(0) + delta) * voxel).reshape(-1, 3)
+    point_keys = _voxel_keys(torch.floor(points.detach() / voxel).long())
+    index = torch.searchsorted(unique_keys, point_keys).clamp(max=len(unique_keys) - 1)
+    found = (unique_keys[index] == point_keys).to(means.dtype).unsqueeze(1)
+    offset = (points - centroids[index]) / voxel
+    weight = found * torch.exp(-0.5 * (offset * offset).sum(dim=1, keepdim=True))
+    sampled = torch.cat([voxel_features[index] * weight, weight], dim=1).view(count, neighbours, -1)
+    own = torch.cat([features, torch.ones_like(features[:, :1])], dim=1).unsqueeze(1)
+    hidden = module.embed(torch.cat([own, sampled], dim=1))
+    attention = torch.softmax(module.attention(hidden), dim=1)
+    residual = module.head((hidden * attention).sum(dim=1))
+    return {"sh_dc": residual[:, 0:3], "opacity_logits": residual[:, 3], "log_scales": residual[:, 4:7]}
+
+
+def _outputs_and_gradients(function, params, module):
+    inputs = {name: value.clone().requires_grad_() for name, value in params.items()}
+    out = function(**inputs)
+    generator = torch.Generator().manual_seed(1)
+    loss = sum((value * torch.randn(value.shape, generator=generator, dtype=value.dtype)).sum()
+               for value in out.values())
+    gradients = torch.autograd.grad(loss, list(inputs.values()) + list(module.parameters()))
+    return out, gradients
+
+
+@pytest.mark.parametrize("fused_k", [2, 3, 5])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_fast_path_equals_the_plain_autograd_statement(fused_k, dtype):
+    torch.manual_seed(fused_k)
+    params = {name: value.to(dtype) for name, value in _gaussians(count=400).items()}
+    module = GPDFN(GPDFNConfig(fused_k=fused_k)).to(dtype)
+    for parameter in module.parameters():
+        torch.nn.init.normal_(parameter, std=0.3)
+    fast, fast_gradients = _outputs_and_gradients(module, params, module)
+    plain, plain_gradients = _outputs_and_gradients(lambda **p: _reference_forward(module, **p), params, module)
+    tolerance = {"rtol": 1e-9, "atol": 1e-11} if dtype == torch.float64 else {"rtol": 1e-4, "atol": 1e-5}
+    for name in fast:
+        torch.testing.assert_close(fast[name], plain[name], **tolerance)
+    names = list(params) + [name for name, _ in module.named_parameters()]
+    for name, a, b in zip(names, fast_gradients, plain_gradients):
+        if name == "attention.bias":
+            # a shift shared by every score leaves the softmax unchanged: its gradient is rounding noise
+            assert a.abs().max() < 1e-5
+            continue
+        torch.testing.assert_close(a, b, **tolerance, msg=f"gradient of {name}")
+
+
+def test_fusion_core_backward_against_finite_differences():
+    generator = torch.Generator().manual_seed(2)
+    count, neighbours, hidden, voxels, outputs = 5, 2, 4, 3, 7
+
+    def random(*shape):
+        return torch.randn(*shape, generator=generator, dtype=torch.float64, requires_grad=True)
+
+    index = torch.randint(0, voxels, (count, neighbours), generator=generator)
+    weight = torch.rand(count, neighbours, generator=generator, dtype=torch.float64).requires_grad_()
+    inputs = (random(count, hidden), random(voxels, hidden), index, weight, random(hidden), random(hidden, hidden),
+              random(hidden), random(hidden), random(()), random(outputs, hidden), random(outputs))
+    assert torch.autograd.gradcheck(_FusionCore.apply, inputs, eps=1e-6, atol=1e-7)
+
+
+def test_voxel_table_is_reused_only_while_no_gaussian_changes_voxel():
+    torch.manual_seed(4)
+    params = _gaussians(count=300)
+    module = GPDFN(GPDFNConfig(fused_k=3))
+    for parameter in module.parameters():
+        torch.nn.init.normal_(parameter, std=0.3)
+    module(**params)
+    first = module._table
+    # a move far smaller than a voxel that keeps every centre in its voxel: the table is reused
+    coordinates = torch.floor(params["means"] / module.voxel_size)
+    inside = (params["means"] / module.voxel_size - coordinates - 0.5).abs().max(dim=1).values < 0.49
+    nudged = dict(params, means=params["means"] + inside.unsqueeze(1) * 1e-3 * module.voxel_size)
+    out = module(**nudged)
+    assert module._table.slot_keys is first.slot_keys
+    for name, value in _reference_forward(module, **nudged).items():
+        torch.testing.assert_close(out[name], value, rtol=1e-4, atol=1e-5)
+    # a move across voxels: rebuilt, and still equal to the plain statement
+    moved = dict(params, means=params["means"] + torch.tensor([0.6, 0.0, 0.0]) * module.voxel_size)
+    out = module(**moved)
+    assert module._table.slot_keys is not first.slot_keys
+    for name, value in _reference_forward(module, **moved).items():
+        torch.testing.assert_close(out[name], value, rtol=1e-4, atol=1e-5)
+    # pruning: fewer Gaussians, rebuilt
+    pruned = {name: value[::2] for name, value in moved.items()}
+    out = module(**pruned)
+    assert module._table.inverse.shape[0] == 150
+    for name, value in _reference_forward(module, **pruned).items():
+        torch.testing.assert_close(out[name], value, rtol=1e-4, atol=1e-5)
 
 
 def test_offsets_get_gradients_and_residuals_grow_when_trained():

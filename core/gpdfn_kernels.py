@@ -1,0 +1,115 @@
+"""Numba kernels of GPDFN's voxel table: voxel coordinates, a hash table of occupied voxels, lookups.
+
+Voxel ``(i, j, k)`` of a point ``p`` is ``floor(p / voxel_size)`` computed in float32 (the
+positions' precision), packed into one int64 key (21 bits per axis, offset by 2^20, as
+:func:`pack_key`). The occupied voxels go into an open-addressing hash table (power-of-two
+size, at least twice the voxel count, linear probing), so a sample point finds its voxel in
+O(1) instead of a binary search over sorted keys (measured at 100k Gaussians: a NumPy
+``searchsorted`` of 200k sample points cost ~18 ms, the hash lookup ~2 ms).
+
+Voxel ids are given in order of first appearance in the Gaussian list, by one serial pass,
+so the ids (and every sum over them) are the same on every run and thread count.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+_OFFSET = 1 << 20
+_MASK = (1 << 21) - 1
+_EMPTY = -1
+# Fibonacci hashing: 0x9E3779B97F4A7C15 as a signed int64 (the multiplication wraps)
+_HASH_MULTIPLIER = 0x9E3779B97F4A7C15 - (1 << 64)
+
+
+@njit(cache=True, inline="always")
+def pack_key(i: int, j: int, k: int) -> int:
+    """One int64 key for voxel (i, j, k); coordinates are clamped to 21 bits each."""
+    a = min(max(i + _OFFSET, 0), _MASK)
+    b = min(max(j + _OFFSET, 0), _MASK)
+    c = min(max(k + _OFFSET, 0), _MASK)
+    return (a << 42) | (b << 21) | c
+
+
+@njit(cache=True, inline="always")
+def _slot(key: int, bits: int) -> int:
+    # the top ``bits`` bits of the product (arithmetic shift, then masked)
+    return ((key * _HASH_MULTIPLIER) >> (64 - bits)) & ((1 << bits) - 1)
+
+
+@njit(cache=True, parallel=True)
+def voxel_coordinates(points: np.ndarray, voxel_size: np.float32) -> tuple[np.ndarray, np.ndarray]:
+    """points [M, 3] float32 -> (coordinates [M, 3] int64, keys [M] int64)."""
+    count = points.shape[0]
+    coordinates = np.empty((count, 3), dtype=np.int64)
+    keys = np.empty(count, dtype=np.int64)
+    for n in prange(count):
+        i = int(math.floor(points[n, 0] / voxel_size))
+        j = int(math.floor(points[n, 1] / voxel_size))
+        k = int(math.floor(points[n, 2] / voxel_size))
+        coordinates[n, 0] = i
+        coordinates[n, 1] = j
+        coordinates[n, 2] = k
+        keys[n] = pack_key(i, j, k)
+    return coordinates, keys
+
+
+@njit(cache=True)
+def build_table(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Hash table of the distinct keys [N] -> (slot_keys [S], slot_ids [S], inverse [N], voxel count).
+
+    ``inverse[n]`` is the voxel id of entry n; ids run 0..V-1 in order of first appearance.
+    """
+    count = keys.shape[0]
+    bits = 4
+    while (1 << bits) < 2 * max(count, 1):
+        bits += 1
+    size = 1 << bits
+    slot_keys = np.full(size, _EMPTY, dtype=np.int64)
+    slot_ids = np.full(size, _EMPTY, dtype=np.int64)
+    inverse = np.empty(count, dtype=np.int64)
+    voxels = 0
+    for n in range(count):
+        key = keys[n]
+        slot = _slot(key, bits)
+        while True:
+            stored = slot_keys[slot]
+            if stored == key:
+                inverse[n] = slot_ids[slot]
+                break
+            if stored == _EMPTY:
+                slot_keys[slot] = key
+                slot_ids[slot] = voxels
+                inverse[n] = voxels
+                voxels += 1
+                break
+            slot = (slot + 1) & (size - 1)
+    return slot_keys, slot_ids, inverse, voxels
+
+
+@njit(cache=True, parallel=True)
+def lookup(points: np.ndarray, voxel_size: np.float32, slot_keys: np.ndarray, slot_ids: np.ndarray) -> np.ndarray:
+    """Voxel id of each point [M, 3] float32 -> [M] int64 (-1 where the voxel is empty)."""
+    size = slot_keys.shape[0]
+    bits = 0
+    while (1 << bits) < size:
+        bits += 1
+    count = points.shape[0]
+    result = np.empty(count, dtype=np.int64)
+    for n in prange(count):
+        key = pack_key(int(math.floor(points[n, 0] / voxel_size)), int(math.floor(points[n, 1] / voxel_size)),
+                       int(math.floor(points[n, 2] / voxel_size)))
+        slot = _slot(key, bits)
+        found = _EMPTY
+        while True:
+            stored = slot_keys[slot]
+            if stored == key:
+                found = slot_ids[slot]
+                break
+            if stored == _EMPTY:
+                break
+            slot = (slot + 1) & (size - 1)
+        result[n] = found
+    return result
