@@ -1,0 +1,137 @@
+"""A scene whose sparse points come from structure from motion on its own images.
+
+A synthetic scene's ``sparse/0`` holds exact surface points lifted from the rendered depth:
+training from them (and making ``sfm`` priors from them) flatters every method, since a
+real capture never has them. :func:`make_sfm_scene` keeps the scene's known camera poses
+and intrinsics but replaces the points by what COLMAP makes of the images: SIFT features,
+exhaustive matching with geometric verification, triangulation and point-only bundle
+adjustment with the poses held fixed (``pycolmap.triangulate_points``). The new folder
+gets:
+
+- ``images/``, ``mesh/``, ``priors/gt/`` and ``scene.json`` copied from the source scene
+  (``scene.json`` gains ``"sparse_points"``: how the points were made, with their count and
+  mean reprojection error);
+- ``sparse/0``: the known poses with the triangulated points (noisy, only where the images
+  have texture, typically a few hundred per view instead of thousands);
+- ``priors/sfm/``: the sparse depth priors of those points (:func:`..priors.sfm.write_sfm_priors`).
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import DatasetError
+from ..progress import ProgressCallback, ProgressEvent, no_progress
+
+#: Folders and files copied unchanged from the source scene.
+COPIED = ("images", "mesh", Path("priors") / "gt")
+
+
+def triangulate_known_poses(scene: str | Path, output: str | Path, *, max_features: int = 8192,
+                            verbose: bool = False) -> dict[str, Any]:
+    """Triangulate SIFT matches of ``scene/images`` with the poses of ``scene/sparse/0``.
+
+    Writes a COLMAP binary model to ``output`` (must not exist) with the same cameras and
+    poses and the triangulated points; returns {"points", "observations",
+    "mean_reprojection_error_px", "mean_track_length"}. Raises DatasetError when no point
+    could be triangulated (images without texture or overlap).
+    """
+    import pycolmap
+
+    scene, output = Path(scene), Path(output)
+    reference = pycolmap.Reconstruction(str(scene / "sparse" / "0"))
+    if reference.num_cameras() != 1:
+        raise DatasetError(f"triangulation with known poses supports one camera, the scene has {reference.num_cameras()}",
+                           path=scene / "sparse" / "0", hint="use a scene rendered with one camera model")
+    camera = next(iter(reference.cameras.values()))
+    names = sorted(image.name for image in reference.images.values())
+    previous_level = pycolmap.logging.minloglevel
+    if not verbose:
+        pycolmap.logging.minloglevel = 2
+    try:
+        with tempfile.TemporaryDirectory(prefix="esgs_triangulate_") as workspace_name:
+            workspace = Path(workspace_name)
+            database = workspace / "database.db"
+            reader = pycolmap.ImageReaderOptions()
+            reader.camera_model = camera.model.name
+            reader.camera_params = ",".join(repr(float(value)) for value in camera.params)
+            extraction = pycolmap.FeatureExtractionOptions()
+            extraction.sift.max_num_features = max_features
+            pycolmap.extract_features(database, scene / "images", image_names=names,
+                                      camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                                      extraction_options=extraction, device=pycolmap.Device.cpu)
+            pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
+            # the database numbers images in (multi-threaded, unordered) extraction order: build
+            # the posed model with the database's ids, each pose taken from the scene by name
+            posed = pycolmap.Reconstruction()
+            with pycolmap.Database.open(str(database)) as opened:
+                for db_camera in opened.read_all_cameras():
+                    posed.add_camera_with_trivial_rig(db_camera)
+                for db_image in opened.read_all_images():
+                    known = reference.find_image_with_name(db_image.name)
+                    image = pycolmap.Image(name=db_image.name, camera_id=db_image.camera_id, image_id=db_image.image_id)
+                    posed.add_image_with_trivial_frame(image, known.cam_from_world())
+            staging = workspace / "model"
+            staging.mkdir()
+            result = pycolmap.triangulate_points(posed, database, scene / "images", staging, clear_points=True,
+                                                 options=pycolmap.IncrementalPipelineOptions(), refine_intrinsics=False)
+            if result.num_points3D() == 0:
+                raise DatasetError("no point could be triangulated from the images with their known poses",
+                                   path=scene / "images", hint="the views need overlap and texture")
+            output.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copytree(staging, output)
+    finally:
+        pycolmap.logging.minloglevel = previous_level
+    return {"points": int(result.num_points3D()), "observations": int(result.compute_num_observations()),
+            "mean_reprojection_error_px": float(result.compute_mean_reprojection_error()),
+            "mean_track_length": float(result.compute_mean_track_length())}
+
+
+def make_sfm_scene(scene: str | Path, out: str | Path, *, overwrite: bool = False,
+                   progress: ProgressCallback = no_progress) -> dict[str, Any]:
+    """Copy ``scene`` to ``out`` with triangulated SfM points and their ``sfm`` priors (module docstring).
+
+    Returns the ``sparse_points`` record written into ``out/scene.json``. The folder is built
+    in a temporary sibling and appears only when complete.
+    """
+    from ..colmap import read_model
+    from ..io_utils import atomic_directory, atomic_write_json
+    from ..priors.sfm import write_sfm_priors
+
+    scene, out = Path(scene), Path(out)
+    if not (scene / "sparse" / "0").is_dir() or not (scene / "images").is_dir():
+        raise DatasetError("not a scene folder (images/ and sparse/0 needed)", path=scene,
+                           hint="make one with esgs scene")
+    with atomic_directory(out, overwrite=overwrite) as staging:
+        for name in COPIED:
+            if (scene / name).is_dir():
+                shutil.copytree(scene / name, staging / name)
+        progress(ProgressEvent(0, 2, stage="sfm scene", message="triangulating"))
+        record = triangulate_known_poses(scene, staging / "sparse" / "0")
+        record["method"] = ("pycolmap: SIFT on the rendered images, exhaustive matching, triangulation "
+                            "with the known poses and intrinsics")
+        record["source_scene"] = str(scene)
+        model = read_model(staging)
+        write_sfm_priors(staging, model)
+        progress(ProgressEvent(1, 2, stage="sfm scene", message="sfm priors"))
+        provenance = json.loads((scene / "scene.json").read_text()) if (scene / "scene.json").is_file() else {}
+        provenance["sparse_points"] = record
+        provenance["points3d"] = record["points"]
+        provenance.setdefault("priors", {})["sfm"] = ["depth", "mask"]
+        atomic_write_json(staging / "scene.json", provenance)
+    progress(ProgressEvent(2, 2, stage="sfm scene", message="done"))
+    return record
+
+
+def point_to_mesh_distances(points: np.ndarray, mesh_path: str | Path) -> np.ndarray:
+    """[N] unsigned distances of ``points`` [N, 3] to the surface of the mesh at ``mesh_path``."""
+    import trimesh
+
+    mesh = trimesh.load(str(mesh_path), force="mesh", process=False)
+    _, distances, _ = trimesh.proximity.closest_point(mesh, np.asarray(points, np.float64))
+    return np.asarray(distances)
