@@ -113,20 +113,56 @@ class VoxelTable:
         return torch.from_numpy(found).to(points.device)
 
 
+#: Gaussians per block of the fused stack: a block's [B, K, H] temporaries (~0.8 MB at K = 3,
+#: H = 16) stay in the CPU cache, where the whole-set tensors (~19 MB each at 100k Gaussians)
+#: made every elementwise pass a trip to memory and a fresh allocation (page faults).
+FUSION_BLOCK = 4096
+
+
+def _fusion_forward_block(own, voxel_projection, index, weight, bias1, weight2, bias2, attention_weight,
+                          attention_bias, head_weight, head_bias):
+    """One block of :class:`_FusionCore`'s forward -> (result [B, O], first, second, attention, summary).
+
+    Layout is entry-major, ``[K, B, H]`` (row k = 0 the Gaussian itself), so that every
+    per-entry slice is contiguous and the softmax runs over the leading axis (a softmax
+    over the short last axis of ``[B, K]``, and writes into strided slices, were the slow
+    paths). index, weight: [K-1, B].
+    """
+    count, hidden = own.shape
+    fused = index.shape[0] + 1
+    first = torch.empty(fused, count, hidden, dtype=own.dtype, device=own.device)
+    first[0] = own
+    # index_select, not voxel_projection[index]: advanced indexing with a 2D index was ~20x slower
+    gathered = voxel_projection.index_select(0, index.reshape(-1)).view(fused - 1, count, hidden)
+    torch.mul(gathered, weight.unsqueeze(2), out=first[1:])
+    first[1:] += bias1
+    first.relu_()
+    second = torch.addmm(bias2, first.view(-1, hidden), weight2.t()).relu_()  # [K B, H]
+    stack = second.view(fused, count, hidden)
+    scores = (torch.mv(second, attention_weight) + attention_bias).view(fused, count)
+    attention = torch.softmax(scores, dim=0)  # [K, B]
+    summary = stack[0] * attention[0].unsqueeze(1)
+    for k in range(1, fused):
+        summary.addcmul_(stack[k], attention[k].unsqueeze(1))
+    result = torch.addmm(head_bias, summary, head_weight.t())
+    return result, first, second, attention, summary
+
+
 class _FusionCore(torch.autograd.Function):
-    """Pointwise 1D convolutions, attention and head over the ``[N, K, H]`` fused stack.
+    """Pointwise 1D convolutions, attention and head over the fused stack of K entries per Gaussian.
 
     Same maths as ``head(sum_k softmax_k(attention(h_k)) h_k)`` with ``h_k = embed(x_k)``
-    written with autograd, but the first layer comes in already applied: row 0 (the
-    Gaussian itself) as ``own [N, H]`` and rows 1..K-1 (the sampled voxels) as
+    written with autograd, but the first layer comes in already applied: entry 0 (the
+    Gaussian itself) as ``own [N, H]`` and entries 1..K-1 (the sampled voxels) as
     ``weight * voxel_projection[index] + bias1``. The first layer is linear, so applying it
     to the V voxel features once and gathering costs far less than applying it to N (K - 1)
-    gathered rows. The backward is written by hand with in-place masks and no
-    ``[N, K, H]`` temporaries beyond the saved activations (autograd's generic backward
-    allocated several more; at 100k Gaussians each is ~19 MB of memory traffic).
+    gathered rows. The Gaussians go through in blocks of :data:`FUSION_BLOCK`; the forward
+    keeps no activations and the backward recomputes each block's before differentiating it
+    by hand (cheaper than storing and re-reading ~40 MB of activations at 100k Gaussians).
+    Weight gradients are summed block by block in a fixed order: deterministic.
 
-    Inputs: own [N, H] (first layer of the Gaussian's own row, bias included),
-    voxel_projection [V, H], index [N, K-1] int64 (clamped to valid ids), weight [N, K-1]
+    Inputs: own [N, H] (first layer of the Gaussian's own entry, bias included),
+    voxel_projection [V, H], index [K-1, N] int64 (clamped to valid ids), weight [K-1, N]
     (kernel weights, 0 for empty voxels), bias1 [H], weight2 [H, H], bias2 [H],
     attention_weight [H], attention_bias [] , head_weight [O, H], head_bias [O].
     Output: [N, O].
@@ -135,70 +171,66 @@ class _FusionCore(torch.autograd.Function):
     @staticmethod
     def forward(ctx, own, voxel_projection, index, weight, bias1, weight2, bias2, attention_weight, attention_bias,
                 head_weight, head_bias):
-        count, hidden = own.shape
-        fused = index.shape[1] + 1
-        flat_index = index.reshape(-1)
-        first = torch.empty(count, fused, hidden, dtype=own.dtype, device=own.device)
-        first[:, 0] = own
-        # index_select, not voxel_projection[index]: advanced indexing with a 2D index was ~20x slower
-        gathered = voxel_projection.index_select(0, flat_index).view(count, fused - 1, hidden)
-        torch.mul(gathered, weight.unsqueeze(2), out=first[:, 1:])
-        first[:, 1:] += bias1
-        first.relu_()
-        flat_first = first.view(-1, hidden)
-        second = torch.addmm(bias2, flat_first, weight2.t()).relu_()
-        stack = second.view(count, fused, hidden)
-        # attention kept as [K, N]: a softmax over the short axis of [N, K] was ~10x slower
-        scores = (torch.mv(second, attention_weight) + attention_bias).view(count, fused).t().contiguous()
-        attention = torch.softmax(scores, dim=0)  # [K, N]
-        summary = stack[:, 0] * attention[0].unsqueeze(1)
-        for k in range(1, fused):
-            summary.addcmul_(stack[:, k], attention[k].unsqueeze(1))
-        result = torch.addmm(head_bias, summary, head_weight.t())
-        ctx.save_for_backward(first, second, attention, summary, flat_index, weight, voxel_projection, weight2,
-                              attention_weight, head_weight)
+        count = own.shape[0]
+        result = own.new_empty(count, head_weight.shape[0])
+        parameters = (bias1, weight2, bias2, attention_weight, attention_bias, head_weight, head_bias)
+        for start in range(0, count, FUSION_BLOCK):
+            block = slice(start, start + FUSION_BLOCK)
+            result[block] = _fusion_forward_block(own[block], voxel_projection, index[:, block], weight[:, block],
+                                                  *parameters)[0]
+        ctx.save_for_backward(own, voxel_projection, index, weight, *parameters)
         return result
 
     @staticmethod
     def backward(ctx, grad_result):
-        first, second, attention, summary, flat_index, weight, voxel_projection, weight2, attention_weight, \
-            head_weight = ctx.saved_tensors
-        fused, count = attention.shape
-        hidden = summary.shape[1]
+        own, voxel_projection, index, weight, *parameters = ctx.saved_tensors
+        bias1, weight2, bias2, attention_weight, attention_bias, head_weight, head_bias = parameters
+        count, hidden = own.shape
+        fused = index.shape[0] + 1
         grad_result = grad_result.contiguous()
-        grad_head_weight = grad_result.t() @ summary
-        grad_head_bias = grad_result.sum(0)
-        grad_summary = grad_result @ head_weight  # [N, H]
-        stack = second.view(count, fused, hidden)
-        # softmax backward, [K, N]: d score_k = p_k (h_k . g' - summary . g')
-        along = torch.stack([(stack[:, k] * grad_summary).sum(1) for k in range(fused)])
-        grad_scores = attention * (along - (summary * grad_summary).sum(1))
-        grad_scores_rows = grad_scores.t().reshape(-1)  # [N K], the order of ``second``'s rows
-        grad_attention_weight = torch.mv(second.t(), grad_scores_rows)
-        grad_attention_bias = grad_scores_rows.sum()
-        # d h_k = p_k g' + d score_k * attention_weight, then through the second ReLU
-        # (threshold_backward: a boolean-mask fill was ~20x slower)
-        grad_second = torch.empty_like(stack)
-        for k in range(fused):
-            torch.mul(grad_summary, attention[k].unsqueeze(1), out=grad_second[:, k])
-            grad_second[:, k].addcmul_(grad_scores[k].unsqueeze(1), attention_weight)
-        grad_second = torch.ops.aten.threshold_backward(grad_second.view(-1, hidden), second, 0)
-        grad_weight2 = grad_second.t() @ first.view(-1, hidden)
-        grad_bias2 = grad_second.sum(0)
-        grad_first = torch.ops.aten.threshold_backward(grad_second @ weight2, first.view(-1, hidden), 0)
-        grad_first = grad_first.view(count, fused, hidden)
-        grad_own = grad_first[:, 0].contiguous()
-        grad_sampled = grad_first[:, 1:]  # [N, K-1, H]
-        grad_bias1 = grad_first.view(count, -1).sum(0).view(fused, hidden)[1:].sum(0)
-        grad_weight = grad_voxel_projection = None
-        if ctx.needs_input_grad[3]:
-            gathered = voxel_projection.index_select(0, flat_index).view(count, fused - 1, hidden)
-            grad_weight = (grad_sampled * gathered).sum(2)
-        if ctx.needs_input_grad[1]:
-            grad_voxel_projection = torch.zeros_like(voxel_projection).index_add_(
-                0, flat_index, (grad_sampled * weight.unsqueeze(2)).reshape(-1, hidden))
-        return (grad_own, grad_voxel_projection, None, grad_weight, grad_bias1, grad_weight2, grad_bias2,
-                grad_attention_weight, grad_attention_bias.reshape(()), grad_head_weight, grad_head_bias)
+        grad_own = torch.empty_like(own)
+        grad_weight = torch.empty_like(weight) if ctx.needs_input_grad[3] else None
+        grad_voxel_projection = torch.zeros_like(voxel_projection) if ctx.needs_input_grad[1] else None
+        grads = [torch.zeros_like(p) for p in parameters]
+        grad_bias1, grad_weight2, grad_bias2, grad_attention_weight, grad_attention_bias, grad_head_weight, \
+            grad_head_bias = grads
+        for start in range(0, count, FUSION_BLOCK):
+            block = slice(start, start + FUSION_BLOCK)
+            block_weight = weight[:, block]
+            _, first, second, attention, summary = _fusion_forward_block(
+                own[block], voxel_projection, index[:, block], block_weight, *parameters)
+            block_index = index[:, block].reshape(-1)
+            rows = summary.shape[0]
+            grad_block = grad_result[block]
+            grad_head_weight.addmm_(grad_block.t(), summary)
+            grad_head_bias.add_(grad_block.sum(0))
+            grad_summary = grad_block @ head_weight  # [B, H]
+            stack = second.view(fused, rows, hidden)
+            # softmax backward, [K, B]: d score_k = p_k (h_k . g' - summary . g')
+            along = (stack * grad_summary).sum(2)
+            grad_scores = attention * (along - (summary * grad_summary).sum(1))
+            grad_attention_weight.addmv_(second.t(), grad_scores.view(-1))
+            grad_attention_bias.add_(grad_scores.sum())
+            # d h_k = p_k g' + d score_k * attention_weight, then through the second ReLU
+            # (threshold_backward: a boolean-mask fill was ~20x slower)
+            grad_second = attention.unsqueeze(2) * grad_summary
+            grad_second.addcmul_(grad_scores.unsqueeze(2), attention_weight)
+            grad_second = torch.ops.aten.threshold_backward(grad_second.view(-1, hidden), second, 0)
+            flat_first = first.view(-1, hidden)
+            grad_weight2.addmm_(grad_second.t(), flat_first)
+            grad_bias2.add_(grad_second.sum(0))
+            grad_first = torch.ops.aten.threshold_backward(grad_second @ weight2, flat_first, 0)
+            grad_first = grad_first.view(fused, rows, hidden)
+            grad_own[block] = grad_first[0]
+            grad_sampled = grad_first[1:]  # [K-1, B, H]
+            grad_bias1.add_(grad_sampled.reshape(-1, hidden).sum(0))
+            if grad_weight is not None:
+                gathered = voxel_projection.index_select(0, block_index).view(fused - 1, rows, hidden)
+                grad_weight[:, block] = (grad_sampled * gathered).sum(2)
+            if grad_voxel_projection is not None:
+                grad_voxel_projection.index_add_(0, block_index,
+                                                 (grad_sampled * block_weight.unsqueeze(2)).view(-1, hidden))
+        return (grad_own, grad_voxel_projection, None, grad_weight, *grads)
 
 
 class GPDFN(nn.Module):
@@ -305,8 +337,10 @@ class GPDFN(nn.Module):
         own = torch.addmm(first.bias + channel_weight, features, feature_weight.t())
         voxel_projection = torch.addmm(channel_weight, voxel_features, feature_weight.t())
         second = self.embed[2]
-        residual = _FusionCore.apply(own, voxel_projection, index.view(count, neighbours),
-                                     weight.view(count, neighbours), first.bias, second.weight, second.bias,
+        # entry-major [K-1, N] for the fusion core (see _fusion_forward_block)
+        residual = _FusionCore.apply(own, voxel_projection, index.view(count, neighbours).t().contiguous(),
+                                     weight.view(count, neighbours).t().contiguous(), first.bias, second.weight,
+                                     second.bias,
                                      self.attention.weight[0], self.attention.bias[0], self.head.weight,
                                      self.head.bias)
         return {"sh_dc": residual[:, 0:3], "opacity_logits": residual[:, 3], "log_scales": residual[:, 4:7]}
