@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from esgs.core import gpdfn
 from esgs.core.errors import ConfigError
 from esgs.core.gpdfn import GPDFN, GPDFNConfig, VoxelTable, _FusionCore, _voxel_keys
 
@@ -125,7 +126,8 @@ def _outputs_and_gradients(function, params, module):
 
 @pytest.mark.parametrize("fused_k", [2, 3, 5])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_fast_path_equals_the_plain_autograd_statement(fused_k, dtype):
+def test_fast_path_equals_the_plain_autograd_statement(fused_k, dtype, monkeypatch):
+    monkeypatch.setattr(gpdfn, "FUSION_BLOCK", 128)  # 400 Gaussians: four blocks, the last one partial
     torch.manual_seed(fused_k)
     params = {name: value.to(dtype) for name, value in _gaussians(count=400).items()}
     module = GPDFN(GPDFNConfig(fused_k=fused_k)).to(dtype)
@@ -145,17 +147,20 @@ def test_fast_path_equals_the_plain_autograd_statement(fused_k, dtype):
         torch.testing.assert_close(a, b, **tolerance, msg=f"gradient of {name}")
 
 
-def test_fusion_core_backward_against_finite_differences():
+def test_fusion_core_backward_against_finite_differences(monkeypatch):
     generator = torch.Generator().manual_seed(2)
     count, neighbours, hidden, voxels, outputs = 5, 2, 4, 3, 7
 
     def random(*shape):
         return torch.randn(*shape, generator=generator, dtype=torch.float64, requires_grad=True)
 
-    index = torch.randint(0, voxels, (count, neighbours), generator=generator)
-    weight = torch.rand(count, neighbours, generator=generator, dtype=torch.float64).requires_grad_()
+    index = torch.randint(0, voxels, (neighbours, count), generator=generator)  # entry-major [K-1, N]
+    weight = torch.rand(neighbours, count, generator=generator, dtype=torch.float64).requires_grad_()
     inputs = (random(count, hidden), random(voxels, hidden), index, weight, random(hidden), random(hidden, hidden),
               random(hidden), random(hidden), random(()), random(outputs, hidden), random(outputs))
+    assert torch.autograd.gradcheck(_FusionCore.apply, inputs, eps=1e-6, atol=1e-7)
+    # several blocks (the backward recomputes and sums block by block)
+    monkeypatch.setattr(gpdfn, "FUSION_BLOCK", 2)
     assert torch.autograd.gradcheck(_FusionCore.apply, inputs, eps=1e-6, atol=1e-7)
 
 
