@@ -15,8 +15,11 @@ mesh vertices). Steps:
    its points (robust to stereo outliers), cells whose height departs from their
    neighbourhood's median by more than ``spike_threshold`` cells are dropped; the cell
    points are triangulated with a 2D Delaunay triangulation (scipy) and triangles with an
-   edge longer than ``max_edge_cells`` cells are removed, so gaps stay gaps instead of
-   being bridged by long flat triangles. Overhangs cannot be represented (rare on terrain).
+   edge longer than ``max_edge_cells`` times the local sample spacing are removed, so gaps
+   stay gaps instead of being bridged by long flat triangles. The local spacing is the
+   larger of the cell and the ground footprint of a pixel there (``cell_factor`` x depth /
+   focal, divided by the sine of the grazing angle, at most 20x), so the sparsely sampled
+   far range still meshes. Overhangs cannot be represented (rare on terrain).
 
 The mesh is written to ``SCENE/mesh/reconstructed.ply`` (world frame and units of the COLMAP
 model), with a report of every stage.
@@ -122,14 +125,17 @@ def load_views(scene_dir: str | Path, margin: float, ground_normal: np.ndarray |
 
 
 def mesh_from_points(points: np.ndarray, normal: np.ndarray, cell: float, max_edge_cells: float,
-                     spike_threshold: float) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+                     spike_threshold: float, footprints: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """2.5D mesh of ``points`` [N, 3] over the plane with unit ``normal`` [3].
 
-    Returns (vertices [V, 3], triangles [F, 3] int64 counter-clockwise seen from the
-    normal's side, statistics). See the module docstring for the steps.
+    cell: grid cell side (scene units). footprints: [N] optional spacing of each point's
+    neighbours on the ground (a pixel's footprint seen at its grazing angle); a triangle is
+    kept when its longest edge is at most ``max_edge_cells`` times the larger of ``cell`` and
+    its vertices' footprints, so the far range (sparser samples) still meshes while real
+    gaps stay open. Returns (vertices [V, 3], triangles [F, 3] int64 counter-clockwise seen
+    from the normal's side, statistics). See the module docstring for the steps.
     """
-    from scipy.ndimage import median_filter
-    from scipy.spatial import Delaunay
+    from scipy.spatial import Delaunay, cKDTree
 
     helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     axis_u = np.cross(normal, helper)
@@ -137,31 +143,26 @@ def mesh_from_points(points: np.ndarray, normal: np.ndarray, cell: float, max_ed
     axis_v = np.cross(normal, axis_u)
     planar = np.stack([points @ axis_u, points @ axis_v], axis=1)
     height = points @ normal
-    origin = planar.min(axis=0)
-    cells = np.floor((planar - origin) / cell).astype(np.int64)
-    shape = cells.max(axis=0) + 1
-    if shape[0] * shape[1] > 50_000_000:
-        raise DatasetError(f"the fused points span {shape[0]}x{shape[1]} grid cells; the scene is too large for "
-                           "the 2.5D mesher at this cell size")
-    flat = cells[:, 0] * shape[1] + cells[:, 1]
-    order = np.argsort(flat, kind="stable")
+    spacing = np.full(len(points), cell) if footprints is None else np.maximum(np.asarray(footprints, np.float64), cell)
+    cells = np.floor((planar - planar.min(axis=0)) / cell).astype(np.int64)
+    # one id per occupied cell, without a dense grid (the far range of a horizon view spans km)
+    _, flat = np.unique(cells, axis=0, return_inverse=True)
+    flat = flat.reshape(-1)
+    order = np.lexsort((height, flat))  # by cell, then by height inside the cell
     flat_sorted = flat[order]
     starts = np.flatnonzero(np.r_[True, flat_sorted[1:] != flat_sorted[:-1]])
     counts = np.diff(np.r_[starts, len(flat_sorted)])
-    # median height per cell: sort heights inside each cell (lexsort by cell, then height)
-    order_h = np.lexsort((height, flat))
-    medians = height[order_h][starts + counts // 2]
-    centres_u = np.add.reduceat(planar[order, 0], starts) / counts
-    centres_v = np.add.reduceat(planar[order, 1], starts) / counts
-    cell_ids = flat_sorted[starts]
-    grid = np.full(shape, np.nan)
-    grid.flat[cell_ids] = medians
-    # spikes: compare with the median of the 5x5 neighbourhood (NaN-free via a large fill and a count)
-    filled = np.where(np.isnan(grid), np.nanmedian(medians), grid)
-    local = median_filter(filled, size=5, mode="nearest")
-    spike = np.abs(grid.flat[cell_ids] - local.flat[cell_ids]) > spike_threshold * cell
+    medians = height[order][starts + counts // 2]  # median height per cell: robust to stereo outliers
+    centres = np.stack([np.add.reduceat(planar[order, 0], starts), np.add.reduceat(planar[order, 1], starts)], 1)
+    centres /= counts[:, None]
+    cell_spacing = np.minimum.reduceat(spacing[order], starts)
+    # spikes: compare each cell with the median height of the cells around it
+    tree = cKDTree(centres)
+    neighbourhoods = tree.query_ball_point(centres, r=2.5 * np.maximum(cell_spacing, cell))
+    local = np.array([np.median(medians[group]) for group in neighbourhoods])
+    spike = np.abs(medians - local) > spike_threshold * np.maximum(cell_spacing, cell)
     keep = ~spike
-    u, v, h = centres_u[keep], centres_v[keep], medians[keep]
+    u, v, h, vertex_spacing = centres[keep, 0], centres[keep, 1], medians[keep], cell_spacing[keep]
     if len(u) < 3:
         raise DatasetError("too few consistent stereo points to build a mesh",
                            hint="the views may not overlap, or the images lack texture; give a --mesh instead")
@@ -172,7 +173,7 @@ def mesh_from_points(points: np.ndarray, normal: np.ndarray, cell: float, max_ed
     edges = np.stack([np.linalg.norm(corners[:, 1] - corners[:, 0], axis=1),
                       np.linalg.norm(corners[:, 2] - corners[:, 1], axis=1),
                       np.linalg.norm(corners[:, 0] - corners[:, 2], axis=1)], axis=1)
-    short = edges.max(axis=1) <= max_edge_cells * cell
+    short = edges.max(axis=1) <= max_edge_cells * vertex_spacing[triangles].max(axis=1)
     triangles = triangles[short]
     # orient counter-clockwise seen from the normal's side (face normals towards the cameras)
     corners = vertices[triangles]
@@ -182,7 +183,7 @@ def mesh_from_points(points: np.ndarray, normal: np.ndarray, cell: float, max_ed
     used = np.unique(triangles)
     remap = -np.ones(len(vertices), np.int64)
     remap[used] = np.arange(len(used))
-    stats = {"cells": int(len(cell_ids)), "spikes_removed": int(spike.sum()), "triangles": int(len(triangles)),
+    stats = {"cells": int(len(starts)), "spikes_removed": int(spike.sum()), "triangles": int(len(triangles)),
              "long_triangles_removed": int((~short).sum()), "cell_size": float(cell)}
     return vertices[used], remap[triangles], stats
 
@@ -222,10 +223,13 @@ def reconstruct_mesh(scene_dir: str | Path, options: ReconstructOptions | None =
     for view, depth in zip(views, depths):
         rows, cols = np.nonzero(depth > 0)
         z = depth[rows, cols].astype(np.float64)
-        camera_points = (np.stack([cols + 0.5, rows + 0.5, np.ones_like(z)], axis=1) @ np.linalg.inv(view.K).T) * z[:, None]
+        rays = np.stack([cols + 0.5, rows + 0.5, np.ones_like(z)], axis=1) @ np.linalg.inv(view.K).T
         camera_to_world = np.linalg.inv(view.world_to_camera)
-        points.append(camera_points @ camera_to_world[:3, :3].T + camera_to_world[:3, 3])
-        footprints.append(z / view.K[0, 0])
+        points.append((rays * z[:, None]) @ camera_to_world[:3, :3].T + camera_to_world[:3, 3])
+        # a pixel's footprint on the ground: z / f across the ray, stretched by the grazing angle
+        directions = rays @ camera_to_world[:3, :3].T
+        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+        footprints.append((z / view.K[0, 0], directions))
     points_all = np.concatenate(points) if points else np.zeros((0, 3))
     if len(points_all) < 3:
         raise DatasetError("stereo found no consistent depth in any view", path=scene_dir,
@@ -233,9 +237,12 @@ def reconstruct_mesh(scene_dir: str | Path, options: ReconstructOptions | None =
     progress(ProgressEvent(len(views) + 1, total, "fuse", message=f"{len(points_all)} fused points",
                            metrics={"points": float(len(points_all))}))
     normal, _ = fit_ground_plane(points_all, centers)
-    cell = options.cell_factor * float(np.median(np.concatenate(footprints)))
+    across = np.concatenate([size for size, _ in footprints])
+    grazing = np.abs(np.concatenate([directions for _, directions in footprints]) @ normal)
+    ground_footprints = options.cell_factor * across / np.maximum(grazing, 0.05)
+    cell = options.cell_factor * float(np.median(across))
     vertices, triangles, stats = mesh_from_points(points_all, normal, cell, options.max_edge_cells,
-                                                  options.spike_threshold)
+                                                  options.spike_threshold, ground_footprints)
     mesh_path = Path(out_path) if out_path is not None else scene_dir / "mesh" / MESH_NAME
     write_mesh(mesh_path, vertices, triangles)
     progress(ProgressEvent(total, total, "mesh", kind="done", message=f"mesh written: {mesh_path}",
