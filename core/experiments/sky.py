@@ -91,9 +91,7 @@ def sky_figures(run_dir: str | Path, scene: str | Path, *, band_px: int = 4) -> 
             maps = load_prior_maps(Path(scene), "gt", view.name, size=(view.width, view.height))
             mask = maps.mask.astype(bool)
             image = out.image.clamp(0, 1).cpu().numpy()
-            target = view.image.cpu().numpy() if hasattr(view, "image") else None
-            if target is None:
-                raise DatasetError("held-out view without its image", path=Path(run_dir))
+            target = view.image_float(device).cpu().numpy()  # [H, W, 3] in [0, 1]
             error = ((image - target) ** 2).mean(axis=-1)
             sky_sq += float(error[~mask].sum())
             sky_n += int((~mask).sum())

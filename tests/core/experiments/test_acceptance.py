@@ -148,3 +148,33 @@ def test_sky_filled_priors_keep_the_surface_and_fill_the_sky(tmp_path):
     mask[:3] = False
     band = horizon_band(mask, 2)
     assert band[3:5].all() and not band[5:].any() and not band[:3].any()
+
+
+def test_sky_figures_split_the_held_out_error_between_sky_and_surface(tmp_path):
+    import json
+    import math
+
+    from esgs.core.experiments.sky import sky_figures
+    from esgs.core.train import TrainConfig, train
+    from tests.core.method.test_esgs_hooks import _write_gt_priors
+    from tests.core.train.scene import make_scene
+
+    scene = make_scene(tmp_path / "scene", views=6, width=32, height=24)
+    _write_gt_priors(scene, sky_rows=4)
+    run = tmp_path / "run"
+    train(TrainConfig(scene=str(scene), out=str(run), iterations=4, backend="cpu", lpips=False, test_every=6,
+                      mask_source="none", save_renders=False, checkpoint_every=0, densify_until=0, sh_degree=1))
+    figures = sky_figures(run, scene, band_px=2)
+    from esgs.core.priors import load_prior_maps
+
+    held_out = sorted(p.name for p in (scene / "images").iterdir())[0]
+    mask = load_prior_maps(scene, "gt", held_out).mask
+    assert not mask[:4].any()
+    assert figures["views"] == 1 and figures["sky_fraction"] == pytest.approx(float((~mask).mean()))
+    # sky and surface errors pooled back give the whole image's PSNR of the evaluation
+    mse = lambda psnr: 10 ** (-psnr / 10)  # noqa: E731
+    fraction = figures["sky_fraction"]
+    whole = fraction * mse(figures["psnr_sky"]) + (1 - fraction) * mse(figures["psnr_surface"])
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert -10 * math.log10(whole) == pytest.approx(metrics["psnr"], abs=1e-3)
+    assert 0.0 <= figures["alpha_sky"] <= 1.0 and figures["horizon_depth_error"] >= 0.0
