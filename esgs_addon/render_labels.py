@@ -79,7 +79,7 @@ def render_labels(scene_dir: str | Path, mesh_path: str | Path, *, method: str =
     from ..core.labels.writer import REPORT_NAME, LabelWriter
     from ..core.priors.io import prior_dir
     from .cameras import opencv_from_camera_object, use_camera
-    from .colmap_scene import ColmapImportOptions, import_colmap_scene
+    from .colmap_scene import PROP_IMAGE_NAME, ColmapImportOptions, import_colmap_scene
     from .render_dataset import _PassOutputs, _read_single_channel, _read_vector, camera_normals_from_pass, depth_from_pass
 
     scene_dir = Path(scene_dir)
@@ -112,7 +112,7 @@ def render_labels(scene_dir: str | Path, mesh_path: str | Path, *, method: str =
             try:
                 for index, camera in enumerate(cameras):
                     view_start = time.perf_counter()
-                    name = str(camera["esgs_colmap_image_name"])
+                    name = str(camera[PROP_IMAGE_NAME])
                     use_camera(label_scene, camera)
                     _, world_to_camera, _, _ = opencv_from_camera_object(camera, label_scene)
                     pass_files = passes.set_prefix(f"view{index:05d}_")

@@ -38,7 +38,8 @@ def test_label_accuracy_pools_views_and_separates_filled_pixels(tmp_path):
     assert report["rendered"]["abs_rel"] == pytest.approx(0.1, rel=1e-5)
     assert report["coverage"] == pytest.approx(70 / 80)
     assert report["baseline_median_depth"]["abs_rel"] == pytest.approx(0.0)  # flat truth: the median is exact
-    assert "AbsRel" in format_accuracy_table(report)
+    assert sum(row["pixels"] for row in report["by_depth"]) >= 70  # every compared pixel lies in a range bin
+    assert "AbsRel" in format_accuracy_table(report) and "depth 4-4" in format_accuracy_table(report)
 
 
 def test_missing_ground_truth_is_a_clear_error(tmp_path):
