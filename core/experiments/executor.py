@@ -169,7 +169,13 @@ class RayExecutor(Executor):
         if not ray.is_initialized():
             self.started_here = True
             if address:
-                ray.init(address=address, log_to_driver=False)
+                try:
+                    ray.init(address=address, log_to_driver=False)
+                except ConnectionError as err:
+                    # Ray >= 2.5x clusters use token authentication by default; drivers do not
+                    raise ConfigError(f"cannot connect to the Ray cluster at {address}: {err}",
+                                      hint="check `ray status --address ADDRESS`; with token authentication run "
+                                           "with RAY_AUTH_MODE=token and the cluster's ~/.ray/auth_token") from err
             else:
                 # a light local instance: no dashboard, a small object store (results are small dicts)
                 # never fewer CPUs than one task reserves, or that task would wait forever
