@@ -74,8 +74,8 @@ class VoxelTable:
     """Occupied voxels of one Gaussian set (see :mod:`.gpdfn_kernels`).
 
     coordinates [N, 3] int64 voxel of each Gaussian; keys [N] int64 packed; inverse [N] int64
-    voxel id of each Gaussian; counts [V] Gaussians per voxel (float); slot_keys / slot_ids:
-    the hash table (NumPy arrays) that :meth:`lookup` probes.
+    voxel id of each Gaussian; counts [V] Gaussians per voxel (float); slots [S, 2] int64:
+    the hash table (key, voxel id; a NumPy array) that :meth:`lookup` probes.
     """
 
     voxel_size: float
@@ -83,8 +83,7 @@ class VoxelTable:
     keys: np.ndarray
     inverse: torch.Tensor
     counts: torch.Tensor
-    slot_keys: np.ndarray
-    slot_ids: np.ndarray
+    slots: np.ndarray
 
     @staticmethod
     def build(means: torch.Tensor, voxel_size: float, previous: Optional["VoxelTable"] = None) -> "VoxelTable":
@@ -99,17 +98,16 @@ class VoxelTable:
         coordinates_t = torch.from_numpy(coordinates).to(means.device)
         if previous is not None and previous.voxel_size == voxel_size and previous.keys.shape == keys.shape \
                 and previous.counts.dtype == means.dtype and np.array_equal(previous.keys, keys):
-            return VoxelTable(voxel_size, coordinates_t, keys, previous.inverse, previous.counts,
-                              previous.slot_keys, previous.slot_ids)
-        slot_keys, slot_ids, inverse, voxels = kernels.build_table(keys)
+            return VoxelTable(voxel_size, coordinates_t, keys, previous.inverse, previous.counts, previous.slots)
+        slots, inverse = kernels.build_table(keys)
         inverse_t = torch.from_numpy(inverse).to(means.device)
-        counts = torch.bincount(inverse_t, minlength=voxels).to(means.dtype)
-        return VoxelTable(voxel_size, coordinates_t, keys, inverse_t, counts, slot_keys, slot_ids)
+        counts = torch.bincount(inverse_t).to(means.dtype)
+        return VoxelTable(voxel_size, coordinates_t, keys, inverse_t, counts, slots)
 
     def lookup(self, points: torch.Tensor) -> torch.Tensor:
         """Voxel id of each point [M, 3] -> [M] int64, -1 where the voxel is empty."""
         array = points.detach().cpu().contiguous().numpy()
-        found = kernels.lookup(array, array.dtype.type(self.voxel_size), self.slot_keys, self.slot_ids)
+        found = kernels.lookup(array, array.dtype.type(self.voxel_size), self.slots)
         return torch.from_numpy(found).to(points.device)
 
 
@@ -325,9 +323,10 @@ class GPDFN(nn.Module):
         voxel_features = voxel_features / per_voxel
         centroids = means.new_zeros(voxels, 3).index_add_(0, table.inverse, means.detach()) / per_voxel
         neighbours = self.config.fused_k - 1
-        delta = torch.tanh(self.offset_head(features)).view(count, neighbours, 3) * self.config.max_shift_voxels
-        offsets = (self.base_offsets.unsqueeze(0) + delta) * self.voxel_size  # [N, K-1, 3]
-        sample_points = (means.unsqueeze(1) + offsets).reshape(-1, 3)
+        # mean + voxel_size * (base_offset + max_shift * tanh(offset_head(features))), in two passes
+        shift = torch.tanh(self.offset_head(features)).view(count, neighbours, 3)
+        base = means.unsqueeze(1) + self.base_offsets.unsqueeze(0) * self.voxel_size  # [N, K-1, 3]
+        sample_points = torch.add(base, shift, alpha=self.config.max_shift_voxels * self.voxel_size).reshape(-1, 3)
         index, weight = self.sample_voxels(sample_points, table, centroids)
         # first pointwise convolution over the [features, weight channel] rows: the own row has
         # weight channel 1; a sampled row is weight * [voxel feature, 1], so its first layer is

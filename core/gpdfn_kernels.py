@@ -56,43 +56,64 @@ def voxel_coordinates(points: np.ndarray, voxel_size: np.float32) -> tuple[np.nd
     return coordinates, keys
 
 
-@njit(cache=True)
-def build_table(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """Hash table of the distinct keys [N] -> (slot_keys [S], slot_ids [S], inverse [N], voxel count).
-
-    ``inverse[n]`` is the voxel id of entry n; ids run 0..V-1 in order of first appearance.
-    """
-    count = keys.shape[0]
+@njit(cache=True, inline="always")
+def _table_bits(count: int) -> int:
     bits = 4
     while (1 << bits) < 2 * max(count, 1):
         bits += 1
-    size = 1 << bits
-    slot_keys = np.full(size, _EMPTY, dtype=np.int64)
-    slot_ids = np.full(size, _EMPTY, dtype=np.int64)
-    inverse = np.empty(count, dtype=np.int64)
+    return bits
+
+
+@njit(cache=True)
+def _insert_all(keys: np.ndarray, slots: np.ndarray, bits: int, inverse: np.ndarray) -> int:
+    """Insert ``keys`` in order into ``slots`` [S, 2] (key, id); ids by first appearance."""
+    size = slots.shape[0]
     voxels = 0
-    for n in range(count):
+    for n in range(keys.shape[0]):
         key = keys[n]
         slot = _slot(key, bits)
         while True:
-            stored = slot_keys[slot]
+            stored = slots[slot, 0]
             if stored == key:
-                inverse[n] = slot_ids[slot]
+                inverse[n] = slots[slot, 1]
                 break
             if stored == _EMPTY:
-                slot_keys[slot] = key
-                slot_ids[slot] = voxels
+                slots[slot, 0] = key
+                slots[slot, 1] = voxels
                 inverse[n] = voxels
                 voxels += 1
                 break
             slot = (slot + 1) & (size - 1)
-    return slot_keys, slot_ids, inverse, voxels
+    return voxels
+
+
+@njit(cache=True)
+def build_table(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Hash table of the distinct keys [N] -> (slots [S, 2] int64 (key, voxel id), inverse [N] int64).
+
+    ``inverse[n]`` is the voxel id of entry n; ids run 0..V-1 in order of first appearance.
+    The table is built twice: once sized for N keys to find the V distinct ones, then sized
+    for V, so the lookups probe a table ~N/V times smaller (fewer cache misses).
+    """
+    count = keys.shape[0]
+    bits = _table_bits(count)
+    scratch = np.full((1 << bits, 2), _EMPTY, dtype=np.int64)
+    inverse = np.empty(count, dtype=np.int64)
+    voxels = _insert_all(keys, scratch, bits, inverse)
+    distinct = np.empty(voxels, dtype=np.int64)
+    for slot in range(scratch.shape[0]):
+        if scratch[slot, 0] != _EMPTY:
+            distinct[scratch[slot, 1]] = scratch[slot, 0]
+    bits = _table_bits(voxels)
+    slots = np.full((1 << bits, 2), _EMPTY, dtype=np.int64)
+    _insert_all(distinct, slots, bits, np.empty(voxels, dtype=np.int64))  # ids equal positions in distinct
+    return slots, inverse
 
 
 @njit(cache=True, parallel=True)
-def lookup(points: np.ndarray, voxel_size: np.float32, slot_keys: np.ndarray, slot_ids: np.ndarray) -> np.ndarray:
-    """Voxel id of each point [M, 3] float32 -> [M] int64 (-1 where the voxel is empty)."""
-    size = slot_keys.shape[0]
+def lookup(points: np.ndarray, voxel_size, slots: np.ndarray) -> np.ndarray:
+    """Voxel id of each point [M, 3] -> [M] int64 (-1 where the voxel is empty)."""
+    size = slots.shape[0]
     bits = 0
     while (1 << bits) < size:
         bits += 1
@@ -104,9 +125,9 @@ def lookup(points: np.ndarray, voxel_size: np.float32, slot_keys: np.ndarray, sl
         slot = _slot(key, bits)
         found = _EMPTY
         while True:
-            stored = slot_keys[slot]
+            stored = slots[slot, 0]
             if stored == key:
-                found = slot_ids[slot]
+                found = slots[slot, 1]
                 break
             if stored == _EMPTY:
                 break

@@ -177,13 +177,13 @@ def test_voxel_table_is_reused_only_while_no_gaussian_changes_voxel():
     inside = (params["means"] / module.voxel_size - coordinates - 0.5).abs().max(dim=1).values < 0.49
     nudged = dict(params, means=params["means"] + inside.unsqueeze(1) * 1e-3 * module.voxel_size)
     out = module(**nudged)
-    assert module._table.slot_keys is first.slot_keys
+    assert module._table.slots is first.slots
     for name, value in _reference_forward(module, **nudged).items():
         torch.testing.assert_close(out[name], value, rtol=1e-4, atol=1e-5)
     # a move across voxels: rebuilt, and still equal to the plain statement
     moved = dict(params, means=params["means"] + torch.tensor([0.6, 0.0, 0.0]) * module.voxel_size)
     out = module(**moved)
-    assert module._table.slot_keys is not first.slot_keys
+    assert module._table.slots is not first.slots
     for name, value in _reference_forward(module, **moved).items():
         torch.testing.assert_close(out[name], value, rtol=1e-4, atol=1e-5)
     # pruning: fewer Gaussians, rebuilt
