@@ -15,8 +15,14 @@ def fused_render_params(module: GPDFN, gaussians: Any, params: Any) -> Any:
     raw = gaussians.params
     residual = module(raw["means"], raw["log_scales"], raw["quats"], raw["opacity_logit"].reshape(-1),
                       raw["sh_dc"].reshape(-1, 3))
+    return apply_residuals(gaussians, params, residual)
+
+
+def apply_residuals(gaussians: Any, params: Any, residual: dict[str, torch.Tensor]) -> Any:
+    """RenderParams with GPDFN's ``residual`` (sh_dc [N,3], opacity_logits [N], log_scales [N,3]) added."""
     from dataclasses import replace
 
+    raw = gaussians.params
     scales = torch.exp(raw["log_scales"] + residual["log_scales"])
     opacities = torch.sigmoid(raw["opacity_logit"].reshape(-1) + residual["opacity_logits"])
     # one concatenation instead of clone + in-place slice update: [N, 16, 3] is ~19 MB at 100k
