@@ -102,12 +102,10 @@ def label_accuracy(scene_dir: str | Path, source: str = "labels", truth_source: 
 def format_accuracy_table(report: dict[str, Any]) -> str:
     """A plain-text table of a :func:`label_accuracy` report."""
     lines = [f"{'pixels':<24}{'AbsRel':>10}{'delta1':>10}{'count':>12}"]
-    for key, title in (("overall", "labels (all)"), ("rendered", "  rendered"), ("filled", "  filled"),
-                       ("baseline_median_depth", "baseline: median depth")):
-        row = report[key]
-        lines.append(f"{title:<24}{row['abs_rel']:>10.4f}{row['delta1']:>10.4f}{row['pixels']:>12d}")
-    for row in report.get("by_depth", []):
-        title = f"  depth {row['min_depth']:.3g}-{row['max_depth']:.3g}"
+    rows = [("labels (all)", report["overall"]), ("  rendered", report["rendered"]), ("  filled", report["filled"])]
+    rows += [(f"  depth {row['min_depth']:.3g}-{row['max_depth']:.3g}", row) for row in report.get("by_depth", [])]
+    rows.append(("baseline: median depth", report["baseline_median_depth"]))
+    for title, row in rows:
         lines.append(f"{title:<24}{row['abs_rel']:>10.4f}{row['delta1']:>10.4f}{row['pixels']:>12d}")
     lines.append(f"coverage of the true surface: {100 * report['coverage']:.1f} %")
     return "\n".join(lines)
