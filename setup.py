@@ -14,5 +14,5 @@ setup(
     packages=["esgs"] + [f"esgs.{p}" for p in _subpackages],
     package_dir={"esgs": "."},
     package_data={"esgs": ["blender_manifest.toml"], "esgs.core": ["presets/*.toml", "data/*"],
-                  "esgs.core.terrain": ["presets/*.toml"]},
+                  "esgs.core.terrain": ["presets/*.toml"], "esgs.core.ndn": ["weights/*.pt"]},
 )

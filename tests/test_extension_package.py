@@ -44,6 +44,7 @@ def test_build_linux_package(tmp_path):
     assert any(n.startswith("core/") for n in names)
     assert any(n.startswith("esgs_addon/") for n in names)
     assert "panels/main.py" in names
+    assert "core/ndn/weights/ndn_mars.pt" in names  # the NDN prior works out of the box
     wheel_files = sorted(n for n in names if n.startswith("wheels/"))
     assert wheel_files and all(("manylinux" in n or n.endswith("-any.whl")) for n in wheel_files), wheel_files
     assert manifest["platforms"] == ["linux-x64"]

@@ -17,7 +17,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-error-px", type=float, default=2.0, help="drop points with a larger reprojection error")
     parser.add_argument("--min-track-length", type=int, default=2, help="drop points seen in fewer views")
     parser.add_argument("--weights", type=Path, default=None,
-                        help="ndn: weights file or model folder (default: $ESGS_NDN_WEIGHTS)")
+                        help="ndn: weights file or model folder (default: $ESGS_NDN_WEIGHTS, else the weights "
+                             "shipped with the package)")
     parser.add_argument("--steps", type=int, default=None, help="ndn: DDIM steps (default: the model's)")
     parser.add_argument("--seed", type=int, default=0, help="ndn: seed of the starting noise")
 
@@ -39,18 +40,13 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_ndn(args: argparse.Namespace) -> int:
-    import os
-
-    from ..errors import CheckpointError
     from ..ndn.infer import write_ndn_priors
+    from ..ndn.shipped import resolve_default_weights
     from ..progress import ConsoleProgress
 
-    weights = args.weights or (Path(os.environ["ESGS_NDN_WEIGHTS"]) if os.environ.get("ESGS_NDN_WEIGHTS") else None)
-    if weights is None:
-        raise CheckpointError("no NDN weights given", hint="pass --weights PATH (a weights.pt or a model folder from "
-                              "`esgs ndn train`) or set ESGS_NDN_WEIGHTS; no pre-trained weights ship yet")
+    weights = resolve_default_weights(args.weights)
     bar = ConsoleProgress()
     count = write_ndn_priors(args.scene, weights, steps=args.steps, seed=args.seed, progress=bar)
     bar.close()
-    print(f"wrote ndn priors for {count} views to {args.scene / 'priors' / 'ndn'}")
+    print(f"wrote ndn priors for {count} views to {args.scene / 'priors' / 'ndn'} (weights: {weights})")
     return 0

@@ -32,7 +32,9 @@ class NDNDiffusionConfig:
 
     timesteps: int = field(default=1000, metadata={"help": "diffusion steps T of the forward process"})
     schedule: str = field(default="cosine", metadata={"help": "beta schedule: cosine or linear"})
-    prediction: str = field(default="v", metadata={"help": "what the network predicts: v (default) or epsilon"})
+    prediction: str = field(default="v", metadata={
+        "help": "what the network predicts: v (default) or epsilon; 'regression' trains the same network as a "
+                "plain one-shot regressor of clean depth and normals (no diffusion; the baseline)"})
     sample_steps: int = field(default=15, metadata={"help": "DDIM steps at inference (eta = 0, deterministic)"})
     coarse_fraction: float = field(default=0.5, metadata={
         "help": "normal branch: the noisiest fraction of the T steps (N/T) is denoised coarsely, without "
@@ -43,8 +45,8 @@ class NDNDiffusionConfig:
             raise ConfigError(f"timesteps must be >= 2, got {self.timesteps}")
         if self.schedule not in ("cosine", "linear"):
             raise ConfigError(f"schedule must be cosine or linear, got {self.schedule!r}")
-        if self.prediction not in ("epsilon", "v"):
-            raise ConfigError(f"prediction must be epsilon or v, got {self.prediction!r}")
+        if self.prediction not in ("epsilon", "v", "regression"):
+            raise ConfigError(f"prediction must be epsilon, v or regression, got {self.prediction!r}")
         if not 1 <= self.sample_steps <= self.timesteps:
             raise ConfigError(f"sample_steps must be in 1..timesteps, got {self.sample_steps}")
         if not 0.0 <= self.coarse_fraction < 1.0:

@@ -37,6 +37,8 @@ class GaussianDiffusion:
         self.timesteps = self.config.timesteps
         self.betas = make_betas(self.timesteps, self.config.schedule)
         self.alphas_cumprod = torch.cumprod(1.0 - self.betas, dim=0)  # [T] float64, decreasing
+        # the baseline: the same network fed zero states at t = 0 predicts the clean maps directly
+        self.regression = self.config.prediction == "regression"
 
     def _alpha_bar(self, timesteps: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
         return self.alphas_cumprod.to(like.device)[timesteps].to(like.dtype).view(-1, *([1] * (like.dim() - 1)))
@@ -74,6 +76,8 @@ class GaussianDiffusion:
         targets in [-1, 1]. Returns (loss, {"depth": ..., "normal": ...}).
         """
         batch = views.shape[0]
+        if self.regression:
+            return self._regression_loss(model, views, depth, normal, normal_weight)
         if timesteps is None:
             timesteps = torch.randint(0, self.timesteps, (batch,), generator=generator).to(views.device)
         depth_noise = torch.randn(depth.shape, generator=generator).to(depth)
@@ -100,6 +104,8 @@ class GaussianDiffusion:
         views and seed always give the same maps. Estimates of x0 are clipped to [-1, 1].
         """
         batch, _, height, width = views.shape
+        if self.regression:
+            return self._regress(model, views)
         generator = torch.Generator().manual_seed(int(seed))
         depth = torch.randn((batch, 1, height, width), generator=generator).to(views)
         normal = torch.randn((batch, 3, height, width), generator=generator).to(views)
@@ -119,3 +125,22 @@ class GaussianDiffusion:
             return x0
         alpha_previous = float(self.alphas_cumprod[previous])
         return math.sqrt(alpha_previous) * x0 + math.sqrt(1.0 - alpha_previous) * epsilon
+
+    def _regression_inputs(self, views: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        batch, _, height, width = views.shape
+        return (views.new_zeros((batch, 1, height, width)), views.new_zeros((batch, 3, height, width)),
+                torch.zeros((batch,), dtype=torch.long, device=views.device))
+
+    def _regression_loss(self, model: torch.nn.Module, views: torch.Tensor, depth: torch.Tensor, normal: torch.Tensor,
+                         normal_weight: float) -> tuple[torch.Tensor, dict[str, float]]:
+        """Regression baseline: MSE of the clean depth state and normals predicted in one pass."""
+        depth_out, normal_out = model(views, *self._regression_inputs(views))
+        depth_loss = F.mse_loss(depth_out, depth)
+        normal_loss = F.mse_loss(normal_out, normal)
+        loss = depth_loss + normal_weight * normal_loss
+        return loss, {"depth": float(depth_loss.detach()), "normal": float(normal_loss.detach())}
+
+    def _regress(self, model: torch.nn.Module, views: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Regression baseline inference: one forward pass, depth clipped to [-1, 1] like DDIM's x0."""
+        depth, normal = model(views, *self._regression_inputs(views))
+        return depth.clamp(-1.0, 1.0), normal

@@ -19,7 +19,7 @@ from ..progress import ProgressCallback, ProgressEvent, no_progress
 from .data import SceneTriples, load_shards, scene_triples, state_to_relative_depth
 from .diffusion import GaussianDiffusion
 from .model import NDNUNet
-from .train import load_checkpoint, training_tensors
+from .train import load_checkpoint
 
 SURFACE_NORMAL_LENGTH = 0.5  # predicted normals shorter than this are "no surface"
 
@@ -72,11 +72,12 @@ def maps_from_states(depth_state: np.ndarray, normal_state: np.ndarray,
     return np.where(mask, relative, 0.0).astype(np.float32), np.where(mask[..., None], normal, 0.0), mask
 
 
-def write_ndn_priors(scene_dir: str | Path, weights: str | Path, *, steps: int | None = None, seed: int = 0,
+def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *, steps: int | None = None, seed: int = 0,
                      batch_size: int = 4, progress: ProgressCallback = no_progress) -> int:
     """Predict and write ``SCENE/priors/ndn/`` for every view of the scene; returns the view count.
 
-    ``weights``: a weights/checkpoint file or a model folder (``weights.pt`` or latest checkpoint).
+    ``weights``: a weights/checkpoint file or a model folder (``weights.pt`` or latest checkpoint);
+    None means ``$ESGS_NDN_WEIGHTS`` or else the weights shipped with the package.
     """
     import os
     import shutil
@@ -86,7 +87,10 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path, *, steps: int |
     from ..io_utils import atomic_directory
     from ..priors import prior_dir, write_prior_maps
 
+    from .shipped import resolve_default_weights
+
     scene_dir = Path(scene_dir)
+    weights = resolve_default_weights(weights)
     model, diffusion, config, _ = load_checkpoint(weights)
     triples: SceneTriples = scene_triples(scene_dir, config.model.working_size, 2 ** (config.model.levels - 1),
                                           with_targets=False)
@@ -141,6 +145,42 @@ def normal_metrics(predicted: torch.Tensor, truth: torch.Tensor, mask: torch.Ten
     return {"normal_mean_deg": float(angle.mean()), "normal_within_11_25": float((angle < 11.25).float().mean())}
 
 
+def score_view(relative: np.ndarray, normal: np.ndarray, truth_depth: np.ndarray, truth_normal: np.ndarray,
+               mask: np.ndarray) -> dict[str, float]:
+    """All scores of one view: ``relative`` [h, w] depth known up to scale and shift (or metric),
+    ``normal`` [3, h, w], truth depth [h, w] (metres), truth normals [3, h, w], mask [h, w] bool.
+
+    Depth is aligned with ``fit_scale_shift`` before AbsRel/delta1; baselines use this too.
+    """
+    mask_tensor = torch.from_numpy(np.asarray(mask, bool))
+    return {**depth_metrics(torch.from_numpy(np.asarray(relative, np.float32)),
+                            torch.from_numpy(np.asarray(truth_depth, np.float32)), mask_tensor),
+            **normal_metrics(torch.from_numpy(np.asarray(normal, np.float32)),
+                             torch.from_numpy(np.asarray(truth_normal, np.float32)), mask_tensor)}
+
+
+def mean_scores(per_view: list[dict[str, float]]) -> dict[str, float]:
+    """Means over views of every score in ``per_view``."""
+    return {key: float(np.mean([scores[key] for scores in per_view])) for key in per_view[0]} if per_view else {}
+
+
+def evaluate_arrays(model: NDNUNet, diffusion: GaussianDiffusion, arrays: dict[str, np.ndarray], *,
+                    steps: int | None = None, seed: int = 0,
+                    progress: ProgressCallback = no_progress) -> list[dict[str, float]]:
+    """Scores of every triple in ``arrays`` (views, depth, normal, mask as in a shard); triple
+    ``i`` is sampled alone from noise seeded with ``seed + i``. Returns one dict per triple."""
+    views = torch.from_numpy(arrays["views"].astype(np.float32) / 127.5 - 1.0)
+    count = views.shape[0]
+    per_view = []
+    for index in range(count):
+        progress(ProgressEvent(index, count, "ndn-eval"))
+        depth_state, normal = diffusion.sample(model, views[index:index + 1], steps=steps, seed=seed + index)
+        per_view.append(score_view(state_to_relative_depth(depth_state[0, 0].numpy()), normal[0].numpy(),
+                                   arrays["depth"][index], arrays["normal"][index], arrays["mask"][index]))
+    progress(ProgressEvent(count, count, "ndn-eval", kind="done"))
+    return per_view
+
+
 def evaluate_ndn(weights: str | Path, data_dir: str | Path, *, split: str = "heldout", steps: int | None = None,
                  seed: int = 0, limit: int = 0, progress: ProgressCallback = no_progress) -> dict:
     """Scores on a data split: mean AbsRel and delta1 (depth after scale/shift alignment),
@@ -149,17 +189,5 @@ def evaluate_ndn(weights: str | Path, data_dir: str | Path, *, split: str = "hel
     arrays = load_shards(data_dir, split)
     if limit:
         arrays = {key: value[:limit] for key, value in arrays.items()}
-    data = training_tensors(arrays)
-    count = data["views"].shape[0]
-    scores: dict[str, list[float]] = {}
-    for index in range(count):
-        progress(ProgressEvent(index, count, "ndn-eval"))
-        depth_state, normal = diffusion.sample(model, data["views"][index:index + 1], steps=steps, seed=seed + index)
-        mask = torch.from_numpy(arrays["mask"][index])
-        relative = torch.from_numpy(state_to_relative_depth(depth_state[0, 0].numpy()))
-        truth = torch.from_numpy(arrays["depth"][index])
-        for key, value in {**depth_metrics(relative, truth, mask),
-                           **normal_metrics(normal[0], torch.from_numpy(arrays["normal"][index]), mask)}.items():
-            scores.setdefault(key, []).append(value)
-    progress(ProgressEvent(count, count, "ndn-eval", kind="done"))
-    return {"split": split, "views": count, **{key: float(np.mean(values)) for key, values in scores.items()}}
+    per_view = evaluate_arrays(model, diffusion, arrays, steps=steps, seed=seed, progress=progress)
+    return {"split": split, "views": len(per_view), **mean_scores(per_view)}

@@ -89,11 +89,18 @@ def test_priors_command_writes_ndn_maps_in_the_standard_format(scene, tmp_path, 
     assert sorted(p.name for p in (scene / "priors").iterdir()) == ["gt", "ndn"]  # no staging left
 
 
-def test_priors_command_without_weights_is_a_clear_error(scene, capsys, monkeypatch):
+def test_priors_command_without_weights_uses_the_shipped_weights(scene, capsys, monkeypatch):
+    from esgs.core.ndn import shipped
+
     monkeypatch.delenv("ESGS_NDN_WEIGHTS", raising=False)
+    assert main(["priors", str(scene), "--method", "ndn", "--steps", "2"]) == 0
+    assert str(shipped.SHIPPED_WEIGHTS) in capsys.readouterr().out
+    maps = load_prior_maps(scene, "ndn", "view_000.png")
+    assert maps.relative_depth and maps.depth.shape == (27, 48)
+    # and a clear error when the package lost them
+    monkeypatch.setattr(shipped, "SHIPPED_WEIGHTS", scene / "missing.pt")
     assert main(["priors", str(scene), "--method", "ndn"]) == 2
-    assert "no NDN weights given" in capsys.readouterr().err
-    assert not (scene / "priors" / "ndn").exists()
+    assert "NDN weights are missing" in capsys.readouterr().err
 
 
 def test_cli_train_and_eval(scene, tmp_path, capsys):

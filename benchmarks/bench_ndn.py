@@ -1,0 +1,76 @@
+"""NDN inference cost per view (prints; not a test). Target: <= 2 s per view on this machine.
+
+For each output size, one view's full inference path is timed: DDIM sampling of the depth
+and normal states at the working resolution (the weights' default steps, 15), then the
+guided upsampling of depth and normals to the output size (``maps_from_states``: bilinear +
+OpenCV guided filter + renormalisation). Views are sampled in batches as
+``write_ndn_priors`` does (batch 4 by default), so ``per view`` = batch time / batch size;
+batch 1 is printed too. The minimum over repeats is reported, as wall time and as the
+process's CPU time: on the shared, overloaded 2-core machine the wall time of a one-thread
+run is inflated by waiting for a core, while its CPU time is what an idle core would take.
+
+    .venv/bin/python benchmarks/bench_ndn.py [--weights W] [--sizes 1920x1080 480x270]
+        [--batch 4] [--repeats 3] [--threads N]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--weights", default=None, help="default: the shipped weights")
+    parser.add_argument("--sizes", nargs="+", default=["1920x1080", "480x270"])
+    parser.add_argument("--batch", type=int, default=4)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (0 = torch's default)")
+    args = parser.parse_args()
+
+    import os
+
+    import torch
+
+    from esgs.core.ndn.infer import maps_from_states
+    from esgs.core.ndn.shipped import resolve_default_weights
+    from esgs.core.ndn.train import load_checkpoint
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    weights = resolve_default_weights(args.weights)
+    model, diffusion, config, _ = load_checkpoint(weights)
+    working = config.model.working_size
+    print(f"weights {weights} | DDIM steps {config.diffusion.sample_steps} | working size {working}x{working * 9 // 16} "
+          f"| torch threads {torch.get_num_threads()} | load average {os.getloadavg()[0]:.1f}")
+    rng = np.random.default_rng(0)
+    height = working * 9 // 16
+    for batch in sorted({1, args.batch}):
+        views = torch.from_numpy(rng.uniform(-1, 1, (batch, 9, height, working)).astype(np.float32))
+        sample_times, sample_cpu = [], []
+        for repeat in range(args.repeats):
+            started, started_cpu = time.perf_counter(), time.process_time()
+            depth, normal = diffusion.sample(model, views, seed=repeat)
+            sample_times.append(time.perf_counter() - started)
+            sample_cpu.append(time.process_time() - started_cpu)
+        sample, cpu = min(sample_times) / batch, min(sample_cpu) / batch
+        for size in args.sizes:
+            width_px, height_px = (int(v) for v in size.split("x"))
+            guide = rng.integers(0, 255, (height_px, width_px, 3), dtype=np.uint8)
+            upsample_times, upsample_cpu = [], []
+            for _ in range(args.repeats):
+                started, started_cpu = time.perf_counter(), time.process_time()
+                maps_from_states(depth[0, 0].numpy(), normal[0].numpy(), guide)
+                upsample_times.append(time.perf_counter() - started)
+                upsample_cpu.append(time.process_time() - started_cpu)
+            upsample = min(upsample_times)
+            total, total_cpu = sample + upsample, cpu + min(upsample_cpu)
+            print(f"batch {batch} | {size:>9} | wall: sampling {sample:.3f} s/view + guided upsampling {upsample:.3f} s "
+                  f"= {total:.3f} s per view | CPU time {total_cpu:.3f} s per view "
+                  f"({'meets' if total_cpu <= 2.0 else 'misses'} the 2 s target on an idle core)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,255 @@
+"""Ship an NDN training checkpoint as the package's default weights, in one command.
+
+    .venv/bin/python benchmarks/ship_ndn.py /work/runs/ndn_model/checkpoints/step_<N>.pt \\
+        [--data /work/runs/ndn_data] [--landform /work/runs/ndn_landform] \\
+        [--baselines benchmarks/results/ndn_baselines.json]
+
+It (1) writes ``core/ndn/weights/ndn_mars.pt`` (float16, no optimiser state), (2) scores
+those shipped weights on every held-out triple of DATA (and of the landform set when it
+exists), exactly as ``esgs ndn eval`` does, (3) rescores the small held-out slice the tests
+keep in ``tests/core/fixtures/ndn/`` (the slice's arrays are cut once, from DATA, and then
+kept) and writes its expected scores, and (4) regenerates ``docs/ndn_model_card.md`` with the
+data, steps, training time, held-out scores, the baselines from ``--baselines`` and the
+commands that reproduce everything. ``tests/core/ndn/test_shipped.py`` then re-evaluates the
+shipped weights on the slice and compares with the card.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import hashlib
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+FIXTURE_DIR = REPO / "tests" / "core" / "fixtures" / "ndn"
+SLICE = FIXTURE_DIR / "heldout_slice.npz"
+SLICE_SCORES = FIXTURE_DIR / "heldout_slice_scores.json"
+CARD = REPO / "docs" / "ndn_model_card.md"
+# (held-out shard, view) of the slice: the preset training never saw, a training preset's
+# new seed, and a rover-height view
+SLICE_PICKS = (("heldout_layered_outcrop_100005", 2), ("heldout_dune_field_100002", 5),
+               ("heldout_rocky_slope_100003", 1))
+METRICS = ("abs_rel", "delta1", "normal_mean_deg", "normal_within_11_25")
+LABELS = {"abs_rel": "AbsRel", "delta1": "delta1", "normal_mean_deg": "normal mean error (deg)",
+          "normal_within_11_25": "< 11.25 deg"}
+
+
+def fmt(key: str, value: float) -> str:
+    """How the card and the slice test print a score (the test matches these strings)."""
+    if key == "normal_mean_deg":
+        return f"{value:.2f}"
+    if key == "normal_within_11_25":
+        return f"{100 * value:.1f} %"
+    return f"{value:.4f}"
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def shard_arrays(data_dir: Path, split: str) -> list[tuple[str, dict]]:
+    shards = []
+    for path in sorted((data_dir / "shards").glob(f"{split}_*.npz")):
+        with np.load(path, allow_pickle=False) as shard:
+            shards.append((path.stem, {key: shard[key] for key in ("views", "depth", "normal", "mask", "names")}))
+    return shards
+
+
+def evaluate_split(model, diffusion, shards) -> dict:
+    from esgs.core.ndn.infer import evaluate_arrays, mean_scores
+
+    per_scene, every, offset = {}, [], 0
+    for scene, arrays in shards:
+        scores = evaluate_arrays(model, diffusion, arrays, seed=offset)
+        offset += len(scores)
+        per_scene[scene] = mean_scores(scores)
+        every += scores
+    return {"triples": len(every), **mean_scores(every), "per_scene": per_scene}
+
+
+def cut_slice(data_dir: Path) -> None:
+    """Write the slice's arrays once (later ships keep them, so the test data never moves)."""
+    from esgs.core.io_utils import atomic_path
+
+    parts: dict[str, list] = {"views": [], "depth": [], "normal": [], "mask": [], "names": []}
+    for shard, view in SLICE_PICKS:
+        with np.load(data_dir / "shards" / f"{shard}.npz", allow_pickle=False) as arrays:
+            for key in ("views", "depth", "normal", "mask"):
+                parts[key].append(arrays[key][view])
+            parts["names"].append(f"{shard}/{arrays['names'][view]}")
+    FIXTURE_DIR.mkdir(parents=True, exist_ok=True)
+    with atomic_path(SLICE) as tmp:
+        with open(tmp, "wb") as handle:
+            np.savez_compressed(handle, **{key: np.stack(value) for key, value in parts.items()})
+
+
+def training_facts(checkpoint: Path, step: int) -> dict:
+    """Training time up to ``step`` and the number of training triples, from the run's files."""
+    model_dir = checkpoint.parent.parent
+    facts: dict = {"model_dir": str(model_dir)}
+    events = model_dir / "events.jsonl"
+    if events.exists():
+        times = {}
+        for line in events.read_text().splitlines():
+            try:
+                event = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if event.get("stage") == "ndn-train" and event.get("kind") == "progress":
+                times.setdefault(int(event["step"]), float(event["time"]))
+        if 1 in times and step in times:
+            facts["train_seconds"] = round(times[step] - times[1], 1)
+            facts["started"] = datetime.datetime.fromtimestamp(times[1], datetime.timezone.utc).strftime(
+                "%Y-%m-%d %H:%M UTC")
+    config = model_dir / "config.json"
+    if config.exists():
+        facts["config"] = json.loads(config.read_text())
+    summary = model_dir / "train_summary.json"
+    if summary.exists():
+        facts["train_triples"] = json.loads(summary.read_text()).get("train_triples")
+    return facts
+
+
+def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | None, slice_scores: dict,
+         baselines: dict, data_dir: Path, landform_dir: Path, seconds: float) -> str:
+    config = facts.get("config", {})
+    train = config.get("train", {})
+    ndn = config.get("ndn", {})
+    hours = facts.get("train_seconds")
+    row = lambda label, s: (f"| {label} | {s['triples']} | " + " | ".join(fmt(k, s[k]) for k in METRICS) + " |")  # noqa: E731
+    header = ["| method | triples | AbsRel | delta1 | normal mean error (deg) | < 11.25 deg |", "|---|---|---|---|---|---|"]
+    lines = [
+        "# NDN model card (the weights shipped in `core/ndn/weights/ndn_mars.pt`)",
+        "",
+        "Generated by `benchmarks/ship_ndn.py`; do not edit by hand (re-run it instead).",
+        "",
+        "## Model",
+        f"- Network: the two-branch NDN UNet of docs/ndn.md, {ndn.get('model', {})}; diffusion "
+        f"{ndn.get('diffusion', {})}.",
+        f"- Weights: {weights.stat().st_size / 1e6:.1f} MB, float16 (loaded as float32), sha256 `{sha256(weights)[:16]}`, "
+        f"training step **{step}**.",
+        "- Output: relative depth (affine in true z depth; align with `fit_scale_shift`) and unit "
+        "camera-frame normals (OpenCV axes) at 128 px on the long side, guided-upsampled to the image size.",
+        "",
+        "## Training",
+        f"- Data: `{data_dir}` from `esgs ndn build-data` (command below): synthetic Mars scenes of the presets "
+        "cratered_plain, crater_survey_nadir, dune_field, rocky_slope and navcam_panorama, 8 views each at "
+        "160x90 (Cycles, 8 samples), one triple per view at 128x72; held-out scenes use seeds >= 100000 and "
+        "add layered_outcrop, a preset training never saw."
+        + (f" Training triples: {facts['train_triples']}." if facts.get("train_triples") else
+           " The run loaded the training shards present when it started (see the run's train_summary.json)."),
+        f"- Optimiser: AdamW, lr {train.get('learning_rate')}, batch {train.get('batch_size')}, seed "
+        f"{train.get('seed')}, {train.get('threads')} torch thread(s), horizontal flips.",
+        f"- Steps: {step}" + (f"; wall time to this step {hours / 3600:.2f} h" if hours else "")
+        + (f" (run started {facts['started']})" if facts.get("started") else "")
+        + " on the shared 2-core CPU machine, under heavy load from other jobs.",
+        "",
+        "## Held-out scores (these weights, DDIM 15 steps, seed 0 + triple index)",
+        "",
+        *header, row("NDN (shipped)", heldout),
+        "",
+        "Per held-out scene:",
+        "",
+        "| scene | " + " | ".join(LABELS[k] for k in METRICS) + " |", "|---|---|---|---|---|",
+        *[f"| {scene} | " + " | ".join(fmt(k, s[k]) for k in METRICS) + " |"
+          for scene, s in heldout["per_scene"].items()],
+    ]
+    if landform:
+        lines += ["", f"Real-mesh views (`{landform_dir}`, mars_landform rendered, never used in training):", "",
+                  *header, row("NDN (shipped)", landform)]
+    if baselines:
+        lines += ["", "## Baselines (from `benchmarks/ndn_baselines.py`, measured separately; see docs/ndn.md)", ""]
+        for key, methods in baselines.items():
+            lines += [f"{key}:", "", *header]
+            lines += [row(label, summary) for label, summary in methods.items()]
+            lines.append("")
+    lines += [
+        "## Test slice",
+        "",
+        f"`tests/core/fixtures/ndn/heldout_slice.npz` ({len(slice_scores['names'])} held-out triples: "
+        f"{', '.join(slice_scores['names'])}). `tests/core/ndn/test_shipped.py` re-evaluates the shipped weights on it "
+        "and checks these scores (tolerance in the test):",
+        "",
+        "| slice | " + " | ".join(LABELS[k] for k in METRICS) + " |", "|---|---|---|---|---|",
+        "| heldout_slice | " + " | ".join(fmt(k, slice_scores["scores"][k]) for k in METRICS) + " |",
+        "",
+        "## Reproduce",
+        "",
+        "```",
+        f"esgs ndn build-data --out {data_dir} --scenes 120 --heldout 6 --presets cratered_plain crater_survey_nadir "
+        "dune_field rocky_slope navcam_panorama --heldout-presets layered_outcrop --views 8 --resolution 160x90 "
+        "--samples 8 --working-size 128 --keep-scenes",
+        f"esgs ndn train {data_dir} --out MODEL --steps {train.get('steps', step)} --batch-size "
+        f"{train.get('batch_size', 8)} --checkpoint-every 100 --threads 1 --seed {train.get('seed', 0)}",
+        f".venv/bin/python benchmarks/ship_ndn.py MODEL/checkpoints/step_{step:07d}.pt --data {data_dir}",
+        f"esgs ndn eval core/ndn/weights/ndn_mars.pt {data_dir}",
+        "```",
+        "",
+        f"Shipping and scoring took {seconds:.0f} s. Limits: see docs/ndn.md (\"Limits\").",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("checkpoint", type=Path, help="MODEL/checkpoints/step_<N>.pt (or weights.pt)")
+    parser.add_argument("--data", type=Path, default=Path("/work/runs/ndn_data"), help="data folder (held-out shards)")
+    parser.add_argument("--landform", type=Path, default=Path("/work/runs/ndn_landform"),
+                        help="held-out landform data folder (skipped when absent)")
+    parser.add_argument("--baselines", type=Path, default=REPO / "benchmarks" / "results" / "ndn_baselines.json")
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+
+    import torch
+
+    from esgs.core.io_utils import atomic_write_json, atomic_write_text
+    from esgs.core.ndn.infer import evaluate_arrays, mean_scores
+    from esgs.core.ndn.shipped import SHIPPED_WEIGHTS, export_weights
+    from esgs.core.ndn.train import load_checkpoint
+
+    torch.set_num_threads(args.threads)
+    started = time.time()
+    _, _, _, payload = load_checkpoint(args.checkpoint)
+    step = int(payload["step"])
+    facts = training_facts(args.checkpoint, step)
+    export_weights(args.checkpoint, SHIPPED_WEIGHTS, provenance={
+        "source": args.checkpoint.name, "step": step, "data": str(args.data),
+        "train_seconds": facts.get("train_seconds"), "train_triples": facts.get("train_triples")})
+    model, diffusion, _, _ = load_checkpoint(SHIPPED_WEIGHTS)  # score what ships (float16 -> float32)
+    print(f"wrote {SHIPPED_WEIGHTS} ({SHIPPED_WEIGHTS.stat().st_size / 1e6:.1f} MB, step {step})", flush=True)
+
+    heldout = evaluate_split(model, diffusion, shard_arrays(args.data, "heldout"))
+    print("held-out:", json.dumps({k: heldout[k] for k in ("triples", *METRICS)}), flush=True)
+    landform = None
+    if (args.landform / "shards").exists():
+        landform = evaluate_split(model, diffusion, shard_arrays(args.landform, "heldout"))
+        print("landform:", json.dumps({k: landform[k] for k in ("triples", *METRICS)}), flush=True)
+
+    if not SLICE.exists():
+        cut_slice(args.data)
+    with np.load(SLICE, allow_pickle=False) as arrays:
+        slice_arrays = {key: arrays[key] for key in arrays.files}
+    slice_scores = {"weights_sha256": sha256(SHIPPED_WEIGHTS), "step": step, "ddim_steps": diffusion.config.sample_steps, "seed": 0,
+                    "names": [str(name) for name in slice_arrays["names"]],
+                    "scores": mean_scores(evaluate_arrays(model, diffusion, slice_arrays, seed=0))}
+    atomic_write_json(SLICE_SCORES, slice_scores)
+    print("slice:", json.dumps(slice_scores["scores"]), flush=True)
+
+    baselines = json.loads(args.baselines.read_text()) if args.baselines.exists() else {}
+    baselines = {key: {label: summary for label, summary in methods.items()} for key, methods in baselines.items()}
+    atomic_write_text(CARD, card(step, facts, SHIPPED_WEIGHTS, heldout, landform, slice_scores, baselines,
+                                 args.data, args.landform, time.time() - started))
+    atomic_write_json(REPO / "benchmarks" / "results" / "ndn_shipped_scores.json",
+                      {"step": step, "heldout": heldout, "landform": landform})
+    print(f"wrote {CARD} and {SLICE_SCORES} in {time.time() - started:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
