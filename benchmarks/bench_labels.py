@@ -32,7 +32,8 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=12)
     parser.add_argument("--resolution", default="320x180")
     parser.add_argument("--samples", type=int, default=8)
-    parser.add_argument("--out", type=Path, default=None, help="JSON file for the results (default: WORK/labels_accuracy.json)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="JSON file for the results (default: WORK/labels_accuracy.json)")
     args = parser.parse_args()
 
     results = {"settings": {"seed": args.seed, "views": args.views, "resolution": args.resolution,
@@ -57,7 +58,8 @@ def main() -> None:
     results["load_average"] = os.getloadavg()
     out = args.out or args.work / "labels_accuracy.json"
     out.write_text(json.dumps(results, indent=2))
-    print(f"\n{'preset':<16}{'AbsRel':>9}{'delta1':>9}{'coverage':>10}{'filled AbsRel':>15}{'baseline AbsRel':>17}{'labels s':>10}")
+    print(f"\n{'preset':<16}{'AbsRel':>9}{'delta1':>9}{'coverage':>10}{'filled AbsRel':>15}"
+          f"{'baseline AbsRel':>17}{'labels s':>10}")
     for preset, result in results["scenes"].items():
         accuracy = result["accuracy"]
         print(f"{preset:<16}{accuracy['overall']['abs_rel']:>9.4f}{accuracy['overall']['delta1']:>9.4f}"

@@ -28,7 +28,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--report", action="store_true",
                         help="synthetic scenes: compare the labels with priors/gt (AbsRel, delta1), print a table "
                              "and write priors/labels/accuracy.json")
-    parser.add_argument("--samples", type=int, default=0, help="Cycles samples per pixel (0 = 1: depth is the first sample's)")
+    parser.add_argument("--samples", type=int, default=0,
+                        help="Cycles samples per pixel (0 = 1: depth is the first sample's)")
     parser.add_argument("--flat", action="store_true", help="shade the mesh flat (default: smooth vertex normals)")
     add_dataclass_arguments(parser, FillOptions)
     add_dataclass_arguments(parser, ReconstructOptions, skip=("stereo",))

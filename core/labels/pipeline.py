@@ -127,4 +127,5 @@ def run_child(command: list[str], progress: ProgressCallback, *, verbose: bool =
         kinds = {"ConfigError": ConfigError, "DatasetError": DatasetError}
         raise kinds.get(error.get("type", ""), ESGSError)(error.get("message", "label rendering failed"))
     if status != 0:
-        raise ESGSError(f"label rendering failed (exit status {status})", hint="run again with --verbose to see Blender's log")
+        raise ESGSError(f"label rendering failed (exit status {status})",
+                        hint="run again with --verbose to see Blender's log")

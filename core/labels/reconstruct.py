@@ -49,7 +49,8 @@ class ReconstructOptions:
     min_agreeing: int = field(default=1, metadata={"help": "neighbour views that must confirm a depth"})
     cell_factor: float = field(default=2.0, metadata={"help": "grid cell side in median pixel footprints"})
     max_edge_cells: float = field(default=4.0, metadata={"help": "remove triangles with a longer edge (in cells)"})
-    spike_threshold: float = field(default=3.0, metadata={"help": "drop cells this many cells above/below their neighbourhood"})
+    spike_threshold: float = field(default=3.0, metadata={
+        "help": "drop cells this many cells above/below their neighbourhood"})
 
     def validate(self) -> None:
         self.stereo.validate()
@@ -125,7 +126,8 @@ def load_views(scene_dir: str | Path, margin: float, ground_normal: np.ndarray |
 
 
 def mesh_from_points(points: np.ndarray, normal: np.ndarray, cell: float, max_edge_cells: float,
-                     spike_threshold: float, footprints: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+                     spike_threshold: float, footprints: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """2.5D mesh of ``points`` [N, 3] over the plane with unit ``normal`` [3].
 
     cell: grid cell side (scene units). footprints: [N] optional spacing of each point's

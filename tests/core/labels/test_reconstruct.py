@@ -56,7 +56,8 @@ def test_mesh_from_points_follows_the_surface_and_keeps_gaps_open():
     centroids = vertices[triangles].mean(axis=1)
     in_hole = ((centroids[:, 0] + 1.0) ** 2 + (centroids[:, 1] - 4.0) ** 2) < 0.35 ** 2
     assert not in_hole.any()  # long triangles across the hole were removed
-    normals = np.cross(vertices[triangles[:, 1]] - vertices[triangles[:, 0]], vertices[triangles[:, 2]] - vertices[triangles[:, 0]])
+    corners = vertices[triangles]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     assert np.all(normals[:, 2] > 0)  # oriented towards the cameras (up)
 
 
