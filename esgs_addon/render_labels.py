@@ -76,6 +76,7 @@ def render_labels(scene_dir: str | Path, mesh_path: str | Path, *, method: str =
     """
     from ..core.colmap.io import read_model
     from ..core.labels.mesh_io import load_mesh
+    from ..core.labels.pipeline import check_pinhole
     from ..core.labels.writer import REPORT_NAME, LabelWriter
     from ..core.priors.io import prior_dir
     from .cameras import opencv_from_camera_object, use_camera
@@ -90,6 +91,7 @@ def render_labels(scene_dir: str | Path, mesh_path: str | Path, *, method: str =
     if not model.images:
         raise DatasetError("the COLMAP model has no images (no cameras to render)", path=scene_dir,
                            hint="run SfM first (esgs dataset from-images) so every image has a pose")
+    check_pinhole(model, scene_dir)
     vertices, triangles = load_mesh(mesh_path)
     samples = samples or DEFAULT_SAMPLES
     metadata = {"method": method, "mesh": str(Path(mesh_path).resolve()), "renderer": "Cycles CPU, Depth and Normal passes",

@@ -56,7 +56,18 @@ def check_scene(scene: Path) -> int:
     if not model.images:
         raise DatasetError("the COLMAP model has no images (no cameras to render)", path=scene,
                            hint="run SfM first (esgs dataset from-images) so every image has a pose")
+    check_pinhole(model, scene)
     return len(model.images)
+
+
+def check_pinhole(model, scene: Path) -> None:
+    """Labels are pixel-exact only for cameras without lens distortion (Blender has none)."""
+    distorted = sorted({f"{camera.camera_id} ({camera.model})" for camera in model.cameras.values()
+                        if not camera.is_pinhole})
+    if distorted:
+        raise DatasetError(f"cameras with lens distortion: {', '.join(distorted)}; labels rendered by Blender "
+                           "would not line up with the images", path=scene,
+                           hint="undistort the scene first (esgs colmap undistort), then label the undistorted folder")
 
 
 def run_label_job(job: LabelJob, progress: ProgressCallback = no_progress, *, verbose: bool = False) -> dict[str, Any]:

@@ -88,6 +88,10 @@ class LabelWriter:
                 return
             if not self.views:
                 raise DatasetError("no views were rendered; nothing written", path=self.scene_dir)
+            if all(view["rendered_fraction"] == 0 for view in self.views):
+                raise DatasetError("no camera sees the mesh; nothing written", path=self.metadata.get("mesh"),
+                                   hint="the mesh must be in the COLMAP model's frame and units (for a synthetic "
+                                        "scene: mesh/ground_truth.ply)")
             built = prior_dir(staging, SOURCE)
             atomic_write_json(built / REPORT_NAME, {
                 "source": SOURCE, **self.metadata, "mask_values": MASK_VALUES,

@@ -144,6 +144,12 @@ def test_missing_mesh_and_scene_without_cameras_write_nothing(scene, tmp_path):
     with pytest.raises(DatasetError, match="mesh file not found"):
         render_labels(scene, scene / "missing.ply")
     assert not (scene / "priors" / "labels").exists() and not list(scene.glob(".labels*"))
+    mesh = trimesh.load(scene / "mesh" / "ground_truth.ply", process=False)
+    elsewhere = scene / "elsewhere.ply"
+    trimesh.Trimesh(mesh.vertices + np.array([0.0, 0.0, 500.0]), mesh.faces, process=False).export(elsewhere)
+    with pytest.raises(DatasetError, match="no camera sees the mesh"):
+        render_labels(scene, elsewhere)  # e.g. a mesh in another frame or unit
+    assert not (scene / "priors" / "labels").exists() and not list(scene.glob(".labels*"))
     empty = tmp_path / "empty"
     model = ColmapModel({}, {}, {})
     write_model(model, empty / "sparse" / "0")

@@ -39,6 +39,19 @@ def test_scene_without_cameras_is_reported(tmp_path):
         run_label_job(LabelJob(scene=tmp_path / "missing", reconstruct=True))
 
 
+def test_distorted_cameras_are_refused(tmp_path):
+    from esgs.core.colmap import read_model
+
+    write_scene(tmp_path, 2)
+    model = read_model(tmp_path)
+    camera = model.cameras[1]
+    model.cameras[1] = Camera(1, "SIMPLE_RADIAL", camera.width, camera.height, np.array([80.0, 48.0, 32.0, 0.01]))
+    write_model(model, tmp_path / "sparse" / "0", overwrite=True)
+    (tmp_path / "mesh.ply").write_text("ply\n")
+    with pytest.raises(DatasetError, match="lens distortion.*SIMPLE_RADIAL"):
+        run_label_job(LabelJob(scene=tmp_path, mesh=tmp_path / "mesh.ply"))
+
+
 def test_report_needs_ground_truth(tmp_path):
     write_scene(tmp_path, 2)
     (tmp_path / "mesh.ply").write_text("ply\n")

@@ -71,6 +71,17 @@ def test_a_successful_run_replaces_the_previous_labels(tmp_path):
     assert json.loads((root / "labels.json").read_text())["mesh"] == "new.ply"
 
 
+def test_a_mesh_no_camera_sees_writes_nothing(tmp_path):
+    from esgs.core.errors import DatasetError
+
+    empty = np.zeros((24, 32), np.float32), np.zeros((24, 32, 3), np.float32)
+    with pytest.raises(DatasetError, match="no camera sees the mesh"):
+        with LabelWriter(tmp_path, {"mesh": "elsewhere.ply"}) as writer:
+            writer.add("a.png", *empty)
+            writer.add("b.png", *empty)
+    assert not (tmp_path / "priors").exists() and not list(tmp_path.glob(".labels.partial.*"))
+
+
 def test_no_views_writes_nothing(tmp_path):
     from esgs.core.errors import DatasetError
 
