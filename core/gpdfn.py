@@ -235,7 +235,6 @@ class _FusionCore(torch.autograd.Function):
             if grad_voxel_projection is not None:
                 grad_voxel_projection.index_add_(0, block_index,
                                                  (grad_sampled * block_weight.unsqueeze(2)).view(-1, hidden))
-        ctx.blocks = None
         return (grad_own, grad_voxel_projection, None, grad_weight, *grads)
 
 
