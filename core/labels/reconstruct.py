@@ -51,6 +51,8 @@ class ReconstructOptions:
     max_edge_cells: float = field(default=4.0, metadata={"help": "remove triangles with a longer edge (in cells)"})
     spike_threshold: float = field(default=3.0, metadata={
         "help": "drop cells this many cells above/below their neighbourhood"})
+    max_width: int = field(default=960, metadata={
+        "help": "shrink wider images to this width for stereo (cost grows with pixels; 0 = full size)"})
 
     def validate(self) -> None:
         self.stereo.validate()
@@ -61,6 +63,8 @@ class ReconstructOptions:
         for name in ("cell_factor", "max_edge_cells", "spike_threshold"):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.max_width != 0 and self.max_width < 32:
+            raise ConfigError(f"max_width must be 0 (full size) or at least 32 pixels, got {self.max_width}")
 
 
 def _grey(image: np.ndarray) -> np.ndarray:
@@ -80,8 +84,13 @@ def fit_ground_plane(points: np.ndarray, camera_centers: np.ndarray) -> tuple[np
     return normal / np.linalg.norm(normal), centroid
 
 
-def load_views(scene_dir: str | Path, margin: float, ground_normal: np.ndarray | None) -> tuple[list[View], Any]:
-    """The scene's views for stereo: grey images, K, poses, depth ranges from the sparse points."""
+def load_views(scene_dir: str | Path, margin: float, ground_normal: np.ndarray | None,
+               max_width: int = 0) -> tuple[list[View], Any]:
+    """The scene's views for stereo: grey images, K, poses, depth ranges from the sparse points.
+
+    max_width: images wider than this are shrunk (area averaging) with K scaled to match
+    (pixel coordinates scale about the top-left corner, COLMAP's origin); 0 keeps them.
+    """
     from ..colmap.io import load_scene
     from ..imageio import read_image
 
@@ -120,8 +129,16 @@ def load_views(scene_dir: str | Path, margin: float, ground_normal: np.ndarray |
             if len(offsets) >= 3 and np.percentile(offsets, 1) > 0:
                 low, high = np.percentile(offsets, [1, 99])
                 ground_offsets = (float(low / margin), float(high * margin))
-        views.append(View(image.name, _grey(read_image(images_dir / image.name)), camera.K(), world_to_camera,
-                          (float(near / margin), float(far * margin)), frozenset(ids), ground_offsets))
+        grey, K = _grey(read_image(images_dir / image.name)), camera.K()
+        if max_width and grey.shape[1] > max_width:
+            import cv2
+
+            factor = max_width / grey.shape[1]
+            size = (max_width, max(1, round(grey.shape[0] * factor)))
+            grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+            K = np.diag([size[0] / camera.width, size[1] / camera.height, 1.0]) @ K
+        views.append(View(image.name, grey, K, world_to_camera, (float(near / margin), float(far * margin)),
+                          frozenset(ids), ground_offsets))
     return views, model
 
 
@@ -212,7 +229,7 @@ def reconstruct_mesh(scene_dir: str | Path, options: ReconstructOptions | None =
     ground_normal = None
     if len(xyz) >= 3 and len(centers):
         ground_normal, _ = fit_ground_plane(xyz, centers)
-    views, model = load_views(scene_dir, options.stereo.depth_margin, ground_normal)
+    views, model = load_views(scene_dir, options.stereo.depth_margin, ground_normal, options.max_width)
     total = len(views) + 2
 
     def sweep_progress(step: int, count: int, name: str) -> None:

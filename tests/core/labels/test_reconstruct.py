@@ -77,6 +77,25 @@ def test_reconstruct_mesh_of_a_scene_folder(tmp_path):
     assert top.any() and np.median(mesh.vertices[top, 2]) > 0.3
 
 
+def test_views_are_shrunk_with_their_intrinsics(tmp_path):
+    from esgs.core.labels.reconstruct import load_views
+
+    write_scene(tmp_path, 2)
+    full, _ = load_views(tmp_path, 1.3, None)
+    half, _ = load_views(tmp_path, 1.3, None, max_width=48)
+    assert half[0].image.shape == (32, 48)
+    np.testing.assert_allclose(half[0].K[:2], full[0].K[:2] / 2)
+    # the same world point lands on the same relative position in both images
+    point = np.array([0.3, 2.5, 0.4, 1.0])
+    for view, scale in ((full[0], 1.0), (half[0], 0.5)):
+        camera = view.world_to_camera @ point
+        uv = (view.K @ camera[:3])[:2] / camera[2]
+        np.testing.assert_allclose(uv / scale, (full[0].K @ (full[0].world_to_camera @ point)[:3])[:2]
+                                   / (full[0].world_to_camera @ point)[2])
+    # and the shrunk image is the area average of the full one
+    np.testing.assert_allclose(half[0].image[5, 7], full[0].image[10:12, 14:16].mean(), atol=0.5)
+
+
 def test_reconstruct_refuses_scenes_it_cannot_do(tmp_path):
     write_scene(tmp_path, 1)
     with pytest.raises(DatasetError, match="one image"):
