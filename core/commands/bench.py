@@ -10,8 +10,8 @@ HELP = "compare 3DGS, Mip-Splatting, DropoutGS, ESGS ablations and ESGS on synth
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--suite", choices=("quick", "full", "large"), default="quick",
-                        help="quick: cratered_plain seed 0, 10 views 160x90, 300 steps + 0.5 min budgets (~15 min on 2 "
-                             "busy cores); full: cratered_plain, dune_field x seeds 0 1 2, 12 views 320x180, 500 steps "
+                        help="quick: cratered_plain seed 0, 10 views 160x90, 300 steps + 0.5 min budgets (15-30 min "
+                             "on 2 busy cores); full: cratered_plain, dune_field x seeds 0 1 2, 12 views 320x180, 500 steps "
                              "+ 1 min budgets (~1.5 h on 2 idle cores, through Ray); large: 4 presets x 3 seeds, 30 views "
                              "480x270, 7000 steps + 20 min budgets (for a GPU machine or a Ray cluster)")
     parser.add_argument("--out", type=Path, required=True, 

@@ -56,7 +56,7 @@ SUITES = {
     "quick": BenchSuite("quick", presets=("cratered_plain",), seeds=(0,), views=10, resolution="160x90", samples=8,
                         iterations=300, points_per_view=300, budget_minutes=0.5,
                         description="cratered_plain seed 0, 10 views 160x90, 300 steps, and 0.5 min budgets: "
-                                    "~15 minutes on 2 busy cores"),
+                                    "15-30 minutes on 2 busy cores"),
     # the comparison of the issue, sized for a 2-core CPU machine (see docs/benchmarks.md)
     "full": BenchSuite("full", presets=("cratered_plain", "dune_field"), seeds=(0, 1, 2), views=12,
                        resolution="320x180", samples=16, iterations=500, points_per_view=1000, budget_minutes=1.0,
