@@ -8,9 +8,10 @@ It (1) writes ``core/ndn/weights/ndn_mars.pt`` (float16, no optimiser state), (2
 those shipped weights on every held-out triple of DATA (and of the landform set when it
 exists), exactly as ``esgs ndn eval`` does, (3) rescores the small held-out slice the tests
 keep in ``tests/core/fixtures/ndn/`` (the slice's arrays are cut once, from DATA, and then
-kept) and writes its expected scores, and (4) regenerates ``docs/ndn_model_card.md`` with the
-data, steps, training time, held-out scores, the baselines from ``--baselines`` and the
-commands that reproduce everything. ``tests/core/ndn/test_shipped.py`` then re-evaluates the
+kept) and writes its expected scores, (4) redraws the Navcam figures in ``docs/images/``
+when the registered station exists (``--navcam``), and (5) regenerates
+``docs/ndn_model_card.md`` with the data, steps, training time, held-out scores, the
+baselines from ``--baselines`` and the commands that reproduce everything. ``tests/core/ndn/test_shipped.py`` then re-evaluates the
 shipped weights on the slice and compares with the card.
 """
 from __future__ import annotations
@@ -34,6 +35,9 @@ CARD = REPO / "docs" / "ndn_model_card.md"
 # new seed, and a rover-height view
 SLICE_PICKS = (("heldout_layered_outcrop_100005", 2), ("heldout_dune_field_100002", 5),
                ("heldout_rocky_slope_100003", 1))
+# the 2026-11-22 run: started while the data was still being rendered, resumed once it was complete
+DEFAULT_NOTE = ("The run's first 300 steps saw the 44 training scenes (352 triples) rendered when it started; it "
+                "was then resumed (`--resume`) on all 75 (600 triples).")
 METRICS = ("abs_rel", "delta1", "normal_mean_deg", "normal_within_11_25")
 LABELS = {"abs_rel": "AbsRel", "delta1": "delta1", "normal_mean_deg": "normal mean error (deg)",
           "normal_within_11_25": "< 11.25 deg"}
@@ -116,7 +120,7 @@ def training_facts(checkpoint: Path, step: int) -> dict:
 
 
 def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | None, slice_scores: dict,
-         baselines: dict, data_dir: Path, landform_dir: Path, seconds: float) -> str:
+         baselines: dict, data_dir: Path, landform_dir: Path, seconds: float, note: str) -> str:
     config = facts.get("config", {})
     train = config.get("train", {})
     ndn = config.get("ndn", {})
@@ -141,8 +145,8 @@ def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | 
         "cratered_plain, crater_survey_nadir, dune_field, rocky_slope and navcam_panorama, 8 views each at "
         "160x90 (Cycles, 8 samples), one triple per view at 128x72; held-out scenes use seeds >= 100000 and "
         "add layered_outcrop, a preset training never saw."
-        + (f" Training triples: {facts['train_triples']}." if facts.get("train_triples") else
-           " The run loaded the training shards present when it started (see the run's train_summary.json)."),
+        + f" Training scenes in the data folder now: {len(list((data_dir / 'shards').glob('train_*.npz')))}"
+        f" ({8 * len(list((data_dir / 'shards').glob('train_*.npz')))} triples)." + (f" {note}" if note else ""),
         f"- Optimiser: AdamW, lr {train.get('learning_rate')}, batch {train.get('batch_size')}, seed "
         f"{train.get('seed')}, {train.get('threads')} torch thread(s), horizontal flips.",
         f"- Steps: {step}" + (f"; wall time to this step {hours / 3600:.2f} h" if hours else "")
@@ -181,13 +185,23 @@ def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | 
         "## Reproduce",
         "",
         "```",
-        f"esgs ndn build-data --out {data_dir} --scenes 120 --heldout 6 --presets cratered_plain crater_survey_nadir "
+        f"esgs ndn build-data --out {data_dir} --scenes {len(list((data_dir / 'shards').glob('train_*.npz')))} --heldout 6 --presets cratered_plain crater_survey_nadir "
         "dune_field rocky_slope navcam_panorama --heldout-presets layered_outcrop --views 8 --resolution 160x90 "
         "--samples 8 --working-size 128 --keep-scenes",
         f"esgs ndn train {data_dir} --out MODEL --steps {train.get('steps', step)} --batch-size "
         f"{train.get('batch_size', 8)} --checkpoint-every 100 --threads 1 --seed {train.get('seed', 0)}",
         f".venv/bin/python benchmarks/ship_ndn.py MODEL/checkpoints/step_{step:07d}.pt --data {data_dir}",
         f"esgs ndn eval core/ndn/weights/ndn_mars.pt {data_dir}",
+        "# the real-mesh set (one scene per rig), and its shards",
+        *[f"esgs scene --mesh ../shared/data/mars_landform/terrain.glb --rig {rig} --views 8 --resolution 160x90 "
+          f"--samples 8 --seed 1 --out {landform_dir}/scenes/heldout_landform_{rig}_1" for rig in ("traverse", "orbit")],
+        f"esgs ndn shard {landform_dir}/scenes/* --data {landform_dir}",
+        "# the baselines (regression: the same network and data, --prediction regression)",
+        f"esgs ndn train {data_dir} --out REGRESSION --steps N --batch-size 8 --checkpoint-every 100 --threads 1 "
+        "--seed 0 --prediction regression",
+        f".venv/bin/python benchmarks/ndn_baselines.py {data_dir} {landform_dir} --method sfm "
+        "--method ndn:stepN=MODEL/checkpoints/step_N.pt --method regression:stepN=REGRESSION/checkpoints/step_N.pt "
+        "--json benchmarks/results/ndn_baselines.json",
         "```",
         "",
         f"Shipping and scoring took {seconds:.0f} s. Limits: see docs/ndn.md (\"Limits\").",
@@ -203,6 +217,9 @@ def main() -> int:
     parser.add_argument("--landform", type=Path, default=Path("/work/runs/ndn_landform"),
                         help="held-out landform data folder (skipped when absent)")
     parser.add_argument("--baselines", type=Path, default=REPO / "benchmarks" / "results" / "ndn_baselines.json")
+    parser.add_argument("--navcam", type=Path, default=Path("/work/runs/ndn_navcam/station"),
+                        help="the registered Navcam station for docs/images (skipped when absent)")
+    parser.add_argument("--note", default=DEFAULT_NOTE, help="how the run used the data (goes into the card)")
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
 
@@ -241,10 +258,16 @@ def main() -> int:
     atomic_write_json(SLICE_SCORES, slice_scores)
     print("slice:", json.dumps(slice_scores["scores"]), flush=True)
 
+    if (args.navcam / "sparse").exists():
+        sys.path.insert(0, str(REPO / "benchmarks"))
+        from ndn_navcam_figures import navcam_figures
+
+        for path in navcam_figures(args.navcam, REPO / "docs" / "images", SHIPPED_WEIGHTS):
+            print(f"wrote {path}", flush=True)
     baselines = json.loads(args.baselines.read_text()) if args.baselines.exists() else {}
     baselines = {key: {label: summary for label, summary in methods.items()} for key, methods in baselines.items()}
     atomic_write_text(CARD, card(step, facts, SHIPPED_WEIGHTS, heldout, landform, slice_scores, baselines,
-                                 args.data, args.landform, time.time() - started))
+                                 args.data, args.landform, time.time() - started, args.note))
     atomic_write_json(REPO / "benchmarks" / "results" / "ndn_shipped_scores.json",
                       {"step": step, "heldout": heldout, "landform": landform})
     print(f"wrote {CARD} and {SLICE_SCORES} in {time.time() - started:.0f} s")

@@ -4,7 +4,9 @@
   child processes) into npz shards of view triples (resumable);
 - ``esgs ndn train DATA --out MODEL_DIR [--steps N] [--resume]``: train, with checkpoints;
 - ``esgs ndn eval MODEL_DIR DATA``: AbsRel / delta1 (after scale-shift alignment) and normal
-  angular errors on the held-out split.
+  angular errors on the held-out split;
+- ``esgs ndn shard SCENE... --data DATA``: add any scene folder with ``priors/gt`` (e.g. one
+  rendered from a real mesh with ``esgs scene --mesh``) to a data folder as a shard.
 """
 from __future__ import annotations
 
@@ -52,6 +54,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     evaluate.add_argument("--limit", type=int, default=0, help="score only the first N triples (0 = all)")
     evaluate.add_argument("--json", type=Path, default=None, help="also write the scores to this JSON file")
 
+    shard = sub.add_parser("shard", help="add scene folders (with priors/gt) to a data folder as shards")
+    shard.add_argument("scenes", type=Path, nargs="+", help="scene folders: images/, sparse/0, priors/gt")
+    shard.add_argument("--data", type=Path, required=True, help="data folder (shards/ is created)")
+    shard.add_argument("--split", default="heldout", help="split prefix of the shard names (default heldout)")
+    shard.add_argument("--working-size", type=int, default=128, help="long side of the triples in pixels")
+    shard.add_argument("--multiple", type=int, default=4, help="triple sizes are multiples of this")
+
 
 def run(args: argparse.Namespace) -> int:
     from ..progress import ConsoleProgress
@@ -74,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
             return 0
         if args.ndn_command == "train":
             return _train(args, bar)
+        if args.ndn_command == "shard":
+            return _shard(args)
         from ..io_utils import atomic_write_json
         from ..ndn.infer import evaluate_ndn
 
@@ -111,4 +122,17 @@ def _train(args: argparse.Namespace, bar) -> int:
         events.close()
     bar.close()
     print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _shard(args: argparse.Namespace) -> int:
+    from ..ndn.data import scene_triples, write_shard
+
+    for scene in args.scenes:
+        name = scene.name if scene.name.startswith(f"{args.split}_") else f"{args.split}_{scene.name}"
+        triples = scene_triples(scene, args.working_size, args.multiple)
+        path = args.data / "shards" / f"{name}.npz"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_shard(path, triples, {"scene": str(scene), "split": args.split})
+        print(f"wrote {path} ({len(triples.names)} triples, {triples.views.shape[-1]}x{triples.views.shape[-2]})")
     return 0

@@ -139,3 +139,19 @@ def test_scores_of_a_perfect_and_an_affine_prediction():
     scores = score_view(0.5 * truth + 3.0, normal, truth, normal, mask)
     assert scores["abs_rel"] < 1e-5 and scores["delta1"] == 1.0
     assert scores["normal_mean_deg"] < 0.1 and scores["normal_within_11_25"] == 1.0
+
+
+def test_shard_command_adds_a_scene_folder_to_a_data_folder(tmp_path, capsys):
+    from esgs.core.cli import main
+    from esgs.core.ndn.data import load_shards, scene_triples
+
+    from .conftest import make_scene
+
+    scene = make_scene(tmp_path / "landform_orbit_1")
+    assert main(["ndn", "shard", str(scene), "--data", str(tmp_path / "data"), "--working-size", "32",
+                 "--multiple", "2"]) == 0
+    assert (tmp_path / "data/shards/heldout_landform_orbit_1.npz").exists()
+    arrays = load_shards(tmp_path / "data", "heldout")
+    expected = scene_triples(scene, 32, 2)
+    np.testing.assert_array_equal(arrays["views"], expected.views)
+    np.testing.assert_array_equal(arrays["depth"], expected.depth)
