@@ -180,7 +180,8 @@ class RayExecutor(Executor):
                 # a light local instance: no dashboard, a small object store (results are small dicts)
                 # never fewer CPUs than one task reserves, or that task would wait forever
                 cpus = max(num_cpus or os.cpu_count() or 1, math.ceil(num_cpus_per_task))
-                ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False,
+                # address="local": always a new instance, never a cluster that `ray start` left registered
+                ray.init(address="local", num_cpus=cpus, include_dashboard=False, log_to_driver=False,
                          object_store_memory=object_store_mib * 1024 * 1024)
         if ship_folders is None:
             self.ship = "other_hosts" if address else "never"
