@@ -331,8 +331,9 @@ class GPDFN(nn.Module):
         centroids = means.new_zeros(voxels, 3).index_add_(0, table.inverse, means.detach()) / per_voxel
         neighbours = self.config.fused_k - 1
         # mean + voxel_size * (base_offset + max_shift * tanh(offset_head(features))), in two passes
-        shift = torch.tanh(self.offset_head(features)).view(count, neighbours, 3)
-        base = means.unsqueeze(1) + self.base_offsets.unsqueeze(0) * self.voxel_size  # [N, K-1, 3]
+        # entry-major [K-1, N, 3], the fusion core's layout (see _fusion_forward_block)
+        shift = torch.tanh(self.offset_head(features)).view(count, neighbours, 3).transpose(0, 1)
+        base = means.unsqueeze(0) + self.base_offsets.unsqueeze(1) * self.voxel_size
         sample_points = torch.add(base, shift, alpha=self.config.max_shift_voxels * self.voxel_size).reshape(-1, 3)
         index, weight = self.sample_voxels(sample_points, table, centroids)
         # first pointwise convolution over the [features, weight channel] rows: the own row has
@@ -343,10 +344,7 @@ class GPDFN(nn.Module):
         own = torch.addmm(first.bias + channel_weight, features, feature_weight.t())
         voxel_projection = torch.addmm(channel_weight, voxel_features, feature_weight.t())
         second = self.embed[2]
-        # entry-major [K-1, N] for the fusion core (see _fusion_forward_block)
-        residual = _FusionCore.apply(own, voxel_projection, index.view(count, neighbours).t().contiguous(),
-                                     weight.view(count, neighbours).t().contiguous(), first.bias, second.weight,
-                                     second.bias,
-                                     self.attention.weight[0], self.attention.bias[0], self.head.weight,
-                                     self.head.bias)
+        residual = _FusionCore.apply(own, voxel_projection, index.view(neighbours, count),
+                                     weight.view(neighbours, count), first.bias, second.weight, second.bias, self.attention.weight[0],
+                                     self.attention.bias[0], self.head.weight, self.head.bias)
         return {"sh_dc": residual[:, 0:3], "opacity_logits": residual[:, 3], "log_scales": residual[:, 4:7]}
