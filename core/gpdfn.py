@@ -345,6 +345,7 @@ class GPDFN(nn.Module):
         voxel_projection = torch.addmm(channel_weight, voxel_features, feature_weight.t())
         second = self.embed[2]
         residual = _FusionCore.apply(own, voxel_projection, index.view(neighbours, count),
-                                     weight.view(neighbours, count), first.bias, second.weight, second.bias, self.attention.weight[0],
-                                     self.attention.bias[0], self.head.weight, self.head.bias)
+                                     weight.view(neighbours, count), first.bias, second.weight, second.bias,
+                                     self.attention.weight[0], self.attention.bias[0], self.head.weight,
+                                     self.head.bias)
         return {"sh_dc": residual[:, 0:3], "opacity_logits": residual[:, 3], "log_scales": residual[:, 4:7]}
