@@ -97,7 +97,8 @@ class VoxelTable:
         coordinates, keys = kernels.voxel_coordinates(points, points.dtype.type(voxel_size))
         coordinates_t = torch.from_numpy(coordinates).to(means.device)
         if previous is not None and previous.voxel_size == voxel_size and previous.keys.shape == keys.shape \
-                and previous.counts.dtype == means.dtype and np.array_equal(previous.keys, keys):
+                and previous.counts.dtype == means.dtype and previous.counts.device == means.device \
+                and np.array_equal(previous.keys, keys):
             return VoxelTable(voxel_size, coordinates_t, keys, previous.inverse, previous.counts, previous.slots)
         slots, inverse = kernels.build_table(keys)
         inverse_t = torch.from_numpy(inverse).to(means.device)
