@@ -26,7 +26,7 @@ import sys
 import time
 from pathlib import Path
 
-from esgs.core.experiments.acceptance import plan_runs, scene_rows, verdict
+from esgs.core.experiments.acceptance import SOURCES, plan_runs, scene_rows, verdict
 from esgs.core.experiments.runs import RunTask, run_task
 from esgs.core.experiments.sfm_scene import make_sfm_scene
 from esgs.core.experiments.sky import SKY_FILLED, sky_figures, write_sky_filled_priors
@@ -162,6 +162,7 @@ def main() -> int:
     parser.add_argument("--sky-preset", default="", help="preset with sky for the sky-fix study (empty = skip)")
     parser.add_argument("--sky-baseline", action=argparse.BooleanOptionalAction, default=True,
                         help="also train 3DGS on the sky scene")
+    parser.add_argument("--sources", nargs="+", default=list(SOURCES), help="prior sources of the ESGS rows")
     parser.add_argument("--views", type=int, default=10)
     parser.add_argument("--resolution", default="320x180")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -183,7 +184,8 @@ def main() -> int:
     scenes = {name: sfm_variant(path, root, name) for name, path in sources.items()}
     train = {"width": args.width, "threads": args.threads, "backend": "auto", "lpips": True, "mask_source": "none",
              "save_renders": False}
-    tasks = plan_runs(scenes, args.out, iterations=args.iterations, seeds=args.seeds, train=train)
+    tasks = plan_runs(scenes, args.out, iterations=args.iterations, seeds=args.seeds, train=train,
+                      sources=args.sources)
     sky = []
     if args.sky_preset:
         sky_scene = sfm_variant(make_scene(args.sky_preset, root / f"{args.sky_preset}_{args.views}v_{args.resolution}",
