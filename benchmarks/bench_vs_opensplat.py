@@ -29,7 +29,8 @@ What it does:
 - Step times: ours from ``events.jsonl`` (``--progress-every 1``: one timestamped event per
   step, with the Gaussian count); OpenSplat's from the time its per-step ``Step k:`` lines
   arrive, with the count followed through its "new count"/"remaining" lines.
-- Peak resident memory of each child from ``wait4`` (``ru_maxrss``).
+- Peak resident memory and CPU time (user + system, setup included) of each child from
+  ``wait4``; CPU seconds per step depend less on the machine's load than wall-clock ones.
 - Quality: both output PLYs are loaded with our PLY reader and rendered with our renderer
   on the same held-out views, each over the background it was trained with (ours black,
   OpenSplat's the nerfstudio colour it composites onto), and measured with our PSNR/SSIM
@@ -86,13 +87,18 @@ class ChildRun:
     times: list[float] = field(default_factory=list)  # wall-clock time (s) at the end of each step
     counts: list[int] = field(default_factory=list)  # Gaussians during each step
     peak_rss_mib: float = float("nan")
+    cpu_s: float = float("nan")  # user + system CPU time of the whole process (setup included)
+    cpu_times: list[float] = field(default_factory=list)  # process CPU seconds at the end of each step
     wall_s: float = float("nan")
     returncode: Optional[int] = None
     metrics: dict = field(default_factory=dict)
 
-    def step_seconds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(step numbers [S-1], seconds of each step [S-1], Gaussians [S-1]) from consecutive end times."""
-        times = np.asarray(self.times, dtype=np.float64)
+    def step_seconds(self, cpu: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(step numbers [S-1], seconds of each step [S-1], Gaussians [S-1]) from consecutive end times.
+
+        ``cpu``: CPU seconds of the process instead of wall-clock seconds.
+        """
+        times = np.asarray(self.cpu_times if cpu else self.times, dtype=np.float64)
         return np.asarray(self.steps[1:]), np.diff(times), np.asarray(self.counts[1:], dtype=np.float64)
 
 
@@ -179,6 +185,34 @@ def _wait(process: subprocess.Popen, run: ChildRun, started: float) -> None:
     run.returncode = process.returncode
     run.wall_s = time.monotonic() - started
     run.peak_rss_mib = usage.ru_maxrss / 1024.0
+    run.cpu_s = usage.ru_utime + usage.ru_stime
+
+
+def _process_cpu_s(pid: int) -> Optional[float]:
+    """User + system CPU seconds of a running (or not yet reaped) process, from /proc."""
+    try:
+        with open(f"/proc/{pid}/stat") as handle:
+            fields = handle.read().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _sample_cpu(pids: dict[int, list], stop: threading.Event, interval_s: float = 0.05) -> None:
+    """Append (wall time, CPU seconds) of each process to ``pids[pid]`` until ``stop`` is set."""
+    while not stop.is_set():
+        for pid, samples in pids.items():
+            value = _process_cpu_s(pid)
+            if value is not None:
+                samples.append((time.time(), value))
+        stop.wait(interval_s)
+
+
+def _cpu_at_steps(run: ChildRun, samples: list) -> None:
+    """CPU seconds at each step's end, interpolated between the /proc samples (10 ms clock ticks)."""
+    if len(samples) >= 2:
+        wall, cpu = np.asarray(samples, dtype=np.float64).T
+        run.cpu_times = [float(v) for v in np.interp(run.times, wall, cpu)]
 
 
 def _follow_opensplat(process: subprocess.Popen, run: ChildRun, initial: list[int]) -> None:
@@ -249,15 +283,24 @@ def run_trainers(args: argparse.Namespace, scene: Path, opensplat_scene: Path, w
         reader.start()
         return process, time.monotonic(), reader
 
+    samples: dict[int, list] = {}
+    stop = threading.Event()
+    sampler = threading.Thread(target=_sample_cpu, args=(samples, stop), daemon=True)
     if args.sequential:
         process, started = start_ours()
+        samples[process.pid] = our_samples = []
+        sampler.start()
         _wait(process, ours, started)
         process, started, reader = start_theirs()
+        samples[process.pid] = their_samples = []
         _wait(process, theirs, started)
         reader.join()
     else:
         our_process, our_start = start_ours()
         their_process, their_start, reader = start_theirs()
+        our_samples, their_samples = [], []
+        samples.update({our_process.pid: our_samples, their_process.pid: their_samples})
+        sampler.start()
         # one waiter per child, so each one's wall time ends when it does
         waiters = [threading.Thread(target=_wait, args=(our_process, ours, our_start)),
                    threading.Thread(target=_wait, args=(their_process, theirs, their_start))]
@@ -270,25 +313,29 @@ def run_trainers(args: argparse.Namespace, scene: Path, opensplat_scene: Path, w
         raise SystemExit(f"our trainer failed (exit {ours.returncode}); see {ours.log}")
     if theirs.returncode != 0:
         raise SystemExit(f"OpenSplat failed (exit {theirs.returncode}); see {theirs.log}")
+    stop.set()
+    sampler.join()
     _read_our_events(ours, ours_dir / "events.jsonl")
+    _cpu_at_steps(ours, our_samples)
+    _cpu_at_steps(theirs, their_samples)
     return ours, theirs
 
 
 # --- analysis --------------------------------------------------------------------------------
 
-def _kept(run: ChildRun, until: float) -> tuple[np.ndarray, np.ndarray]:
+def _kept(run: ChildRun, until: float, cpu: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(seconds, Gaussians) of the steps after the first SKIP_FIRST that ended by wall-clock time ``until``."""
-    steps, seconds, counts = run.step_seconds()
+    steps, seconds, counts = run.step_seconds(cpu)
     keep = (steps > SKIP_FIRST) & (np.asarray(run.times[1:]) <= until)
     return seconds[keep], counts[keep]
 
 
-def cost_model(run: ChildRun, until: float = float("inf")) -> tuple[float, float, float]:
+def cost_model(run: ChildRun, until: float = float("inf"), cpu: bool = False) -> tuple[float, float, float]:
     """(fixed s, per-Gaussian s, R^2) of the median step time per window against the Gaussian count.
 
     NaN when there are fewer than 3 windows or the count changed by less than 10 % (no slope to fit).
     """
-    seconds, counts = _kept(run, until)
+    seconds, counts = _kept(run, until, cpu)
     windows = len(seconds) // FIT_WINDOW
     if windows < 3 or (counts.max() - counts.min()) < 0.1 * counts.max():
         return float("nan"), float("nan"), float("nan")
@@ -302,9 +349,9 @@ def cost_model(run: ChildRun, until: float = float("inf")) -> tuple[float, float
     return float(fixed), float(per_gaussian), r2
 
 
-def early_late(run: ChildRun, until: float = float("inf")) -> tuple[float, float, float]:
+def early_late(run: ChildRun, until: float = float("inf"), cpu: bool = False) -> tuple[float, float, float]:
     """Mean seconds per step: first SPEED_SPAN steps, last SPEED_SPAN steps, all (steps ending by ``until``)."""
-    seconds, _ = _kept(run, until)
+    seconds, _ = _kept(run, until, cpu)
     return float(np.mean(seconds[:SPEED_SPAN])), float(np.mean(seconds[-SPEED_SPAN:])), float(np.mean(seconds))
 
 
@@ -338,9 +385,12 @@ def _fmt(value) -> str:
     return f"{value:12.4f}"
 
 
-def _speed_rows(run: ChildRun, until: float) -> dict:
-    early, late, mean = early_late(run, until)
-    fixed, per_gaussian, r2 = cost_model(run, until)
+def _speed_rows(run: ChildRun, until: float, cpu: bool = False) -> dict:
+    if cpu and len(run.cpu_times) != len(run.times):
+        return {key: float("nan") for key in ("s/step early", "s/step late", "s/step mean", "fit fixed s",
+                                               "fit us/Gaussian", "fit R^2")}
+    early, late, mean = early_late(run, until, cpu)
+    fixed, per_gaussian, r2 = cost_model(run, until, cpu)
     return {"s/step early": early, "s/step late": late, "s/step mean": mean, "fit fixed s": fixed,
             "fit us/Gaussian": per_gaussian * 1e6, "fit R^2": r2}
 
@@ -354,12 +404,13 @@ def _print_table(title: str, rows: list[dict]) -> None:
         print(f"{key:18} {_fmt(a)} {_fmt(b)} {ratio:>8}")
 
 
-def _equal_count_table(ours: ChildRun, theirs: ChildRun, until: float, bins: int = 6) -> None:
+def _equal_count_table(ours: ChildRun, theirs: ChildRun, until: float, bins: int = 6, cpu: bool = False) -> None:
     """Median measured s/step of both trainers in Gaussian-count bins both runs went through."""
-    a_seconds, a_counts = _kept(ours, until)
-    b_seconds, b_counts = _kept(theirs, until)
+    a_seconds, a_counts = _kept(ours, until, cpu)
+    b_seconds, b_counts = _kept(theirs, until, cpu)
     low, high = max(a_counts.min(), b_counts.min()), min(a_counts.max(), b_counts.max())
-    print("\nmeasured s/step at equal Gaussian count (median of the steps in each bin, while both ran):")
+    what = "CPU s/step, whole runs" if cpu else "s/step, while both ran"
+    print(f"\nmeasured {what}, at equal Gaussian count (median of the steps in each bin):")
     if high < low:
         print("  the two runs never had the same Gaussian count; see the fits")
         return
@@ -381,6 +432,7 @@ def report(ours: ChildRun, theirs: ChildRun, test_names: list[str]) -> None:
         row = _speed_rows(run, float("inf"))
         row.update({"Gaussians start": run.counts[0], "Gaussians max": max(run.counts),
                     "Gaussians final": run.counts[-1], "peak RSS MiB": run.peak_rss_mib, "wall s": run.wall_s,
+                    "CPU s": run.cpu_s, "CPU s/step": run.cpu_s / max(run.steps[-1], 1),
                     "test PSNR": run.metrics.get("psnr"), "test SSIM": run.metrics.get("ssim"),
                     "test LPIPS": run.metrics.get("lpips")})
         rows.append(row)
@@ -391,15 +443,23 @@ def report(ours: ChildRun, theirs: ChildRun, test_names: list[str]) -> None:
     _print_table(f"while both ran (steps ours {steps_in_overlap[0]}, OpenSplat {steps_in_overlap[1]}; "
                  "the same machine load for both):", both)
     _equal_count_table(ours, theirs, overlap)
-    fits = {name: (row["fit fixed s"], row["fit us/Gaussian"] * 1e-6) for name, row in zip(("ours", "os"), both)}
-    counts = ours.counts + theirs.counts
-    print("\nmodelled s/step at equal Gaussian count (fits while both ran):")
+    cpu_rows = [_speed_rows(run, float("inf"), cpu=True) for run in (ours, theirs)]
+    _print_table("CPU seconds of each process per step, whole runs (less dependent on the load):", cpu_rows)
+    if all(np.isfinite(row["s/step mean"]) for row in cpu_rows):
+        _equal_count_table(ours, theirs, float("inf"), cpu=True)
+    for title, rows_used in (("wall-clock fits while both ran", both), ("CPU-time fits", cpu_rows)):
+        _modelled(title, rows_used, ours.counts + theirs.counts)
+    print("\ntargets: ours/OS s/step at equal count <= 0.5, peak RSS <= 0.5, test PSNR/SSIM not lower")
+
+
+def _modelled(title: str, rows: list[dict], counts: list[int]) -> None:
+    fits = {name: (row["fit fixed s"], row["fit us/Gaussian"] * 1e-6) for name, row in zip(("ours", "os"), rows)}
+    print(f"\nmodelled s/step at equal Gaussian count ({title}):")
     print(f"{'Gaussians':>10} {'ours':>8} {'OpenSplat':>10} {'ours/OS':>8}")
     for count in sorted({min(counts), int(np.median(counts)), max(counts), 50_000, 100_000}):
         a = fits["ours"][0] + fits["ours"][1] * count
         b = fits["os"][0] + fits["os"][1] * count
         print(f"{count:10d} {a:8.3f} {b:10.3f} {_ratio(a, b):>8}")
-    print("\ntargets: ours/OS s/step at equal count <= 0.5, peak RSS <= 0.5, test PSNR/SSIM not lower")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -440,7 +500,7 @@ def main(argv: list[str] | None = None) -> int:
     theirs.metrics = evaluate(theirs, scene, args.width, OPENSPLAT_BACKGROUND, args.threads, args.lpips,
                               work / "renders_opensplat")
     report(ours, theirs, test_names)
-    summary = {run.name: {"steps": run.steps, "times": run.times, "counts": run.counts, "peak_rss_mib": run.peak_rss_mib,
+    summary = {run.name: {"steps": run.steps, "times": run.times, "counts": run.counts, "peak_rss_mib": run.peak_rss_mib, "cpu_s": run.cpu_s, "cpu_times": run.cpu_times,
                           "wall_s": run.wall_s, "metrics": run.metrics, "command": run.command} for run in (ours, theirs)}
     (work / "summary.json").write_text(json.dumps(summary))
     print(f"\nper-step timelines: {work / 'summary.json'}; load average at end: {os.getloadavg()}", flush=True)
