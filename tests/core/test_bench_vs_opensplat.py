@@ -78,3 +78,16 @@ def test_cost_model_refuses_a_flat_gaussian_count(bench):
     run = _timeline(bench, fixed=0.075, per_gaussian=9e-6, noise=0.01)
     run.counts = [60_000] * len(run.counts)
     assert np.isnan(bench.cost_model(run)[1])
+
+
+def test_process_cpu_time_from_proc_follows_the_work_done(bench):
+    import os
+    import time
+
+    before = bench._process_cpu_s(os.getpid())
+    deadline = time.process_time() + 0.3
+    while time.process_time() < deadline:  # 0.3 s of CPU work
+        pass
+    after = bench._process_cpu_s(os.getpid())
+    assert after - before == pytest.approx(0.3, abs=0.1)
+    assert bench._process_cpu_s(2**22 + 12345) is None  # no such process
