@@ -116,7 +116,7 @@ def markdown(args, scenes, rows, verdicts, sky_rows, failed, started) -> str:
              "(`mask_source none`), the trainer's defaults otherwise.",
              "- 3DGS: the trainer's baseline. ESGS: depth + normal prior losses (the ones the source has: `sfm` has "
              "depth only) + GPDFN with K = 3.",
-             "- Metrics on the held-out views: SSIM, PSNR, LPIPS (VGG); distances: Gaussian centres with opacity "
+             "- Metrics on the held-out views: SSIM, PSNR, LPIPS (AlexNet, v0.1); distances: Gaussian centres with opacity "
              ">= 0.5 to `mesh/ground_truth.ply` (scene units, metres). Mean ± std over seeds (population std).",
              f"- Verdict: ESGS with each non-gt source against 3DGS on the same scene. A criterion passes when "
              f"the difference of the means exceeds the sum of both standard deviations over seeds; the distance "
