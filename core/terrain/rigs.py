@@ -38,6 +38,9 @@ from .heightfield import Terrain
 
 _STREAM_RIG = 100
 
+#: Largest angle between a rover path's local heading and ``heading_deg`` (its wander).
+MAX_WANDER_TURN_DEG = 20.0
+
 # Blender cameras look along their local -Z with +Y up; OpenCV looks along +Z with +Y down.
 _OPENCV_TO_BLENDER = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -193,9 +196,13 @@ def _positions_and_angles(rig: RigConfig, terrain: Terrain, rng: np.random.Gener
         phase = rng.uniform(0.0, 2.0 * math.pi)
         span = max(length, 1e-9)
         s = -length / 2 + rig.spacing_m * np.arange(views)
-        offset = rig.wander_m * np.sin(math.pi * s / span + phase)
+        # The path wanders by half a sine period over its length. On a short path (few views)
+        # the full wander_m would make a zigzag whose heading, and so every camera's yaw,
+        # swings far off heading_deg; keep the path's heading within MAX_WANDER_TURN_DEG.
+        wander = min(rig.wander_m, math.tan(math.radians(MAX_WANDER_TURN_DEG)) * span / math.pi)
+        offset = wander * np.sin(math.pi * s / span + phase)
         # Heading of the path (a single view has no path: it looks along heading_deg).
-        slope = rig.wander_m * math.pi / span * np.cos(math.pi * s / span + phase) if length > 0 else np.zeros(views)
+        slope = wander * math.pi / span * np.cos(math.pi * s / span + phase) if length > 0 else np.zeros(views)
         xy = center + s[:, None] * direction + offset[:, None] * lateral
         tangent = direction[None, :] + slope[:, None] * lateral[None, :]
         yaws = np.arctan2(tangent[:, 1], tangent[:, 0])

@@ -280,3 +280,26 @@ def test_navcam_panorama_with_few_views_still_chains_its_pointings():
     # and every pair has parallax: the two centres are a stereo baseline apart
     for a, b in zip(poses[0::2], poses[1::2]):
         assert np.linalg.norm(a.camera_center - b.camera_center) == pytest.approx(config.rig.stereo_baseline_m, abs=1e-9)
+
+
+@pytest.mark.parametrize("views", [2, 3, 5, 30])
+def test_short_rover_paths_keep_their_heading(views):
+    # A path of a few views used to wander by the full wander_m over a few decimetres: a
+    # zigzag that turned the cameras up to ~70 deg off heading_deg (and, for
+    # layered_outcrop with 2 views, past the terrain's edge).
+    terrain = hilly_terrain()
+    for seed in range(6):
+        config = rig("rover_traverse", views=views, spacing_m=0.6, wander_m=1.0, jitter_deg=0.0, heading_deg=30.0)
+        poses = make_camera_rig(config, RENDER, terrain, seed=seed)
+        yaws = np.array([math.degrees(math.atan2(p.forward[1], p.forward[0])) for p in poses])
+        assert np.all(np.abs(yaws - 30.0) <= 20.0 + 1e-9)
+    # a long path keeps its full wander: the lateral offsets reach ~wander_m
+    long_poses = make_camera_rig(rig("rover_traverse", views=60, spacing_m=0.5, wander_m=1.0, jitter_deg=0.0),
+                                 RENDER, terrain, seed=1)
+    lateral = np.array([p.camera_center[1] for p in long_poses])
+    assert np.abs(lateral).max() > 0.9
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_layered_outcrop_validates_with_two_views(seed):
+    load_preset("layered_outcrop", seed=seed, views=2).validate()
