@@ -20,6 +20,7 @@ _SAND_LIGHT = (0.52, 0.26, 0.12, 1.0)
 _BEDROCK_DARK = (0.20, 0.11, 0.07, 1.0)
 _BEDROCK_LIGHT = (0.40, 0.22, 0.12, 1.0)
 _DUST = (0.60, 0.36, 0.20, 1.0)
+_BASALTIC_SAND = (0.09, 0.065, 0.05, 1.0)
 _ROCK_DARK = (0.06, 0.045, 0.04, 1.0)
 _ROCK_LIGHT = (0.20, 0.13, 0.09, 1.0)
 
@@ -102,6 +103,7 @@ def make_terrain_material(name: str = "ESGS Mars terrain") -> bpy.types.Material
     sand.attribute_type = "GEOMETRY"
     sand.attribute_name = SAND_ATTRIBUTE
     ground = _mix_color(nodes, links, sand.outputs["Fac"], bedrock_ramp.outputs["Color"], sand_ramp.outputs["Color"])
+    ground = _add_basaltic_lag(nodes, links, coords.outputs["Object"], sand.outputs["Fac"], ground)
 
     # bright dust settles in patches; the coarse noise decides where
     dust_amount = nodes.new("ShaderNodeMapRange")
@@ -129,6 +131,32 @@ def make_terrain_material(name: str = "ESGS Mars terrain") -> bpy.types.Material
     pebbled = _add_pebbles(nodes, links, coords.outputs["Object"], pebbled, scale=2.5, fraction=0.12, radius=0.16)
     links.new(pebbled, shader.inputs["Base Color"])
     return material
+
+
+def _add_basaltic_lag(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, coordinates, sand_amount, albedo):
+    """Darken ``albedo`` with patches of dark basaltic sand, on sand only (``sand_amount`` 0..1).
+
+    Martian sand is basaltic and dark where it is fresh; wind sorts it into darker lags of
+    coarse grains and brighter dust-coated patches, at every scale from ripples to dunes.
+    A fractal noise thresholded near its median gives patches with crisp, irregular edges
+    from ~0.2 m to a few metres: the blobs and corners a feature matcher needs on sand,
+    which otherwise only shades smoothly.
+    """
+    patches = _noise(nodes, scale=0.45, detail=6.0, roughness=0.62)  # ~2 m patches with finer lobes
+    links.new(coordinates, patches.inputs["Vector"])
+    edge = nodes.new("ShaderNodeMapRange")
+    edge.inputs["From Min"].default_value = 0.53
+    edge.inputs["From Max"].default_value = 0.57
+    edge.inputs["To Min"].default_value = 0.0
+    edge.inputs["To Max"].default_value = 0.6
+    links.new(patches.outputs["Fac"], edge.inputs["Value"])
+    amount = nodes.new("ShaderNodeMath")
+    amount.operation = "MULTIPLY"
+    links.new(edge.outputs["Result"], amount.inputs[0])
+    links.new(sand_amount, amount.inputs[1])
+    basalt = nodes.new("ShaderNodeRGB")
+    basalt.outputs["Color"].default_value = _BASALTIC_SAND
+    return _mix_color(nodes, links, amount.outputs["Value"], albedo, basalt.outputs["Color"])
 
 
 def _add_pebbles(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, coordinates, albedo, scale: float,
