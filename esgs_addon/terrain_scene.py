@@ -32,7 +32,7 @@ from ..core.progress import ProgressEvent
 from .mars_material import SAND_ATTRIBUTE, make_rock_material, make_sky_world, make_terrain_material
 
 #: Version of the scene generator; bump when the same config would give different output.
-GENERATOR_VERSION = "1.0"
+GENERATOR_VERSION = "1.1"  # 1.1: dune lag patches, overlapping pans, bounded wander
 
 #: Custom properties that let :func:`scene_objects_from_collection` find the parts again.
 PROP_ROLE = "esgs_role"
