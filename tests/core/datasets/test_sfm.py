@@ -52,7 +52,7 @@ def umeyama(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, 
 @pytest.fixture(scope="module")
 def rendered_scene(tmp_path_factory):
     folder = tmp_path_factory.mktemp("rendered") / "scene"
-    command = [sys.executable, "-m", "esgs.core", "scene", "--preset", "cratered_plain", "--views", "8",
+    command = [sys.executable, "-m", "esgs.core", "scene", "--preset", "rocky_slope", "--views", "8",
                "--resolution", "320x180", "--samples", "8", "--out", str(folder)]
     subprocess.run(command, check=True, capture_output=True)
     return folder
