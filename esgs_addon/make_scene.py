@@ -12,14 +12,14 @@ it for ``blender -b --python``.) Blocking; progress goes to the console, or as
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Sequence
 
-from ..core.commands.scene import ERROR_PREFIX, EVENT_PREFIX, add_arguments, job_from_args
+from ..core.blender_child import print_error, print_event
+from ..core.commands.scene import add_arguments, job_from_args
 from ..core.errors import ESGSError
-from ..core.progress import ConsoleProgress, JsonLinesProgress, ProgressEvent, combine
+from ..core.progress import ConsoleProgress, JsonLinesProgress, combine
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -28,11 +28,6 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--events-stdout", action="store_true", help="print progress as ESGS_EVENT JSON lines on stdout")
     parser.add_argument("--save-blend", type=Path, default=None, help="also save the generated scene as this .blend file")
     return parser
-
-
-def _print_event(event: ProgressEvent) -> None:
-    # Blender prints its own log on stdout; the prefix lets the parent pick our lines out
-    print(EVENT_PREFIX + event.to_json(), flush=True)
 
 
 def make_scene(job, out: Path, *, progress=None, save_blend: Path | None = None) -> Path:
@@ -69,7 +64,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     console = None if args.events_stdout else ConsoleProgress()
     events = JsonLinesProgress(args.events) if args.events else None
-    progress = combine(_print_event if args.events_stdout else console, events)
+    progress = combine(print_event if args.events_stdout else console, events)
     try:
         if args.out is None:
             parser.error("--out is required")
@@ -77,7 +72,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         out = make_scene(job, args.out, progress=progress, save_blend=args.save_blend)
     except ESGSError as error:
         if args.events_stdout:
-            print(ERROR_PREFIX + json.dumps({"type": type(error).__name__, "message": str(error)}), flush=True)
+            print_error(error)
         else:
             print(f"make_scene: error: {error}", file=sys.stderr)
         return 2

@@ -163,7 +163,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``python -m esgs.esgs_addon.render_labels`` (see the module docstring)."""
-    from ..core.commands.scene import ERROR_PREFIX, EVENT_PREFIX
+    from ..core.blender_child import print_error, print_event
     from ..core.progress import ConsoleProgress
 
     args = build_parser().parse_args(argv)
@@ -171,7 +171,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     def emit(event: ProgressEvent) -> None:
         if args.events_stdout:
-            print(EVENT_PREFIX + event.to_json(), flush=True)
+            print_event(event)
         else:
             console(event)
 
@@ -182,7 +182,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                       metadata=json.loads(args.metadata), progress=emit)
     except ESGSError as error:
         if args.events_stdout:
-            print(ERROR_PREFIX + json.dumps({"type": type(error).__name__, "message": str(error)}), flush=True)
+            print_error(error)
         else:
             print(f"render_labels: error: {error}", file=sys.stderr)
         return 2

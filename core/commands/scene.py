@@ -5,23 +5,19 @@ imports. This command checks the request here (bad settings fail at once, before
 work), then runs ``python -m esgs.esgs_addon.make_scene`` with the same arguments in a
 child process and relays its progress events to the console.
 
-The child writes one line ``ESGS_EVENT <json>`` per progress event and, on a handled
-failure, one line ``ESGS_ERROR <json>`` before exiting with status 2; every other line it
-prints (Blender's own log) is shown only with ``--verbose``.
+The child speaks the line protocol of :mod:`esgs.core.blender_child` (progress events and
+a handled failure as prefixed JSON lines); every other line it prints (Blender's own log) is
+shown only with ``--verbose``.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 HELP = "generate a synthetic Mars scene (terrain, rocks, cameras), render it with Cycles and export a scene folder"
-
-EVENT_PREFIX = "ESGS_EVENT "
-ERROR_PREFIX = "ESGS_ERROR "
 
 
 @dataclass
@@ -148,11 +144,11 @@ def child_arguments(job: SceneJob, out: Path) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     import importlib.util
-    import subprocess
     import sys
 
-    from ..errors import ConfigError, DatasetError, ESGSError
-    from ..progress import ConsoleProgress, JsonLinesProgress, ProgressEvent, combine
+    from ..blender_child import run_child
+    from ..errors import ConfigError
+    from ..progress import ConsoleProgress, JsonLinesProgress, combine
 
     if args.list_presets:
         from ..terrain import list_presets, load_preset
@@ -177,26 +173,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"esgs scene: {config.name}, seed {config.seed}, {config.rig.views} views at "
           f"{config.render.width}x{config.render.height}, {config.render.samples} samples -> {out}", file=sys.stderr)
     command = [sys.executable, "-m", "esgs.esgs_addon.make_scene", *child_arguments(job, out), "--events-stdout"]
-    error: dict[str, str] | None = None
     try:
-        with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1) as child:
-            assert child.stdout is not None
-            for line in child.stdout:
-                if line.startswith(EVENT_PREFIX):
-                    progress(ProgressEvent.from_json(line[len(EVENT_PREFIX):]))
-                elif line.startswith(ERROR_PREFIX):
-                    error = json.loads(line[len(ERROR_PREFIX):])
-                elif args.verbose:
-                    print(line, end="", file=sys.stderr)
-            status = child.wait()
+        run_child(command, progress, verbose=args.verbose, task="scene generation")
     finally:
         console.close()
         if events is not None:
             events.close()
-    if error is not None:
-        kinds = {"ConfigError": ConfigError, "DatasetError": DatasetError}
-        raise kinds.get(error.get("type", ""), ESGSError)(error.get("message", "scene generation failed"))
-    if status != 0:
-        raise ESGSError(f"scene generation failed (exit status {status})", hint="run again with --verbose to see Blender's log")
     print(f"esgs scene: wrote {out}", file=sys.stderr)
     return 0

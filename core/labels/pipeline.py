@@ -3,24 +3,22 @@ Blender child process, report. What ``esgs labels`` runs; scripts can call it to
 
 The rendering needs the ``bpy`` module, which ``core`` never imports: it runs
 ``python -m esgs.esgs_addon.render_labels`` and relays the child's progress lines
-(``ESGS_EVENT <json>``, ``ESGS_ERROR <json>``; the protocol of ``esgs scene``).
+(the protocol of :mod:`esgs.core.blender_child`, shared with ``esgs scene``).
 """
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConfigError, DatasetError, ESGSError
-from ..progress import ProgressCallback, ProgressEvent, no_progress
+from ..blender_child import run_child
+from ..errors import ConfigError, DatasetError
+from ..progress import ProgressCallback, no_progress
 from .fill import FillOptions
 from .reconstruct import MESH_NAME, ReconstructOptions
 
-EVENT_PREFIX = "ESGS_EVENT "
-ERROR_PREFIX = "ESGS_ERROR "
 ACCURACY_NAME = "accuracy.json"
 
 
@@ -109,7 +107,7 @@ def run_label_job(job: LabelJob, progress: ProgressCallback = no_progress, *, ve
                "--metadata", json.dumps(metadata), "--events-stdout"]
     if not job.smooth:
         command.append("--flat")
-    run_child(command, progress, verbose=verbose)
+    run_child(command, progress, verbose=verbose, task="label rendering")
     labels = json.loads((prior_dir(job.scene, "labels") / "labels.json").read_text())
     accuracy = None
     if job.report:
@@ -119,24 +117,3 @@ def run_label_job(job: LabelJob, progress: ProgressCallback = no_progress, *, ve
         accuracy["method"] = method
         atomic_write_json(prior_dir(job.scene, "labels") / ACCURACY_NAME, accuracy)
     return {"labels": labels, "reconstruction": reconstruction, "accuracy": accuracy}
-
-
-def run_child(command: list[str], progress: ProgressCallback, *, verbose: bool = False) -> None:
-    """Run a Blender child process, relaying its events; raise its error as ours."""
-    error: dict[str, str] | None = None
-    with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1) as child:
-        assert child.stdout is not None
-        for line in child.stdout:
-            if line.startswith(EVENT_PREFIX):
-                progress(ProgressEvent.from_json(line[len(EVENT_PREFIX):]))
-            elif line.startswith(ERROR_PREFIX):
-                error = json.loads(line[len(ERROR_PREFIX):])
-            elif verbose:
-                print(line, end="", file=sys.stderr)
-        status = child.wait()
-    if error is not None:
-        kinds = {"ConfigError": ConfigError, "DatasetError": DatasetError}
-        raise kinds.get(error.get("type", ""), ESGSError)(error.get("message", "label rendering failed"))
-    if status != 0:
-        raise ESGSError(f"label rendering failed (exit status {status})",
-                        hint="run again with --verbose to see Blender's log")
