@@ -51,14 +51,21 @@ def sfm_variant(scene: Path, root: Path, name: str) -> Path:
     return out
 
 
-def sky_tasks(scene: Path, out: Path, iterations: int, seeds, train: dict, baseline: bool = True) -> list[RunTask]:
+def sky_arms(prior: str) -> list[tuple[str, str, dict]]:
+    """ESGS on the sky scene with ``prior``, masks honoured (the fix) and ignored."""
+    name, key = ("gt, sky filled", "skyfilled") if prior == SKY_FILLED else (prior, prior)
+    esgs = {"priors": prior, "depth": True, "normal": True, "gpdfn": True, "fused_k": 3}
+    return [(f"ESGS ({name}), masks honoured", f"esgs-{key}-masks", {**esgs, "use_masks": True}),
+            (f"ESGS ({name}), masks ignored", f"esgs-{key}-nomasks", {**esgs, "use_masks": False})]
+
+
+def sky_tasks(scene: Path, out: Path, iterations: int, seeds, train: dict, baseline: bool = True,
+              priors: tuple[str, ...] = (SKY_FILLED,)) -> list[RunTask]:
     tasks = []
     mesh = scene / "mesh" / "ground_truth.ply"
     arms = [("3DGS", "3dgs", {})] if baseline else []
-    arms += [("ESGS (gt, sky filled), masks honoured", "esgs-skyfilled-masks",
-             {"priors": SKY_FILLED, "depth": True, "normal": True, "gpdfn": True, "fused_k": 3, "use_masks": True}),
-            ("ESGS (gt, sky filled), masks ignored", "esgs-skyfilled-nomasks",
-             {"priors": SKY_FILLED, "depth": True, "normal": True, "gpdfn": True, "fused_k": 3, "use_masks": False})]
+    for prior in priors:
+        arms += sky_arms(prior)
     for seed in seeds:
         for label, key, esgs in arms:
             config = {**train, "iterations": iterations, "seed": seed, "esgs": esgs}
@@ -66,6 +73,15 @@ def sky_tasks(scene: Path, out: Path, iterations: int, seeds, train: dict, basel
                                  config=config, variant=label, seed=seed, scene_name="sky", mesh=mesh,
                                  measure_render=False))
     return tasks
+
+
+def ensure_ndn_priors(scene: Path) -> None:
+    """NDN priors (the shipped weights) for ``scene`` unless it has them."""
+    if not (scene / "priors" / "ndn").is_dir():
+        from esgs.core.ndn.infer import write_ndn_priors
+
+        write_ndn_priors(scene)
+        print(f"{scene.name}: wrote ndn priors", flush=True)
 
 
 def with_sky_figures(task: RunTask, summary: dict) -> dict:
@@ -160,6 +176,8 @@ def main() -> int:
     parser.add_argument("--preset", action="append", default=[], help="synthetic preset (repeat)")
     parser.add_argument("--scene", action="append", default=[], help="NAME=PATH of an existing scene folder (repeat)")
     parser.add_argument("--sky-preset", default="", help="preset with sky for the sky-fix study (empty = skip)")
+    parser.add_argument("--sky-priors", nargs="+", default=[SKY_FILLED],
+                        help="prior sources of the sky study's ESGS arms (gt_skyfilled emulates a dense predictor; ndn is one)")
     parser.add_argument("--sky-baseline", action=argparse.BooleanOptionalAction, default=True,
                         help="also train 3DGS on the sky scene")
     parser.add_argument("--sources", nargs="+", default=list(SOURCES), help="prior sources of the ESGS rows")
@@ -182,6 +200,9 @@ def main() -> int:
         name, _, path = item.partition("=")
         sources[name] = Path(path)
     scenes = {name: sfm_variant(path, root, name) for name, path in sources.items()}
+    if "ndn" in args.sources:
+        for scene in scenes.values():
+            ensure_ndn_priors(scene)
     train = {"width": args.width, "threads": args.threads, "backend": "auto", "lpips": True, "mask_source": "none",
              "save_renders": False}
     tasks = plan_runs(scenes, args.out, iterations=args.iterations, seeds=args.seeds, train=train,
@@ -190,10 +211,12 @@ def main() -> int:
     if args.sky_preset:
         sky_scene = sfm_variant(make_scene(args.sky_preset, root / f"{args.sky_preset}_{args.views}v_{args.resolution}",
                                            args.views, args.resolution), root, args.sky_preset)
-        if not (sky_scene / "priors" / SKY_FILLED).is_dir():
+        if SKY_FILLED in args.sky_priors and not (sky_scene / "priors" / SKY_FILLED).is_dir():
             write_sky_filled_priors(sky_scene)
+        if "ndn" in args.sky_priors:
+            ensure_ndn_priors(sky_scene)
         sky = sky_tasks(sky_scene, args.out, args.iterations, args.sky_seeds or args.seeds, train,
-                        baseline=args.sky_baseline)
+                        baseline=args.sky_baseline, priors=tuple(args.sky_priors))
     # the sky runs of the first sky seed come after the main runs of the first seed, the
     # other sky seeds after every main run (the main study matters most if time runs out)
     first_sky = sky[0].seed if sky else 0
