@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import bpy
 
-from ..core.errors import ConfigError, ESGSError
+from ..core.errors import ConfigError
+from ._blocking import BlockingJobOperator
 
 
 def find_scene_collection(context: bpy.types.Context) -> bpy.types.Collection:
@@ -20,7 +21,7 @@ def find_scene_collection(context: bpy.types.Context) -> bpy.types.Collection:
     return candidates[-1]
 
 
-class ESGS_OT_render_dataset(bpy.types.Operator):
+class ESGS_OT_render_dataset(BlockingJobOperator, bpy.types.Operator):
     """Render every camera of the synthetic scene with Cycles (CPU) and write the scene folder
     (images, COLMAP model, depth/normal/mask priors, ground-truth mesh). Blocks until done"""
 
@@ -28,30 +29,18 @@ class ESGS_OT_render_dataset(bpy.types.Operator):
     bl_label = "Render Dataset"
     bl_options = {"REGISTER"}
 
-    def execute(self, context):
+    def run_job(self, context, progress):
         from ..esgs_addon.render_dataset import render_dataset
         from ..esgs_addon.terrain_scene import scene_objects_from_collection
-        from .generate_terrain import blender_progress
 
         settings = context.scene.esgs.terrain
-        report, window_manager = blender_progress(context)
-        if window_manager is not None:
-            window_manager.progress_begin(0, 100)
-        try:
-            if not settings.output_dir:
-                raise ConfigError("choose an output folder first")
-            objects = scene_objects_from_collection(find_scene_collection(context))
-            out = render_dataset(objects, bpy.path.abspath(settings.output_dir), progress=report,
-                                 sfm=settings.sfm, overwrite=settings.overwrite,
-                                 points_per_view=settings.points_per_view, scene=context.scene)
-        except ESGSError as error:
-            self.report({"ERROR"}, str(error))
-            return {"CANCELLED"}
-        finally:
-            if window_manager is not None:
-                window_manager.progress_end()
-        self.report({"INFO"}, f"Wrote scene folder {out}")
-        return {"FINISHED"}
+        if not settings.output_dir:
+            raise ConfigError("choose an output folder first")
+        objects = scene_objects_from_collection(find_scene_collection(context))
+        out = render_dataset(objects, bpy.path.abspath(settings.output_dir), progress=progress,
+                             sfm=settings.sfm, overwrite=settings.overwrite,
+                             points_per_view=settings.points_per_view, scene=context.scene)
+        return f"Wrote scene folder {out}"
 
 
 CLASSES = (ESGS_OT_render_dataset,)

@@ -3,10 +3,11 @@ from __future__ import annotations
 
 import bpy
 
-from ..core.errors import ConfigError, ESGSError
+from ..core.errors import ConfigError
+from ._blocking import BlockingJobOperator
 
 
-class ESGS_OT_render_labels(bpy.types.Operator):
+class ESGS_OT_render_labels(BlockingJobOperator, bpy.types.Operator):
     """Render depth/normal labels of a COLMAP scene from a mesh with Cycles (CPU) into
     priors/labels/ (holes filled and flagged). Blocks until done"""
 
@@ -21,37 +22,25 @@ class ESGS_OT_render_labels(bpy.types.Operator):
     reconstruct: bpy.props.BoolProperty(name="Reconstruct mesh", default=False,
                                         description="Rebuild the mesh from the scene's images first")
 
-    def execute(self, context):
+    def run_job(self, context, progress):
         from pathlib import Path
 
         from ..esgs_addon.render_labels import render_labels
-        from .generate_terrain import blender_progress
 
         settings = context.scene.esgs.labels
         scene_dir = bpy.path.abspath(self.scene_dir or settings.scene_dir)
         reconstruct = self.reconstruct or (not self.mesh_path and settings.reconstruct)
         mesh_path = bpy.path.abspath(self.mesh_path or settings.mesh_path)
-        report, window_manager = blender_progress(context)
-        if window_manager is not None:
-            window_manager.progress_begin(0, 100)
-        try:
-            if not scene_dir:
-                raise ConfigError("choose a scene folder first")
-            if reconstruct:
-                from ..core.labels.reconstruct import reconstruct_mesh
+        if not scene_dir:
+            raise ConfigError("choose a scene folder first")
+        if reconstruct:
+            from ..core.labels.reconstruct import reconstruct_mesh
 
-                mesh_path = reconstruct_mesh(Path(scene_dir), progress=report)["mesh"]
-            elif not mesh_path:
-                raise ConfigError("choose a mesh file, or tick 'Reconstruct mesh'")
-            result = render_labels(scene_dir, mesh_path, method="reconstruct" if reconstruct else "mesh", progress=report)
-        except ESGSError as error:
-            self.report({"ERROR"}, str(error))
-            return {"CANCELLED"}
-        finally:
-            if window_manager is not None:
-                window_manager.progress_end()
-        self.report({"INFO"}, f"Wrote labels of {len(result['views'])} views to {Path(scene_dir) / 'priors' / 'labels'}")
-        return {"FINISHED"}
+            mesh_path = reconstruct_mesh(Path(scene_dir), progress=progress)["mesh"]
+        elif not mesh_path:
+            raise ConfigError("choose a mesh file, or tick 'Reconstruct mesh'")
+        result = render_labels(scene_dir, mesh_path, method="reconstruct" if reconstruct else "mesh", progress=progress)
+        return f"Wrote labels of {len(result['views'])} views to {Path(scene_dir) / 'priors' / 'labels'}"
 
 
 CLASSES = (ESGS_OT_render_labels,)
