@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from ._section import ESGSSection
+from ._section import ESGSSection, dependent_prop, prop_column
 
 
 class ESGS_PT_import(ESGSSection, bpy.types.Panel):
@@ -15,19 +15,12 @@ class ESGS_PT_import(ESGSSection, bpy.types.Panel):
     def draw(self, context: bpy.types.Context) -> None:
         layout = self.layout
         settings = context.scene.esgs.colmap_import
-        column = layout.column()
-        column.prop(settings, "import_points")
-        row = column.row()
-        row.active = settings.import_points
-        row.prop(settings, "point_radius")
+        column = prop_column(layout, settings, ("import_points",))
+        dependent_prop(column, settings, "point_radius", active=settings.import_points)
         column.prop(settings, "image_planes")
-        row = column.row()
-        row.active = settings.image_planes
-        row.prop(settings, "image_plane_distance")
-        column.prop(settings, "orient_up")
-        column.prop(settings, "set_scene_resolution")
-        column.prop(settings, "undistorted_path")
-        column.prop(settings, "collection_name")
+        dependent_prop(column, settings, "image_plane_distance", active=settings.image_planes)
+        for name in ("orient_up", "set_scene_resolution", "undistorted_path", "collection_name"):
+            column.prop(settings, name)
         layout.operator("esgs.import_colmap", icon="IMPORT")
         layout.operator("esgs.export_colmap", icon="EXPORT")
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from ._section import ESGSSection
+from ._section import ESGSSection, dependent_prop, prop_column
 
 ORDER = 115  # after the import and training panels, before the results
 
@@ -16,15 +16,10 @@ class ESGS_PT_labels(ESGSSection, bpy.types.Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context: bpy.types.Context) -> None:
-        layout = self.layout
         settings = context.scene.esgs.labels
-        column = layout.column()
-        column.prop(settings, "scene_dir")
-        column.prop(settings, "reconstruct")
-        row = column.row()
-        row.active = not settings.reconstruct
-        row.prop(settings, "mesh_path")
-        layout.operator("esgs.render_labels", icon="RENDER_STILL")
+        column = prop_column(self.layout, settings, ("scene_dir", "reconstruct"))
+        dependent_prop(column, settings, "mesh_path", active=not settings.reconstruct)
+        self.layout.operator("esgs.render_labels", icon="RENDER_STILL")
 
 
 CLASSES = (ESGS_PT_labels,)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from ._section import ESGSSection
+from ._section import ESGSSection, prop_column
 
 from ..esgs_addon import gaussian_nodes
 from ..esgs_addon.compare_mesh import last_comparison
@@ -24,11 +24,7 @@ class ESGS_PT_results(ESGSSection, bpy.types.Panel):
     def draw(self, context: bpy.types.Context) -> None:
         layout = self.layout
         settings = context.scene.esgs.gaussians
-        column = layout.column()
-        column.prop(settings, "mode")
-        column.prop(settings, "opacity_min")
-        column.prop(settings, "max_display")
-        column.prop(settings, "keep_sh")
+        prop_column(layout, settings, ("mode", "opacity_min", "max_display", "keep_sh"))
         layout.operator("esgs.import_gaussians", icon="IMPORT")
 
         obj = context.active_object

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from ._section import ESGSSection
+from ._section import ESGSSection, prop_column
 
 
 class ESGS_PT_terrain(ESGSSection, bpy.types.Panel):
@@ -16,22 +16,14 @@ class ESGS_PT_terrain(ESGSSection, bpy.types.Panel):
     def draw(self, context: bpy.types.Context) -> None:
         layout = self.layout
         settings = context.scene.esgs.terrain
-        column = layout.column()
-        column.prop(settings, "preset")
-        column.prop(settings, "config")
-        column.prop(settings, "seed")
-        column.prop(settings, "views")
+        column = prop_column(layout, settings, ("preset", "config", "seed", "views"))
         row = column.row(align=True)
         row.prop(settings, "width")
         row.prop(settings, "height")
         column.prop(settings, "samples")
         column.label(text="0 keeps the preset's value", icon="INFO")
         layout.operator("esgs.generate_terrain", icon="WORLD")
-        column = layout.column()
-        column.prop(settings, "output_dir")
-        column.prop(settings, "points_per_view")
-        column.prop(settings, "sfm")
-        column.prop(settings, "overwrite")
+        prop_column(layout, settings, ("output_dir", "points_per_view", "sfm", "overwrite"))
         layout.operator("esgs.render_dataset", icon="RENDER_STILL")
 
 
