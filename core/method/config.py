@@ -34,6 +34,8 @@ class ESGSConfig:
     max_prior_depth: float = field(default=0.0, metadata={"help": "ignore prior depths beyond this (scene units; 0 = no limit)"})
     gpdfn_lr: float = field(default=1e-3, metadata={"help": "learning rate of the GPDFN weights"})
     gpdfn_hidden: int = field(default=16, metadata={"help": "width of GPDFN's 1D convolutions (saved with the run)"})
+    gpdfn_every: int = field(default=1, metadata={"help": "run GPDFN every k-th step, reusing its last residuals "
+                                                          "(detached) in between; 1 = every step (docs/esgs.md)"})
 
     def validate(self) -> None:
         if (self.depth or self.normal) and not self.priors:
@@ -47,7 +49,7 @@ class ESGSConfig:
         self.gpdfn_config().validate()
 
     def gpdfn_config(self) -> GPDFNConfig:
-        return GPDFNConfig(fused_k=self.fused_k, lr=self.gpdfn_lr, hidden=self.gpdfn_hidden)
+        return GPDFNConfig(fused_k=self.fused_k, lr=self.gpdfn_lr, hidden=self.gpdfn_hidden, every=self.gpdfn_every)
 
     @property
     def enabled(self) -> bool:

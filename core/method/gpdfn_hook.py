@@ -1,4 +1,10 @@
-"""Trainer hook that runs GPDFN before every render and trains it with the Gaussians."""
+"""Trainer hook that runs GPDFN before the render and trains it with the Gaussians.
+
+By default GPDFN runs at every step (the paper's method). With ``every = k > 1`` it runs on
+steps k, 2k, ... (and on the first step after any change of the Gaussian set); the steps
+between add its last residuals, detached: neither the module nor the Gaussians receive
+GPDFN gradients on those steps. docs/esgs.md gives the cost and the quality ablation.
+"""
 from __future__ import annotations
 
 from typing import Any, Optional
@@ -42,6 +48,9 @@ class GPDFNHook(TrainHook):
     def __init__(self, config: ESGSConfig):
         self.config = config
         self.module = GPDFN(config.gpdfn_config())
+        self.every = self.module.config.every
+        # detached residuals of the last GPDFN run (reused on the steps between runs)
+        self._cached: Optional[dict[str, torch.Tensor]] = None
 
     def setup(self, trainer: Any) -> None:
         self.module.to(trainer.device)
@@ -51,7 +60,18 @@ class GPDFNHook(TrainHook):
     def before_render(self, trainer: Any, context: StepContext, params: Any) -> Optional[Any]:
         if not self.module.enabled:
             return params
-        return fused_render_params(self.module, trainer.gaussians, params)
+        if self.every > 1 and self._cached is not None and context.step % self.every != 0:
+            return apply_residuals(trainer.gaussians, params, self._cached)
+        raw = trainer.gaussians.params
+        residual = self.module(raw["means"], raw["log_scales"], raw["quats"], raw["opacity_logit"].reshape(-1),
+                               raw["sh_dc"].reshape(-1, 3))
+        if self.every > 1:
+            self._cached = {name: value.detach() for name, value in residual.items()}
+        return apply_residuals(trainer.gaussians, params, residual)
+
+    def on_densify(self, trainer: Any, report: Any) -> None:
+        # the cached residuals belong to the old Gaussian set (order and count)
+        self._cached = None
 
     def bake(self, gaussians: Any) -> None:
         """Fold the current residuals into the Gaussians' own parameters (for export/eval)."""

@@ -228,3 +228,48 @@ def test_works_after_the_gaussian_set_changes():
     assert module(**smaller)["sh_dc"].shape == (120, 3)
     empty = {k: v[:0] for k, v in params.items()}
     assert module(**empty)["log_scales"].shape == (0, 3)
+
+
+def test_hook_every_k_steps_reuses_detached_residuals_until_the_set_changes():
+    from types import SimpleNamespace
+
+    from esgs.core.method import ESGSConfig
+    from esgs.core.method.gpdfn_hook import GPDFNHook
+    from esgs.core.train.gaussians import GaussianModel
+    from esgs.core.train.hooks import StepContext
+
+    params = _gaussians(count=200)
+    model = GaussianModel.from_tensors(means=params["means"], sh_dc=params["sh_dc"][:, None, :],
+                                       sh_rest=torch.zeros(200, 3, 3), opacity_logit=params["opacity_logits"],
+                                       log_scales=params["log_scales"], quats=params["quats"], max_sh_degree=1)
+    hook = GPDFNHook(ESGSConfig(gpdfn=True, fused_k=3, gpdfn_every=2))
+    torch.manual_seed(0)
+    for parameter in hook.module.parameters():
+        torch.nn.init.normal_(parameter, std=0.3)
+    trainer = SimpleNamespace(gaussians=model)
+
+    def step(number):
+        for parameter in list(hook.module.parameters()) + list(model.params.values()):
+            parameter.grad = None
+        fused = hook.before_render(trainer, StepContext(step=number, view=None, sh_degree=1), model.render_params(1))
+        (fused.colors.sum() + fused.opacities.sum() + fused.scales.sum()).backward()
+        return fused, hook.module.head.weight.grad
+
+    first, grad = step(1)  # nothing cached yet: GPDFN runs although 1 is not a multiple of 2
+    assert grad is not None and grad.abs().sum() > 0
+    with torch.no_grad():
+        model.params["means"].add_(1e-4)  # the Gaussians move between steps
+    second, grad = step(2)
+    assert grad is not None
+    third, grad = step(3)  # cached: GPDFN's residuals of step 2 applied, detached
+    assert grad is None
+    torch.testing.assert_close(third.colors, second.colors)
+    torch.testing.assert_close(third.scales, second.scales)
+    assert not torch.equal(second.colors, first.colors)
+    hook.on_densify(trainer, None)  # the Gaussian set changed: the cache is dropped
+    _, grad = step(5)
+    assert grad is not None
+    # every = 1 (the default) runs GPDFN at every step
+    assert GPDFNHook(ESGSConfig(gpdfn=True)).every == 1
+    with pytest.raises(ConfigError, match="every"):
+        ESGSConfig(gpdfn=True, gpdfn_every=0).validate()

@@ -1,0 +1,69 @@
+"""Quality of GPDFN every k-th step (``gpdfn_every``) against every step, equal steps and seeds.
+
+Full ESGS (depth prior, GPDFN K = 3) on one scene, the runs one after another, seed first
+(k = 1 then k = 2 for seed 0, then seed 1, ...), each cached in ``OUT/runs/k<k>/seed<s>``
+(a finished run is not repeated). After every run ``OUT/every.md`` and ``OUT/every.json``
+are rewritten: mean and standard deviation over seeds of SSIM, PSNR, LPIPS and the
+Gaussian-centre-to-mesh distances, plus training seconds.
+
+    .venv/bin/python benchmarks/ablate_gpdfn_every.py SCENE --out DIR [--every 1 2] [--seeds 0 1 2]
+        [--iterations 300] [--priors sfm] [--width 160] [--threads 1]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from esgs.core.experiments.ablate import MESH_PATH, available_priors
+from esgs.core.experiments.runs import RunTask, run_task
+from esgs.core.experiments.tables import COST_COLUMNS, QUALITY_COLUMNS, aggregate, markdown_table
+from esgs.core.io_utils import atomic_write_json, atomic_write_text
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("scene", type=Path)
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--every", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--iterations", type=int, default=300)
+    parser.add_argument("--priors", default="sfm")
+    parser.add_argument("--fused-k", type=int, default=3)
+    parser.add_argument("--width", type=int, default=160)
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args(argv)
+
+    kinds = available_priors(args.scene).get(args.priors, set())
+    if not kinds:
+        parser.error(f"no priors/{args.priors}/depth or normal under {args.scene}")
+    mesh = args.scene / MESH_PATH
+    summaries = []
+    for seed in args.seeds:
+        for every in args.every:
+            esgs = {"priors": args.priors, "depth": "depth" in kinds, "normal": "normal" in kinds, "gpdfn": True,
+                    "fused_k": args.fused_k, "gpdfn_every": every}
+            config = {"iterations": args.iterations, "seed": seed, "width": args.width, "threads": args.threads,
+                      "esgs": esgs}
+            task = RunTask(name=f"k{every}/seed{seed}", scene=args.scene, out=args.out / "runs" / f"k{every}" /
+                           f"seed{seed}", config=config, variant=f"GPDFN every {every}", seed=seed,
+                           scene_name=args.scene.name, mesh=mesh if mesh.is_file() else None, measure_render=False)
+            summary = run_task(task)
+            summaries.append(summary)
+            print(f"{task.name}: SSIM {summary['ssim']:.4f} PSNR {summary['psnr']:.2f} LPIPS {summary['lpips']:.4f} "
+                  f"dist {summary['distance_mean']} train {summary['train_s']:.0f} s", flush=True)
+            columns = QUALITY_COLUMNS + COST_COLUMNS[:1]
+            rows = aggregate(summaries, [key for key, _, _ in columns])
+            table = {"scene": str(args.scene), "iterations": args.iterations, "priors": args.priors,
+                     "esgs": {k: v for k, v in esgs.items() if k != "gpdfn_every"}, "rows": rows,
+                     "runs": summaries}
+            atomic_write_json(args.out / "every.json", table)
+            atomic_write_text(args.out / "every.md",
+                              f"# GPDFN every k steps: {args.scene.name}\n\n{args.iterations} steps, width "
+                              f"{args.width}, priors {args.priors}, K = {args.fused_k}; mean ± std over seeds\n\n"
+                              + markdown_table(rows, columns))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
