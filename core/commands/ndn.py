@@ -48,10 +48,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     evaluate = sub.add_parser("eval", help="score a model on a data split (default: heldout)")
     evaluate.add_argument("model", type=Path, help="model folder or weights file")
     evaluate.add_argument("data", type=Path, help="data folder from build-data")
-    evaluate.add_argument("--split", default="heldout", help="shard split to score (heldout or train)")
+    evaluate.add_argument("--split", default="heldout", help="shard split to score (heldout, validation or train)")
     evaluate.add_argument("--steps", type=int, default=None, help="DDIM steps (default: the model's)")
     evaluate.add_argument("--seed", type=int, default=0, help="seed of the starting noise")
     evaluate.add_argument("--limit", type=int, default=0, help="score only the first N triples (0 = all)")
+    evaluate.add_argument("--ensemble", type=int, default=None,
+                          help="samples per view combined per pixel (default: the model's sample_ensemble)")
+    evaluate.add_argument("--reduce", choices=("median", "mean"), default=None,
+                          help="how an ensemble is combined (default: the model's sample_reduce)")
     evaluate.add_argument("--json", type=Path, default=None, help="also write the scores to this JSON file")
 
     shard = sub.add_parser("shard", help="add scene folders (with priors/gt) to a data folder as shards")
@@ -89,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
         from ..ndn.infer import evaluate_ndn
 
         scores = evaluate_ndn(args.model, args.data, split=args.split, steps=args.steps, seed=args.seed,
-                              limit=args.limit, progress=bar)
+                              limit=args.limit, ensemble=args.ensemble, reduce=args.reduce, progress=bar)
         bar.close()
         print(json.dumps(scores, indent=2))
         if args.json:

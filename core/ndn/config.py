@@ -36,6 +36,11 @@ class NDNDiffusionConfig:
         "help": "what the network predicts: v (default) or epsilon; 'regression' trains the same network as a "
                 "plain one-shot regressor of clean depth and normals (no diffusion; the baseline)"})
     sample_steps: int = field(default=15, metadata={"help": "DDIM steps at inference (eta = 0, deterministic)"})
+    sample_ensemble: int = field(default=1, metadata={
+        "help": "inference: samples per view from different starting noise, combined by --sample-reduce "
+                "(the cost grows with samples x DDIM steps)"})
+    sample_reduce: str = field(default="median", metadata={
+        "help": "how an ensemble is combined per pixel: median (default) or mean"})
     coarse_fraction: float = field(default=0.5, metadata={
         "help": "normal branch: the noisiest fraction of the T steps (N/T) is denoised coarsely, without "
                 "full-resolution image features; the remaining T-N steps fuse them"})
@@ -49,6 +54,10 @@ class NDNDiffusionConfig:
             raise ConfigError(f"prediction must be epsilon, v or regression, got {self.prediction!r}")
         if not 1 <= self.sample_steps <= self.timesteps:
             raise ConfigError(f"sample_steps must be in 1..timesteps, got {self.sample_steps}")
+        if self.sample_ensemble < 1:
+            raise ConfigError(f"sample_ensemble must be >= 1, got {self.sample_ensemble}")
+        if self.sample_reduce not in ("median", "mean"):
+            raise ConfigError(f"sample_reduce must be median or mean, got {self.sample_reduce!r}")
         if not 0.0 <= self.coarse_fraction < 1.0:
             raise ConfigError(f"coarse_fraction must be in [0, 1), got {self.coarse_fraction}")
 
@@ -70,6 +79,21 @@ class NDNTrainConfig:
     checkpoint_every: int = field(default=200, metadata={"help": "steps between checkpoints"})
     seed: int = field(default=0, metadata={"help": "seed of batches, noise and initial weights"})
     threads: int = field(default=0, metadata={"help": "torch threads (0 = torch's default)"})
+    lr_schedule: str = field(default="cosine", metadata={
+        "help": "learning rate over the run: constant, linear or cosine (decay from --learning-rate to "
+                "--min-lr-ratio x it between the run's first step and --steps)"})
+    warmup_steps: int = field(default=0, metadata={"help": "linear warm-up steps at the start of the schedule"})
+    min_lr_ratio: float = field(default=0.1, metadata={"help": "floor of the decaying schedules, as a fraction of "
+                                                               "--learning-rate"})
+    ema_decay: float = field(default=0.999, metadata={
+        "help": "decay of the exponential moving average of the weights (0 = none); the average is saved in "
+                "checkpoints and is what evaluation, export and weights.pt use"})
+    validation_triples: int = field(default=24, metadata={
+        "help": "validation triples scored (with the EMA weights) at each checkpoint, evenly spaced over "
+                "DATA's validation split (0 = all; skipped when DATA has no validation shards)"})
+    init: str = field(default="", metadata={
+        "help": "fine-tune: start from this checkpoint's weights and optimiser moments (steps continue from "
+                "its step; the schedule spans from there to --steps); ignored when --resume finds a checkpoint"})
 
     def validate(self) -> None:
         for name in ("steps", "batch_size", "checkpoint_every"):
@@ -77,6 +101,14 @@ class NDNTrainConfig:
                 raise ConfigError(f"{name} must be positive, got {getattr(self, name)}")
         if self.learning_rate <= 0:
             raise ConfigError(f"learning_rate must be positive, got {self.learning_rate}")
+        if self.lr_schedule not in ("constant", "linear", "cosine"):
+            raise ConfigError(f"lr_schedule must be constant, linear or cosine, got {self.lr_schedule!r}")
+        if self.warmup_steps < 0 or self.validation_triples < 0:
+            raise ConfigError("warmup_steps and validation_triples must not be negative")
+        if not 0.0 <= self.min_lr_ratio <= 1.0:
+            raise ConfigError(f"min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ConfigError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
 
 
 @dataclass
@@ -85,6 +117,9 @@ class NDNDataConfig:
 
     scenes: int = field(default=12, metadata={"help": "training scenes to render"})
     heldout: int = field(default=1, metadata={"help": "held-out scenes (seeds never used in training)"})
+    validation: int = field(default=0, metadata={
+        "help": "validation scenes (training presets, seeds 50000+: never in training or held out); "
+                "`esgs ndn train` scores them at each checkpoint to choose the step to ship"})
     presets: tuple[str, ...] = field(default=("cratered_plain", "crater_survey_nadir", "dune_field", "layered_outcrop",
                                               "rocky_slope", "navcam_panorama"),
                                      metadata={"help": "training presets, cycled (default: all without sky)"})
@@ -98,7 +133,7 @@ class NDNDataConfig:
     keep_scenes: bool = field(default=False, metadata={"help": "keep the rendered scene folders under OUT/scenes"})
 
     def validate(self) -> None:
-        for name in ("scenes", "heldout"):
+        for name in ("scenes", "heldout", "validation"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must not be negative, got {getattr(self, name)}")
         for name in ("views", "width", "height", "samples", "working_size", "multiple"):

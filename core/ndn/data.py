@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DatasetError
+from ..errors import ConfigError, DatasetError
 from ..io_utils import atomic_path, atomic_write_json
 from ..progress import ProgressCallback, ProgressEvent, no_progress
 from .config import NDNDataConfig
@@ -32,6 +32,10 @@ from .config import NDNDataConfig
 SHARD_FORMAT = "esgs-ndn-shard-1"
 TRAIN_PRESETS = NDNDataConfig().presets  # every preset without sky
 HELDOUT_SEED_OFFSET = 100_000  # held-out scenes use seeds >= this; training scenes never do
+# validation scenes (model selection during training) use seeds in [VALIDATION_SEED_OFFSET,
+# HELDOUT_SEED_OFFSET): never a training seed (those stay below) nor a held-out one
+VALIDATION_SEED_OFFSET = 50_000
+SPLITS = ("train", "validation", "heldout")
 
 
 def working_shape(width: int, height: int, working_size: int, multiple: int) -> tuple[int, int]:
@@ -200,17 +204,62 @@ def load_shards(data_dir: str | Path, split: str = "train") -> dict[str, np.ndar
 
 
 def plan_scenes(count: int, heldout: int, presets: tuple[str, ...] = TRAIN_PRESETS,
-                heldout_presets: tuple[str, ...] = ()) -> list[tuple[str, str, int]]:
+                heldout_presets: tuple[str, ...] = (), validation: int = 0) -> list[tuple[str, str, int]]:
     """(split, preset, seed) of every scene: training scenes cycle over ``presets`` with seeds
-    1, 2, ...; held-out scenes use seeds >= HELDOUT_SEED_OFFSET and also every preset in
-    ``heldout_presets`` (which training never sees)."""
+    1, 2, ...; validation scenes cycle over the same training presets with seeds
+    ``VALIDATION_SEED_OFFSET + i``; held-out scenes use seeds >= HELDOUT_SEED_OFFSET and also
+    every preset in ``heldout_presets`` (which training never sees). The three seed ranges
+    never meet, so no scene is in two splits."""
+    if count and 1 + (count - 1) // len(presets) >= VALIDATION_SEED_OFFSET:
+        raise ConfigError(f"{count} training scenes would reach the validation seeds (>= {VALIDATION_SEED_OFFSET})")
+    if validation > HELDOUT_SEED_OFFSET - VALIDATION_SEED_OFFSET:
+        raise ConfigError(f"at most {HELDOUT_SEED_OFFSET - VALIDATION_SEED_OFFSET} validation scenes, got {validation}")
     plan = [("train", presets[i % len(presets)], 1 + i // len(presets)) for i in range(count)]
+    plan += [("validation", presets[i % len(presets)], VALIDATION_SEED_OFFSET + i) for i in range(validation)]
     heldout_pool = tuple(presets) + tuple(heldout_presets)
     plan += [("heldout", heldout_pool[i % len(heldout_pool)], HELDOUT_SEED_OFFSET + i) for i in range(heldout)]
     return plan
 
 
-def build_dataset(out_dir: str | Path, scenes: int, *, heldout: int = 1, presets: tuple[str, ...] = TRAIN_PRESETS,
+def shard_scene(path: str | Path) -> tuple[str, str, int] | None:
+    """(split, preset, seed) from a shard name ``<split>_<preset>_<seed>.npz``; None when the
+    name does not follow that pattern (e.g. a scene added with ``esgs ndn shard``)."""
+    stem = Path(path).stem
+    for split in SPLITS:
+        if stem.startswith(split + "_"):
+            preset, _, seed = stem[len(split) + 1:].rpartition("_")
+            if preset and seed.isdigit():
+                return split, preset, int(seed)
+    return None
+
+
+def check_disjoint_splits(data_dir: str | Path, splits: tuple[str, ...] = SPLITS) -> None:
+    """Raise :class:`DatasetError` when a scene (preset and seed) or a triple's images appear in
+    two splits of ``DATA/shards``: a validation or held-out score would then be measured on
+    data the network was trained on."""
+    import hashlib
+
+    seen_scene: dict[tuple[str, int], str] = {}
+    seen_views: dict[bytes, str] = {}
+    for split in splits:
+        for path in sorted((Path(data_dir) / "shards").glob(f"{split}_*.npz")):
+            parsed = shard_scene(path)
+            if parsed is not None:
+                key = (parsed[1], parsed[2])
+                if key in seen_scene and seen_scene[key] != split:
+                    raise DatasetError(f"scene {key[0]} seed {key[1]} is in the {seen_scene[key]!r} and the {split!r} "
+                                       "splits", path=path, hint="rebuild the data with `esgs ndn build-data`")
+                seen_scene[key] = split
+            with np.load(path, allow_pickle=False) as shard:
+                for views in shard["views"]:
+                    digest = hashlib.sha1(views.tobytes()).digest()
+                    if seen_views.get(digest, split) != split:
+                        raise DatasetError(f"a triple of this shard is also in the {seen_views[digest]!r} split",
+                                           path=path, hint="the splits must hold different scenes")
+                    seen_views[digest] = split
+
+
+def build_dataset(out_dir: str | Path, scenes: int, *, heldout: int = 1, validation: int = 0, presets: tuple[str, ...] = TRAIN_PRESETS,
                   heldout_presets: tuple[str, ...] = (), views: int = 8, width: int = 160, height: int = 90,
                   samples: int = 8, working_size: int = 128, multiple: int = 4, keep_scenes: bool = False,
                   progress: ProgressCallback = no_progress) -> dict:
@@ -222,12 +271,12 @@ def build_dataset(out_dir: str | Path, scenes: int, *, heldout: int = 1, presets
     import shutil
     import tempfile
 
-    NDNDataConfig(scenes=scenes, heldout=heldout, presets=tuple(presets), heldout_presets=tuple(heldout_presets),
+    NDNDataConfig(scenes=scenes, heldout=heldout, validation=validation, presets=tuple(presets), heldout_presets=tuple(heldout_presets),
                   views=views, width=width, height=height, samples=samples, working_size=working_size,
                   multiple=multiple, keep_scenes=keep_scenes).validate()
     out_dir = Path(out_dir)
     (out_dir / "shards").mkdir(parents=True, exist_ok=True)
-    plan = plan_scenes(scenes, heldout, tuple(presets), tuple(heldout_presets))
+    plan = plan_scenes(scenes, heldout, tuple(presets), tuple(heldout_presets), validation)
     manifest = {"format": SHARD_FORMAT, "working_size": working_size, "multiple": multiple, "views": views,
                 "resolution": [width, height], "samples": samples,
                 "scenes": [{"split": s, "preset": p, "seed": seed, "shard": f"shards/{s}_{p}_{seed}.npz"}

@@ -97,26 +97,41 @@ class GaussianDiffusion:
 
     @torch.no_grad()
     def sample(self, model: torch.nn.Module, views: torch.Tensor, steps: int | None = None,
-               seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+               seed: int = 0, ensemble: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Deterministic DDIM (eta = 0): views [B, 9, H, W] -> (depth [B, 1, H, W], normal [B, 3, H, W]).
 
         The starting noise comes from a generator seeded with ``seed``, so the same weights,
         views and seed always give the same maps. Estimates of x0 are clipped to [-1, 1].
+        With ``ensemble`` n > 1 (default: the config's ``sample_ensemble``) each view is
+        denoised n times from different noise (one batch of B x n) and the n results are
+        combined per pixel by the config's ``sample_reduce`` (median: the lower middle value
+        for even n; mean). Normals are combined component-wise and not renormalised here.
         """
         batch, _, height, width = views.shape
         if self.regression:
             return self._regress(model, views)
+        ensemble = int(ensemble or self.config.sample_ensemble)
+        if ensemble > 1:
+            views = views.repeat_interleave(ensemble, dim=0)  # copies of a view are neighbours in the batch
         generator = torch.Generator().manual_seed(int(seed))
-        depth = torch.randn((batch, 1, height, width), generator=generator).to(views)
-        normal = torch.randn((batch, 3, height, width), generator=generator).to(views)
+        depth = torch.randn((views.shape[0], 1, height, width), generator=generator).to(views)
+        normal = torch.randn((views.shape[0], 3, height, width), generator=generator).to(views)
         schedule = self.ddim_timesteps(steps)
         for index, step in enumerate(schedule):
-            timesteps = torch.full((batch,), step, dtype=torch.long, device=views.device)
+            timesteps = torch.full((views.shape[0],), step, dtype=torch.long, device=views.device)
             depth_out, normal_out = model(views, depth, normal, timesteps)
             previous = schedule[index + 1] if index + 1 < len(schedule) else -1
             depth = self._ddim_step(depth, timesteps, depth_out, previous)
             normal = self._ddim_step(normal, timesteps, normal_out, previous)
+        if ensemble > 1:
+            depth, normal = (self._combine(x.view(batch, ensemble, *x.shape[1:])) for x in (depth, normal))
         return depth, normal
+
+    def _combine(self, samples: torch.Tensor) -> torch.Tensor:
+        """[B, n, C, H, W] -> [B, C, H, W] by the configured reduction over the n samples."""
+        if self.config.sample_reduce == "mean":
+            return samples.mean(dim=1)
+        return samples.median(dim=1).values
 
     def _ddim_step(self, x_t: torch.Tensor, timesteps: torch.Tensor, output: torch.Tensor, previous: int) -> torch.Tensor:
         x0, epsilon = self.split_prediction(x_t, timesteps, output)

@@ -165,16 +165,18 @@ def mean_scores(per_view: list[dict[str, float]]) -> dict[str, float]:
 
 
 def evaluate_arrays(model: NDNUNet, diffusion: GaussianDiffusion, arrays: dict[str, np.ndarray], *,
-                    steps: int | None = None, seed: int = 0,
+                    steps: int | None = None, seed: int = 0, ensemble: int | None = None,
                     progress: ProgressCallback = no_progress) -> list[dict[str, float]]:
     """Scores of every triple in ``arrays`` (views, depth, normal, mask as in a shard); triple
-    ``i`` is sampled alone from noise seeded with ``seed + i``. Returns one dict per triple."""
+    ``i`` is sampled alone from noise seeded with ``seed + i`` (``ensemble`` samples of it
+    when given, else the model's ``sample_ensemble``). Returns one dict per triple."""
     views = torch.from_numpy(arrays["views"].astype(np.float32) / 127.5 - 1.0)
     count = views.shape[0]
     per_view = []
     for index in range(count):
         progress(ProgressEvent(index, count, "ndn-eval"))
-        depth_state, normal = diffusion.sample(model, views[index:index + 1], steps=steps, seed=seed + index)
+        depth_state, normal = diffusion.sample(model, views[index:index + 1], steps=steps, seed=seed + index,
+                                               ensemble=ensemble)
         per_view.append(score_view(state_to_relative_depth(depth_state[0, 0].numpy()), normal[0].numpy(),
                                    arrays["depth"][index], arrays["normal"][index], arrays["mask"][index]))
     progress(ProgressEvent(count, count, "ndn-eval", kind="done"))
@@ -182,12 +184,19 @@ def evaluate_arrays(model: NDNUNet, diffusion: GaussianDiffusion, arrays: dict[s
 
 
 def evaluate_ndn(weights: str | Path, data_dir: str | Path, *, split: str = "heldout", steps: int | None = None,
-                 seed: int = 0, limit: int = 0, progress: ProgressCallback = no_progress) -> dict:
+                 seed: int = 0, limit: int = 0, ensemble: int | None = None, reduce: str | None = None,
+                 progress: ProgressCallback = no_progress) -> dict:
     """Scores on a data split: mean AbsRel and delta1 (depth after scale/shift alignment),
-    normal mean angular error and the fraction within 11.25 deg, over surface pixels."""
+    normal mean angular error and the fraction within 11.25 deg, over surface pixels.
+    ``steps``, ``ensemble`` and ``reduce`` override the model's sampling settings."""
     model, diffusion, _, _ = load_checkpoint(weights)
+    if reduce:
+        diffusion.config.sample_reduce = reduce
+        diffusion.config.validate()
     arrays = load_shards(data_dir, split)
     if limit:
         arrays = {key: value[:limit] for key, value in arrays.items()}
-    per_view = evaluate_arrays(model, diffusion, arrays, steps=steps, seed=seed, progress=progress)
-    return {"split": split, "views": len(per_view), **mean_scores(per_view)}
+    per_view = evaluate_arrays(model, diffusion, arrays, steps=steps, seed=seed, ensemble=ensemble, progress=progress)
+    return {"split": split, "views": len(per_view), "ddim_steps": steps or diffusion.config.sample_steps,
+            "ensemble": ensemble or diffusion.config.sample_ensemble, "reduce": diffusion.config.sample_reduce,
+            **mean_scores(per_view)}

@@ -1,12 +1,22 @@
 """Training the NDN network on shards from :mod:`.data`; checkpoints and weights on disk.
 
 ``MODEL_DIR`` layout: ``config.json`` (model, diffusion and training settings),
-``checkpoints/step_<n>.pt`` (weights, optimiser, random state; written atomically),
-``weights.pt`` (the final weights, what ``esgs priors --method ndn`` loads) and
-``events.jsonl`` when the CLI runs it.
+``checkpoints/step_<n>.pt`` (weights, their exponential moving average, optimiser, random
+state, schedule start, CPU time, validation scores; written atomically), ``weights.pt``
+(the final averaged weights, what ``esgs priors --method ndn`` loads), ``validation.json``
+(the validation score of every checkpoint and the best one) and ``events.jsonl`` when the
+CLI runs it.
+
+The learning rate follows :func:`learning_rate_at` (a pure function of the step, so a
+resumed run continues the same curve); :class:`WeightAverage` keeps the moving average of
+the weights that evaluation, export and inference use (:func:`load_checkpoint` loads it
+when a checkpoint has one).
 """
 from __future__ import annotations
 
+import copy
+import json
+import math
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -19,7 +29,7 @@ from ..errors import CheckpointError
 from ..io_utils import atomic_path, atomic_write_json
 from ..progress import ProgressCallback, ProgressEvent, no_progress
 from .config import NDNConfig, NDNTrainConfig
-from .data import depth_to_state, load_shards
+from .data import check_disjoint_splits, depth_to_state, load_shards
 from .diffusion import GaussianDiffusion
 from .model import NDNUNet
 
@@ -34,21 +44,28 @@ def build_model(config: NDNConfig) -> tuple[NDNUNet, GaussianDiffusion]:
 
 def save_checkpoint(path: str | Path, model: NDNUNet, config: NDNConfig, *, step: int = 0,
                     optimizer: torch.optim.Optimizer | None = None, generator: torch.Generator | None = None,
-                    extra: dict | None = None) -> Path:
-    """Write weights (plus optimiser and random state when given) to ``path`` atomically."""
+                    average: "WeightAverage | None" = None, extra: dict | None = None) -> Path:
+    """Write weights (plus optimiser, random state and weight average when given) to ``path`` atomically."""
     payload = {"format": CHECKPOINT_FORMAT, "config": asdict(config), "step": int(step),
                "model": model.state_dict(), **(extra or {})}
     if optimizer is not None:
         payload["optimizer"] = optimizer.state_dict()
     if generator is not None:
         payload["generator"] = generator.get_state()
+    if average is not None:
+        payload["ema"] = average.state_dict()
     with atomic_path(path) as tmp:
         torch.save(payload, tmp)
     return Path(path)
 
 
-def load_checkpoint(path: str | Path) -> tuple[NDNUNet, GaussianDiffusion, NDNConfig, dict]:
-    """Read a checkpoint or weights file: (model in eval mode, diffusion, config, raw payload)."""
+def load_checkpoint(path: str | Path, *, ema: bool = True) -> tuple[NDNUNet, GaussianDiffusion, NDNConfig, dict]:
+    """Read a checkpoint or weights file: (model in eval mode, diffusion, config, raw payload).
+
+    With ``ema`` (the default, what evaluation and inference want) the model holds the
+    checkpoint's moving average of the weights when it has one, else its raw weights; the
+    trainer resumes with ``ema=False`` (raw weights; the average is in ``payload["ema"]``).
+    """
     path = Path(path)
     if path.is_dir():
         path = resolve_weights(path)
@@ -63,12 +80,110 @@ def load_checkpoint(path: str | Path) -> tuple[NDNUNet, GaussianDiffusion, NDNCo
         raise CheckpointError("not an NDN checkpoint (missing or unknown format tag)", path=path)
     config = config_from_dict(NDNConfig, payload["config"])
     model, diffusion = build_model(config)
+    state = payload["ema"]["weights"] if ema and "ema" in payload else payload["model"]
     try:
-        model.load_state_dict(payload["model"])
+        model.load_state_dict(state)
     except RuntimeError as error:
         raise CheckpointError(f"weights do not match the saved model config: {error}", path=path) from error
     model.eval()
     return model, diffusion, config, payload
+
+
+def learning_rate_at(step: int, config: NDNTrainConfig, start_step: int = 0) -> float:
+    """The learning rate of optimiser step ``step`` (1-based, counted over the whole training
+    history) for a run whose schedule starts after ``start_step`` and ends at ``config.steps``.
+
+    ``warmup_steps`` rise linearly to ``learning_rate``; then ``constant`` stays there,
+    ``linear`` and ``cosine`` fall to ``min_lr_ratio * learning_rate`` at ``config.steps``
+    (and stay at that floor past it). A pure function of its arguments, so a resumed run
+    continues the same curve.
+    """
+    peak = config.learning_rate
+    floor = config.min_lr_ratio * peak
+    done = step - start_step  # steps of this schedule taken, this one included
+    if config.warmup_steps and done <= config.warmup_steps:
+        return peak * max(done, 0) / config.warmup_steps
+    if config.lr_schedule == "constant":
+        return peak
+    span = max(config.steps - start_step - config.warmup_steps, 1)
+    fraction = min(max((done - config.warmup_steps) / span, 0.0), 1.0)
+    if config.lr_schedule == "linear":
+        return peak - (peak - floor) * fraction
+    return floor + (peak - floor) * 0.5 * (1.0 + math.cos(math.pi * fraction))
+
+
+class WeightAverage:
+    """Exponential moving average of a model's weights (evaluated and exported instead of the
+    last raw weights, which jitter with every mini-batch).
+
+    After update ``n`` (1-based) the average is ``a <- d_n a + (1 - d_n) w`` with
+    ``d_n = min(decay, (1 + n) / (10 + n))``: the warm-up keeps the first updates from being
+    dominated by the starting weights (with ``d_1 = 2/11`` the average follows the weights
+    closely at first and settles to ``decay`` after ~``10 / (1 - decay)`` updates).
+    Integer buffers are copied, not averaged.
+    """
+
+    def __init__(self, model: torch.nn.Module, decay: float, updates: int = 0):
+        self.decay = float(decay)
+        self.updates = int(updates)
+        self.weights = {name: tensor.detach().clone() for name, tensor in model.state_dict().items()}
+
+    def decay_at(self, update: int) -> float:
+        """``d_n`` of update ``n`` (see the class docstring)."""
+        return min(self.decay, (1.0 + update) / (10.0 + update))
+
+    @torch.no_grad()
+    def update(self, model: torch.nn.Module) -> None:
+        self.updates += 1
+        decay = self.decay_at(self.updates)
+        for name, tensor in model.state_dict().items():
+            if tensor.is_floating_point():
+                self.weights[name].mul_(decay).add_(tensor.detach(), alpha=1.0 - decay)
+            else:
+                self.weights[name].copy_(tensor)
+
+    def state_dict(self) -> dict:
+        return {"decay": self.decay, "updates": self.updates, "weights": self.weights}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.decay, self.updates = float(state["decay"]), int(state["updates"])
+        self.weights = {name: tensor.detach().clone() for name, tensor in state["weights"].items()}
+
+    def averaged_model(self, model: NDNUNet) -> NDNUNet:
+        """A copy of ``model`` holding the averaged weights, in eval mode."""
+        averaged = copy.deepcopy(model)
+        averaged.load_state_dict(self.weights)
+        return averaged.eval()
+
+
+# the validation score that chooses the checkpoint to ship: each term is 1 at the issue's depth
+# targets (AbsRel 0.065, delta1 0.973) and at 20 degrees of mean normal error; lower is better
+SELECTION_SCALES = {"abs_rel": 0.065, "one_minus_delta1": 1.0 - 0.973, "normal_mean_deg": 20.0}
+
+
+def selection_score(scores: dict[str, float]) -> float:
+    """One number from mean validation scores (``abs_rel``, ``delta1``, ``normal_mean_deg``); lower is better."""
+    return (scores["abs_rel"] / SELECTION_SCALES["abs_rel"]
+            + (1.0 - scores["delta1"]) / SELECTION_SCALES["one_minus_delta1"]
+            + scores["normal_mean_deg"] / SELECTION_SCALES["normal_mean_deg"])
+
+
+def validation_subset(arrays: dict[str, np.ndarray], count: int) -> dict[str, np.ndarray]:
+    """``count`` triples evenly spaced over ``arrays`` (all of them when ``count`` is 0 or more than there are)."""
+    total = arrays["views"].shape[0]
+    if not count or count >= total:
+        return arrays
+    index = np.unique(np.linspace(0, total - 1, count).round().astype(int))
+    return {key: value[index] for key, value in arrays.items()}
+
+
+def best_checkpoint(model_dir: str | Path) -> Path | None:
+    """The checkpoint with the lowest validation score in ``MODEL_DIR/validation.json``, or None."""
+    path = Path(model_dir) / "validation.json"
+    if not path.exists():
+        return None
+    best = json.loads(path.read_text()).get("best")
+    return Path(model_dir) / "checkpoints" / best["checkpoint"] if best else None
 
 
 def resolve_weights(model_dir: str | Path) -> Path:
@@ -107,15 +222,39 @@ def flip_horizontally(views: torch.Tensor, depth: torch.Tensor, normal: torch.Te
     return views.flip(-1), depth.flip(-1), normal
 
 
+def _record_validation(out_dir: Path, entry: dict) -> dict:
+    """Add one checkpoint's validation scores to ``OUT/validation.json`` (a resumed run replaces
+    entries of the steps it repeats) and keep the best one; returns the file's content."""
+    path = out_dir / "validation.json"
+    record = json.loads(path.read_text()) if path.exists() else {}
+    entries = [e for e in record.get("checkpoints", []) if e["step"] != entry["step"]] + [entry]
+    entries.sort(key=lambda e: e["step"])
+    record = {"selection": "score = AbsRel / 0.065 + (1 - delta1) / 0.027 + normal mean error / 20 deg "
+                           "(EMA weights; lower is better)",
+              "checkpoints": entries, "best": min(entries, key=lambda e: e["score"])}
+    atomic_write_json(path, record)
+    return record
+
+
 def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainConfig | None = None,
               config: NDNConfig | None = None, *, resume: bool = False,
               progress: ProgressCallback = no_progress) -> dict:
     """Train (or continue training) the NDN network on ``DATA/shards/train_*.npz``.
 
-    With ``resume`` the latest checkpoint in ``OUT/checkpoints`` is loaded (weights,
-    optimiser, random state, its saved model config) and training continues to
-    ``train_config.steps``. Writes ``OUT/weights.pt`` at the end. Returns a summary dict.
+    With ``resume`` the latest checkpoint in ``OUT/checkpoints`` is loaded (weights, weight
+    average, optimiser, random state, schedule start, CPU time, its saved model config) and
+    training continues to ``train_config.steps``. Without one, ``train_config.init`` names a
+    checkpoint to fine-tune: its raw weights and optimiser moments, its step count (the step
+    numbers continue from it, and the learning-rate schedule runs from there to
+    ``steps``); the weight average and the batch order start afresh (``seed``).
+
+    At every checkpoint the averaged weights are scored on ``DATA``'s validation split
+    (``validation_triples`` of it; skipped when there is none) and the scores go into the
+    checkpoint, ``OUT/validation.json`` and the progress events. Writes ``OUT/weights.pt``
+    (the averaged weights) at the end. Returns a summary dict.
     """
+    from .infer import evaluate_arrays, mean_scores  # infer imports this module
+
     train_config = train_config or NDNTrainConfig()
     train_config.validate()
     out_dir = Path(out_dir)
@@ -127,34 +266,62 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
     checkpoint = latest_checkpoint(out_dir) if resume else None
     if resume and checkpoint is None and (out_dir / "weights.pt").exists():
         checkpoint = out_dir / "weights.pt"
+    lineage: dict = {}
     if checkpoint is not None:
-        model, diffusion, config, payload = load_checkpoint(checkpoint)
+        model, diffusion, config, payload = load_checkpoint(checkpoint, ema=False)
         start_step = int(payload["step"])
+        schedule_start = int(payload.get("schedule_start", 0))
+        lineage = dict(payload.get("lineage", {}))
+    elif train_config.init:
+        model, diffusion, config, init_payload = load_checkpoint(train_config.init, ema=False)
+        start_step = schedule_start = int(init_payload["step"])
+        payload = {"optimizer": init_payload["optimizer"]} if "optimizer" in init_payload else {}
+        lineage = {"init_from": str(Path(train_config.init).resolve()), "init_step": start_step}
     else:
         config = config or NDNConfig()
         torch.manual_seed(train_config.seed)
         model, diffusion = build_model(config)
-        payload = {}
+        payload, schedule_start = {}, 0
     arrays = load_shards(data_dir, "train")
     multiple = 2 ** (config.model.levels - 1)
     if arrays["views"].shape[-1] % multiple or arrays["views"].shape[-2] % multiple:
         raise CheckpointError(f"data resolution {arrays['views'].shape[-1]}x{arrays['views'].shape[-2]} is not a "
                               f"multiple of {multiple} (the model's levels)", path=Path(data_dir))
+    has_validation = any((Path(data_dir) / "shards").glob("validation_*.npz"))
+    validation = None
+    if has_validation:
+        check_disjoint_splits(data_dir)  # a score on scenes seen in training would choose nothing
+        validation = validation_subset(load_shards(data_dir, "validation"), train_config.validation_triples)
     data = training_tensors(arrays)
     optimizer = torch.optim.AdamW(model.parameters(), lr=train_config.learning_rate,
                                   weight_decay=train_config.weight_decay)
     if "optimizer" in payload:
         optimizer.load_state_dict(payload["optimizer"])
+        for group in optimizer.param_groups:  # the saved state carries the old run's settings
+            group["weight_decay"] = train_config.weight_decay
     if "generator" in payload:
         generator.set_state(payload["generator"])
+    average = None
+    if train_config.ema_decay > 0:
+        average = WeightAverage(model, train_config.ema_decay)
+        if "ema" in payload:
+            average.load_state_dict(payload["ema"])
+            average.decay = train_config.ema_decay
+    cpu = dict(payload.get("cpu_seconds", {"train": 0.0, "validation": 0.0}))
     atomic_write_json(out_dir / "config.json", {"ndn": asdict(config), "train": asdict(train_config),
-                                                "data": str(data_dir)})
+                                                "data": str(data_dir), "schedule_start": schedule_start,
+                                                **lineage})
     model.train()
     count = data["views"].shape[0]
     started = time.time()
+    cpu_mark = time.process_time()
     losses: list[float] = []
+    best = None
     step = start_step
     for step in range(start_step + 1, train_config.steps + 1):
+        learning_rate = learning_rate_at(step, train_config, schedule_start)
+        for group in optimizer.param_groups:
+            group["lr"] = learning_rate
         index = torch.randint(0, count, (min(train_config.batch_size, count),), generator=generator)
         views, depth, normal = data["views"][index], data["depth"][index], data["normal"][index]
         if bool(torch.rand((), generator=generator) < 0.5):
@@ -165,19 +332,40 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         optimizer.step()
+        if average is not None:
+            average.update(model)
         losses.append(float(loss.detach()))
         elapsed = time.time() - started
         eta = elapsed / (step - start_step) * (train_config.steps - step)
         progress(ProgressEvent(step, train_config.steps, "ndn-train",
-                               metrics={"loss": losses[-1], **parts, "eta_s": round(eta, 1)}))
+                               metrics={"loss": losses[-1], **parts, "lr": learning_rate, "eta_s": round(eta, 1)}))
         if step % train_config.checkpoint_every == 0 or step == train_config.steps:
-            save_checkpoint(out_dir / "checkpoints" / f"step_{step:07d}.pt", model, config, step=step,
-                            optimizer=optimizer, generator=generator)
+            now = time.process_time()
+            cpu["train"] += now - cpu_mark
+            extra = {"schedule_start": schedule_start, "lineage": lineage}
+            name = f"step_{step:07d}.pt"
+            if validation is not None:
+                scored = average.averaged_model(model) if average is not None else copy.deepcopy(model).eval()
+                scores = mean_scores(evaluate_arrays(scored, diffusion, validation, seed=0))
+                scores["score"] = selection_score(scores)
+                extra["validation"] = {**scores, "triples": int(validation["views"].shape[0])}
+                best = _record_validation(out_dir, {"step": step, "checkpoint": name, **extra["validation"]})["best"]
+                progress(ProgressEvent(step, train_config.steps, "ndn-validation", metrics=scores, kind="message",
+                                       message=f"validation at step {step}: " + ", ".join(
+                                           f"{key} {value:.4f}" for key, value in scores.items())))
+                cpu["validation"] += time.process_time() - now
+            cpu_mark = time.process_time()
+            extra["cpu_seconds"] = dict(cpu)
+            save_checkpoint(out_dir / "checkpoints" / name, model, config, step=step, optimizer=optimizer,
+                            generator=generator, average=average, extra=extra)
     model.eval()
-    save_checkpoint(out_dir / "weights.pt", model, config, step=step)
+    final = average.averaged_model(model) if average is not None else model
+    save_checkpoint(out_dir / "weights.pt", final, config, step=step,
+                    extra={"weights": "ema" if average is not None else "raw", "lineage": lineage})
     summary = {"steps": step, "resumed_from": start_step, "train_triples": count,
                "final_loss_mean_last_50": float(np.mean(losses[-50:])) if losses else None,
-               "seconds": round(time.time() - started, 1)}
+               "seconds": round(time.time() - started, 1), "cpu_seconds": {k: round(v, 1) for k, v in cpu.items()},
+               "best_validation": best, **lineage}
     atomic_write_json(out_dir / "train_summary.json", summary)
     progress(ProgressEvent(step, train_config.steps, "ndn-train", kind="done"))
     return summary

@@ -74,3 +74,36 @@ def test_bad_settings_are_config_errors():
         GaussianDiffusion(NDNDiffusionConfig(schedule="quadratic"))
     with pytest.raises(ConfigError, match="sample_steps"):
         GaussianDiffusion(NDNDiffusionConfig(timesteps=10, sample_steps=20))
+
+
+def test_an_ensemble_combines_the_samples_of_each_view():
+    from .conftest import tiny_config
+    from esgs.core.ndn.train import build_model
+
+    torch.manual_seed(0)
+    model, diffusion = build_model(tiny_config("v"))
+    for parameter in model.parameters():
+        parameter.data.add_(0.05 * torch.randn_like(parameter))
+    model.eval()
+    views = torch.rand((2, 9, 18, 32), generator=torch.Generator().manual_seed(3)) * 2 - 1
+    single = diffusion.sample(model, views, seed=4)
+    for left, right in zip(single, diffusion.sample(model, views, seed=4, ensemble=1)):
+        torch.testing.assert_close(left, right, rtol=0, atol=0)  # ensemble 1 is plain sampling
+    # the members: each view repeated 3 times in one batch (rows 3b..3b+2 belong to view b)
+    members = diffusion.sample(model, views.repeat_interleave(3, dim=0), seed=4)
+    depth, normal = diffusion.sample(model, views, seed=4, ensemble=3)
+    assert depth.shape == (2, 1, 18, 32) and normal.shape == (2, 3, 18, 32)
+    for combined, every in zip((depth, normal), members):
+        grouped = every.view(2, 3, *every.shape[1:])
+        middle = grouped.sort(dim=1).values[:, 1]  # the median of three is the middle value
+        torch.testing.assert_close(combined, middle, rtol=0, atol=0)
+        assert not torch.equal(grouped[:, 0], grouped[:, 1])  # members start from different noise
+    diffusion.config.sample_reduce = "mean"
+    diffusion.config.sample_ensemble = 3  # the config's setting is the default
+    depth_mean, _ = diffusion.sample(model, views, seed=4)
+    torch.testing.assert_close(depth_mean, members[0].view(2, 3, 1, 18, 32).mean(dim=1))
+    torch.testing.assert_close(diffusion.sample(model, views, seed=4)[0], depth_mean, rtol=0, atol=0)  # seeded
+    with pytest.raises(ConfigError, match="sample_ensemble"):
+        NDNDiffusionConfig(sample_ensemble=0).validate()
+    with pytest.raises(ConfigError, match="sample_reduce"):
+        NDNDiffusionConfig(sample_reduce="mode").validate()
