@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import json
 import shutil
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..colmap.triangulate import triangulate_known_poses
 from ..errors import DatasetError
 from ..progress import ProgressCallback, ProgressEvent, no_progress
 
@@ -32,61 +32,24 @@ from ..progress import ProgressCallback, ProgressEvent, no_progress
 COPIED = ("images", "mesh", Path("priors") / "gt")
 
 
-def triangulate_known_poses(scene: str | Path, output: str | Path, *, max_features: int = 8192,
-                            verbose: bool = False) -> dict[str, Any]:
-    """Triangulate SIFT matches of ``scene/images`` with the poses of ``scene/sparse/0``.
+def triangulate_into(scene: str | Path, output: str | Path, *, max_features: int = 8192,
+                     verbose: bool = False) -> dict[str, Any]:
+    """Triangulate SIFT matches of ``scene/images`` with the poses of ``scene/sparse/0``
+    (:func:`..colmap.triangulate.triangulate_known_poses`).
 
     Writes a COLMAP binary model to ``output`` (must not exist) with the same cameras and
     poses and the triangulated points; returns {"points", "observations",
     "mean_reprojection_error_px", "mean_track_length"}. Raises DatasetError when no point
     could be triangulated (images without texture or overlap).
     """
-    import pycolmap
-
     scene, output = Path(scene), Path(output)
-    reference = pycolmap.Reconstruction(str(scene / "sparse" / "0"))
-    if reference.num_cameras() != 1:
-        raise DatasetError(f"triangulation with known poses supports one camera, the scene has {reference.num_cameras()}",
-                           path=scene / "sparse" / "0", hint="use a scene rendered with one camera model")
-    camera = next(iter(reference.cameras.values()))
-    names = sorted(image.name for image in reference.images.values())
-    previous_level = pycolmap.logging.minloglevel
-    if not verbose:
-        pycolmap.logging.minloglevel = 2
-    try:
-        with tempfile.TemporaryDirectory(prefix="esgs_triangulate_") as workspace_name:
-            workspace = Path(workspace_name)
-            database = workspace / "database.db"
-            reader = pycolmap.ImageReaderOptions()
-            reader.camera_model = camera.model.name
-            reader.camera_params = ",".join(repr(float(value)) for value in camera.params)
-            extraction = pycolmap.FeatureExtractionOptions()
-            extraction.sift.max_num_features = max_features
-            pycolmap.extract_features(database, scene / "images", image_names=names,
-                                      camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                                      extraction_options=extraction, device=pycolmap.Device.cpu)
-            pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
-            # the database numbers images in (multi-threaded, unordered) extraction order: build
-            # the posed model with the database's ids, each pose taken from the scene by name
-            posed = pycolmap.Reconstruction()
-            with pycolmap.Database.open(str(database)) as opened:
-                for db_camera in opened.read_all_cameras():
-                    posed.add_camera_with_trivial_rig(db_camera)
-                for db_image in opened.read_all_images():
-                    known = reference.find_image_with_name(db_image.name)
-                    image = pycolmap.Image(name=db_image.name, camera_id=db_image.camera_id, image_id=db_image.image_id)
-                    posed.add_image_with_trivial_frame(image, known.cam_from_world())
-            staging = workspace / "model"
-            staging.mkdir()
-            result = pycolmap.triangulate_points(posed, database, scene / "images", staging, clear_points=True,
-                                                 options=pycolmap.IncrementalPipelineOptions(), refine_intrinsics=False)
-            if result.num_points3D() == 0:
-                raise DatasetError("no point could be triangulated from the images with their known poses",
-                                   path=scene / "images", hint="the views need overlap and texture")
-            output.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copytree(staging, output)
-    finally:
-        pycolmap.logging.minloglevel = previous_level
+    result = triangulate_known_poses(scene / "images", scene / "sparse" / "0", max_features=max_features,
+                                     verbose=verbose)
+    if result.num_points3D() == 0:
+        raise DatasetError("no point could be triangulated from the images with their known poses",
+                           path=scene / "images", hint="the views need overlap and texture")
+    output.mkdir(parents=True)
+    result.write(str(output))
     return {"points": int(result.num_points3D()), "observations": int(result.compute_num_observations()),
             "mean_reprojection_error_px": float(result.compute_mean_reprojection_error()),
             "mean_track_length": float(result.compute_mean_track_length())}
@@ -112,7 +75,7 @@ def make_sfm_scene(scene: str | Path, out: str | Path, *, overwrite: bool = Fals
             if (scene / name).is_dir():
                 shutil.copytree(scene / name, staging / name)
         progress(ProgressEvent(0, 2, stage="sfm scene", message="triangulating"))
-        record = triangulate_known_poses(scene, staging / "sparse" / "0")
+        record = triangulate_into(scene, staging / "sparse" / "0")
         record["method"] = ("pycolmap: SIFT on the rendered images, exhaustive matching, triangulation "
                             "with the known poses and intrinsics")
         record["source_scene"] = str(scene)

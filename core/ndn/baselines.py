@@ -37,13 +37,13 @@ def triangulate_known_poses(scene_dir: str | Path, *, upscale: float = 2.0, peak
 
     ``upscale`` enlarges the images before SIFT (small renders yield too few features at their
     own size; 2x and a lower ``peak_threshold`` gave 10-50x more points on 160x90 renders).
-    Views without a triangulated point map to empty arrays.
+    Views without a triangulated point map to empty arrays. The triangulation itself is
+    :func:`..colmap.triangulate.triangulate_known_poses`.
     """
     import cv2  # before pycolmap: cv2's PNG writer crashes (zlib clash) when imported after it
 
-    import pycolmap
-
     from ..colmap import read_model
+    from ..colmap.triangulate import triangulate_known_poses as triangulate_model
     from ..imageio import read_image, write_png
 
     scene_dir = Path(scene_dir)
@@ -54,32 +54,15 @@ def triangulate_known_poses(scene_dir: str | Path, *, upscale: float = 2.0, peak
     if camera.model != "PINHOLE":
         raise DatasetError(f"the SfM baseline expects a PINHOLE camera, got {camera.model}", path=scene_dir)
     work = Path(tempfile.mkdtemp(prefix="esgs-sfm-baseline-", dir=work_dir))
-    previous_level = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = 2
     try:
         (work / "images").mkdir()
-        (work / "sparse").mkdir()
         for image in model.images.values():
             rgb = read_image(scene_dir / "images" / image.name)
             write_png(work / "images" / image.name,
                       cv2.resize(rgb, None, fx=upscale, fy=upscale, interpolation=cv2.INTER_CUBIC))
-        params = np.asarray(camera.params, float) * upscale
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = "PINHOLE"
-        reader.camera_params = ",".join(f"{value:.10g}" for value in params)
-        extraction = pycolmap.FeatureExtractionOptions()
-        extraction.num_threads = 1
-        extraction.sift.peak_threshold = peak_threshold
-        database = work / "database.db"
-        pycolmap.extract_features(database, work / "images", reader_options=reader, extraction_options=extraction,
-                                  camera_mode=pycolmap.CameraMode.SINGLE, device=pycolmap.Device.cpu)
-        pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
-        reconstruction = pycolmap.Reconstruction(str(scene_dir / "sparse" / "0"))
-        reference = reconstruction.cameras[camera.camera_id]
-        reference.width, reference.height = (int(round(camera.width * upscale)), int(round(camera.height * upscale)))
-        reference.params = params
-        result = pycolmap.triangulate_points(reconstruction, database, work / "images", work / "sparse",
-                                             clear_points=True)
+        result = triangulate_model(work / "images", scene_dir / "sparse" / "0",
+                                   camera_params=np.asarray(camera.params, float) * upscale,
+                                   peak_threshold=peak_threshold, num_threads=1)
         observations: dict[str, tuple[list, list]] = {image.name: ([], []) for image in model.images.values()}
         by_name = {image.name: image for image in model.images.values()}
         for point in result.points3D.values():
@@ -93,7 +76,6 @@ def triangulate_known_poses(scene_dir: str | Path, *, upscale: float = 2.0, peak
                 observations[name][0].append(uv)
                 observations[name][1].append(camera_point[2])
     finally:
-        pycolmap.logging.minloglevel = previous_level
         shutil.rmtree(work, ignore_errors=True)
     return {name: SparseDepth(np.asarray(uv, float).reshape(-1, 2), np.asarray(depth, float))
             for name, (uv, depth) in observations.items()}
