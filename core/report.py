@@ -140,8 +140,77 @@ def _fmt(value: Any, digits: int = 4) -> str:
     return str(value)
 
 
-def _geometry_figure(config: Any, scene: Path, out: Path) -> Optional[str]:
-    """Priors (gt and the one used) against the ESGS run's rendered depth and normals, one held-out view."""
+def _prior_panels(config: Any, used: Any, rendered_depth: np.ndarray, rendered_valid: np.ndarray,
+                  limits: Optional[tuple[float, float]]) -> list[np.ndarray]:
+    """The used prior's depth and normal maps for one view, as the losses see them.
+
+    A relative prior (ndn) is aligned to the rendered depth with the scale/shift fit the
+    depth loss uses, so its colours share the true depth's scale; sparse samples (sfm) are
+    dilated to be visible.
+    """
+    import torch
+
+    from .priors.losses import fit_scale_shift
+
+    panels = []
+    if used.depth is not None:
+        valid = used.mask & (used.depth > 0)
+        depth, caption = used.depth, f"{config.priors} depth prior"
+        if used.relative_depth:
+            both = torch.from_numpy(valid & rendered_valid & (rendered_depth > 0))
+            if int(both.sum()) >= 2:
+                scale, shift = fit_scale_shift(torch.from_numpy(used.depth.astype(np.float32)),
+                                               torch.from_numpy(rendered_depth.astype(np.float32)), both)
+                depth = np.where(valid, float(scale) * used.depth + float(shift), 0.0).astype(np.float32)
+                caption = f"{config.priors} depth, aligned"
+        image = colorize_depth(depth, valid, limits)
+        if np.count_nonzero(valid) < 0.2 * valid.size:
+            image = cv2.dilate(image, np.ones((3, 3), np.uint8))  # make single-pixel samples visible
+            caption += ", dilated"
+        panels.append(_label(image, caption))
+    if used.normal is not None:
+        panels.append(_label(colorize_normals(used.normal, used.mask), f"{config.priors} normal prior"))
+    return panels
+
+
+def geometry_scores(depth: Optional[np.ndarray], normal: Optional[np.ndarray], valid: np.ndarray,
+                    truth_depth: np.ndarray, truth_normal: Optional[np.ndarray], truth_mask: np.ndarray) -> dict[str, float]:
+    """Depth and normal scores of one map pair against the truth, as NDN is scored (docs/ndn.md).
+
+    ``depth`` [H, W] (metric or relative: aligned to the truth by the robust scale/shift fit
+    first), ``normal`` [H, W, 3] camera frame, ``valid`` [H, W] bool where the map has values,
+    truth maps of the same size. Returns abs_rel, delta1, normal_mean_deg, normal_within_11_25
+    and pixels; a map that is None or has no valid pixel yields no entries for it.
+    """
+    import torch
+
+    from .ndn.infer import depth_metrics, normal_metrics
+
+    scores: dict[str, float] = {}
+    mask = valid & truth_mask
+    if depth is not None:
+        depth_mask = mask & (depth > 0) & (truth_depth > 0)
+        if np.count_nonzero(depth_mask) >= 2:
+            scores.update(depth_metrics(torch.from_numpy(depth.astype(np.float32)),
+                                        torch.from_numpy(truth_depth.astype(np.float32)), torch.from_numpy(depth_mask)))
+            scores["pixels"] = int(np.count_nonzero(depth_mask))
+    if normal is not None and truth_normal is not None:
+        normal_mask = mask & (np.linalg.norm(normal, axis=-1) > 1e-3)
+        if np.any(normal_mask):
+            scores.update(normal_metrics(torch.from_numpy(np.moveaxis(normal, -1, 0).astype(np.float32)),
+                                         torch.from_numpy(np.moveaxis(truth_normal, -1, 0).astype(np.float32)),
+                                         torch.from_numpy(normal_mask)))
+    return scores
+
+
+def _geometry_figure(config: Any, scene: Path, out: Path) -> tuple[str, dict[str, dict[str, float]]]:
+    """Truth, the used priors and the ESGS run's rendered depth and normals, one held-out view.
+
+    Rows: the image with the true depth and normals (synthetic scenes); the prior maps of
+    ``config.priors`` (unless those are the truth); the ESGS run's rendered depth and normals.
+    Returns the picture's file name and, when the scene has true maps, the scores of the
+    prior and of the rendering against them (:func:`geometry_scores`), keyed by row label.
+    """
     import torch
 
     from .priors import available_prior_sources, load_prior_maps
@@ -157,30 +226,53 @@ def _geometry_figure(config: Any, scene: Path, out: Path) -> Optional[str]:
     depth = output.depth[..., 0].cpu().numpy()
     alpha = output.alpha[..., 0].cpu().numpy() > 0.5
     normals = output.normals.cpu().numpy()
-    panels = [_label(view.image.cpu().numpy(), "image")]
+    image = _label(view.image.cpu().numpy(), f"image {view.name}")
+    truth_panels: list[np.ndarray] = []
     limits = None
     rotation = view.viewmat[:3, :3].double().numpy()
-    if "gt" in available_prior_sources(scene):
+    sources = available_prior_sources(scene)
+    as_prior = " = prior" if config.priors == "gt" else ""
+    truth = None
+    if "gt" in sources:
         truth = load_prior_maps(scene, "gt", view.name, size=(view.width, view.height), world_to_camera_rotation=rotation)
         if truth.depth is not None:
             valid = truth.mask & (truth.depth > 0)
             limits = (float(np.percentile(truth.depth[valid], 2)), float(np.percentile(truth.depth[valid], 98)))
-            panels.append(_label(colorize_depth(truth.depth, truth.mask, limits), "true depth"))
+            truth_panels.append(_label(colorize_depth(truth.depth, truth.mask, limits), "true depth" + as_prior))
         if truth.normal is not None:
-            panels.append(_label(colorize_normals(truth.normal, truth.mask), "true normals"))
+            truth_panels.append(_label(colorize_normals(truth.normal, truth.mask), "true normals" + as_prior))
     rendered = [_label(colorize_depth(depth, alpha, limits), "ESGS depth"),
                 _label(colorize_normals(normals, alpha), "ESGS normals")]
-    rows = [_hstack(panels), _hstack(rendered)]
-    if config.priors != "gt" and config.priors in available_prior_sources(scene):
+    rows = [_hstack([image] + truth_panels)]
+    scores: dict[str, dict[str, float]] = {}
+    used = None
+    if config.priors != "gt" and config.priors in sources:
         used = load_prior_maps(scene, config.priors, view.name, size=(view.width, view.height),
                                world_to_camera_rotation=rotation)
-        if used.depth is not None:
-            sparse = colorize_depth(used.depth, used.mask, limits)
-            sparse = cv2.dilate(sparse, np.ones((3, 3), np.uint8))  # make single-pixel samples visible
-            rows[1] = _hstack([rows[1], _label(sparse, f"{config.priors} depth prior (dilated)")])
+        prior = _prior_panels(config, used, depth, alpha, limits)
+        if prior:
+            rows.append(_hstack(prior))
+    rows.append(_hstack(rendered))
     path = out / "geometry.png"
     write_png(path, _vstack(rows))
-    return path.name
+    if truth is not None and truth.depth is not None:
+        if used is not None:
+            scores[f"`{config.priors}` prior"] = geometry_scores(used.depth, used.normal, used.mask, truth.depth,
+                                                                  truth.normal, truth.mask)
+        scores["ESGS rendering"] = geometry_scores(depth, normals, alpha, truth.depth, truth.normal, truth.mask)
+    return path.name, scores
+
+
+def _esgs_terms(config: Any) -> str:
+    """The ESGS switches of the run as words, from its saved config.json (what actually trained)."""
+    try:
+        esgs = json.loads((config.out / "runs" / "esgs" / "config.json").read_text())["esgs"]
+    except (OSError, KeyError, TypeError, json.JSONDecodeError):
+        return "settings unknown"
+    names = (("depth", "depth-prior loss"), ("normal", "normal-prior loss"),
+             ("consistency", "depth-normal consistency loss"), ("gpdfn", "GPDFN"))
+    used = [words for key, words in names if esgs.get(key)]
+    return ", ".join(used) if used else "no ESGS terms"
 
 
 def _is_synthetic(scene: Path) -> bool:
@@ -199,8 +291,13 @@ def write_report(config: Any, scene: Path, runs: dict[str, dict], distances: dic
              f"Synthetic Mars scene `{config.preset}` (seed {config.seed}, {config.views} views at "
              f"{config.width}x{config.height}); {config.iterations} training steps per method on "
              f"{platform.processor() or platform.machine()} ({time.strftime('%Y-%m-%d %H:%M')}). "
-             f"ESGS used the `{config.priors}` priors"
-             f"{' and GPDFN' if config.gpdfn else ''}. Every 8th view (sorted by name) is held out.", ""]
+             f"ESGS used the `{config.priors}` priors ({_esgs_terms(config)}). Every 8th view (sorted by name) "
+             "is held out.", ""]
+    if config.priors == "ndn":
+        lines += ["The `ndn` priors are predicted by the NDN diffusion network with the weights shipped in the "
+                  "package (trained on our synthetic Mars scenes only; see docs/ndn_model_card.md): dense depth "
+                  "known up to scale and shift, which the depth loss aligns to the rendered depth, and camera-frame "
+                  "normals.", ""]
     if config.priors == "sfm" and _is_synthetic(scene):
         lines += ["Note: in a synthetic scene the COLMAP points are sampled on the true surface, so the `sfm` "
                   "prior here is sparse but exact depth; on real images it carries SfM's errors.", ""]
@@ -244,10 +341,22 @@ def write_report(config: Any, scene: Path, runs: dict[str, dict], distances: dic
         lines += ["## One held-out view during ESGS training", "", "![training](report/training_progress.png)", ""]
 
     try:
-        name = _geometry_figure(config, scene, out)
+        name, scores = _geometry_figure(config, scene, out)
         lines += ["## Geometry: priors and rendered depth / normals", "",
-                  "Camera-frame normals are shown as (n + 1) / 2; depth is coloured near = red, far = blue, on the "
-                  "true depth's range.", "", f"![geometry](report/{name})", ""]
+                  "The first held-out view: truth (top), the priors ESGS trained with, and the ESGS run's rendered "
+                  "depth and normals (bottom). Camera-frame normals are shown as (n + 1) / 2; depth is coloured "
+                  "near = red, far = blue, on the true depth's range; a relative prior (ndn) is first aligned to "
+                  "the rendered depth by the scale/shift fit its loss uses.", "", f"![geometry](report/{name})", ""]
+        if scores:
+            lines += ["| on this view, against the truth | AbsRel | delta1 | normal error (deg) | < 11.25 deg |",
+                      "|---|---|---|---|---|"]
+            for label, row in scores.items():
+                within = row.get("normal_within_11_25")
+                lines.append(f"| {label} | {_fmt(row.get('abs_rel'))} | {_fmt(row.get('delta1'), 3)} | "
+                             f"{_fmt(row.get('normal_mean_deg'), 1)} | "
+                             f"{'n/a' if within is None else f'{100 * within:.1f} %'} |")
+            lines += ["", "Depth is scored after a robust scale/shift fit to the true depth (as `esgs ndn eval` "
+                      "scores NDN), over the pixels where both maps have values.", ""]
     except Exception as error:  # noqa: BLE001 - a figure must not sink the whole report
         lines += ["## Geometry", "", f"(figure not made: {error})", ""]
 
@@ -268,8 +377,14 @@ def write_report(config: Any, scene: Path, runs: dict[str, dict], distances: dic
                   f"percentile). Open `{Path(blender['blend']).relative_to(config.out)}` in Blender 5.0 to inspect it.",
                   "", "![heat map](report/heat_map.png)", ""]
 
-    lines += ["## Timings", "", "| stage | seconds |", "|---|---|"]
-    lines += [f"| {key[:-2]} | {value:.0f} |" for key, value in timings.items()]
+    lines += ["## Timings", "", "| stage | wall (s) | CPU (s) |", "|---|---|---|"]
+    for key, value in timings.items():
+        if key.endswith("_cpu_s"):
+            continue
+        cpu = timings.get(key[:-2] + "_cpu_s")
+        lines.append(f"| {key[:-2]} | {value:.0f} | {'n/a' if cpu is None else f'{cpu:.0f}'} |")
+    lines += ["", "CPU time counts every thread of the demo and its child processes (scene rendering, Blender); "
+              "on a busy machine it is the fairer figure.", ""]
     lines += ["", "Reproduce: `make demo` (or `esgs demo --out DIR`); settings in `demo_config.json`.", ""]
     report = config.out / "report.md"
     atomic_write_text(report, "\n".join(lines))
