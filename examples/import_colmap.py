@@ -11,46 +11,20 @@ option of the import (``ColmapImportOptions``) is a flag; ``--help`` lists them.
 from __future__ import annotations
 
 import argparse
-import importlib
-import importlib.util
 import sys
 from pathlib import Path
 
-
-def load_esgs():
-    """The esgs package: installed (pip/editable), enabled as a Blender extension, or this checkout."""
-    try:
-        return importlib.import_module("esgs")
-    except ImportError:
-        pass
-    import bpy
-
-    for name in bpy.context.preferences.addons.keys():
-        if name.split(".")[-1] == "esgs":
-            return importlib.import_module(name)
-    # run from a checkout: the repository root is the package
-    root = Path(__file__).resolve().parents[1]
-    spec = importlib.util.spec_from_file_location("esgs", root / "__init__.py", submodule_search_locations=[str(root)])
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["esgs"] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-def script_arguments() -> list[str]:
-    """Arguments after ``--`` under Blender, else the command line's own."""
-    if "--" in sys.argv:
-        return sys.argv[sys.argv.index("--") + 1:]
-    return [] if Path(sys.argv[0]).name.startswith("blender") else sys.argv[1:]
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # esgs_loader.py, also under blender --python
+from esgs_loader import esgs_module, load_esgs, script_arguments  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
     import bpy
 
     esgs = load_esgs()
-    config = importlib.import_module(esgs.__name__ + ".core.config")
-    errors = importlib.import_module(esgs.__name__ + ".core.errors")
-    colmap_scene = importlib.import_module(esgs.__name__ + ".esgs_addon.colmap_scene")
+    config = esgs_module(esgs, "core.config")
+    errors = esgs_module(esgs, "core.errors")
+    colmap_scene = esgs_module(esgs, "esgs_addon.colmap_scene")
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("scene", type=Path, help="scene folder (images/ + sparse/0) or COLMAP model folder")

@@ -13,15 +13,21 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from pathlib import Path
 
 import cv2
 
-from esgs.core.errors import ESGSError
-from esgs.core.terrain import generate_terrain, list_presets, load_preset, make_camera_rig
-from esgs.core.terrain.preview import overview_image
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # esgs_loader.py
+from esgs_loader import esgs_module, load_esgs  # noqa: E402
 
 
 def main() -> int:
+    esgs = load_esgs()
+    ESGSError = esgs_module(esgs, "core.errors").ESGSError  # noqa: N806 - a class
+    terrain_module = esgs_module(esgs, "core.terrain")
+    generate_terrain, list_presets = terrain_module.generate_terrain, terrain_module.list_presets
+    load_preset, make_camera_rig = terrain_module.load_preset, terrain_module.make_camera_rig
+    overview_image = esgs_module(esgs, "core.terrain.preview").overview_image
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="cratered_plain", choices=list_presets())
     parser.add_argument("--seed", type=int, default=0)

@@ -18,38 +18,13 @@ Without ``--scene`` a tiny synthetic Mars scene (preset ``cratered_plain``, 8 vi
 from __future__ import annotations
 
 import argparse
-import importlib
-import importlib.util
 import json
 import sys
 import time
 from pathlib import Path
 
-
-def load_esgs():
-    """The esgs package: installed (pip/editable), enabled as a Blender extension, or this checkout."""
-    try:
-        return importlib.import_module("esgs")
-    except ImportError:
-        pass
-    import bpy
-
-    for name in bpy.context.preferences.addons.keys():
-        if name.split(".")[-1] == "esgs":
-            return importlib.import_module(name)
-    root = Path(__file__).resolve().parents[1]
-    spec = importlib.util.spec_from_file_location("esgs", root / "__init__.py", submodule_search_locations=[str(root)])
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["esgs"] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-def script_arguments() -> list[str]:
-    """Arguments after ``--`` under Blender, else the command line's own."""
-    if "--" in sys.argv:
-        return sys.argv[sys.argv.index("--") + 1:]
-    return [] if Path(sys.argv[0]).name.startswith("blender") else sys.argv[1:]
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # esgs_loader.py, also under blender --python
+from esgs_loader import esgs_module as module, load_esgs, script_arguments  # noqa: E402
 
 
 def parse(argv: list[str]) -> argparse.Namespace:
@@ -66,10 +41,6 @@ def parse(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--threshold", type=float, default=0.1, help="match distance in metres (default: 0.1)")
     parser.add_argument("--render-size", default="480x270", help="size of the heat-map picture (default: 480x270)")
     return parser.parse_args(argv)
-
-
-def module(esgs, name: str):
-    return importlib.import_module(f"{esgs.__name__}.{name}")
 
 
 def generate_scene(esgs, args: argparse.Namespace) -> Path:
