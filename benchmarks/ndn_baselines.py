@@ -4,7 +4,9 @@ Methods (all scored by ``esgs.core.ndn.infer.score_view``: depth aligned by the 
 scale/shift fit, then AbsRel and delta1; normal mean angular error and share < 11.25 deg;
 over the ground-truth surface pixels of each triple at the working resolution):
 
-- ``ndn:<label>=CHECKPOINT``: the diffusion model, DDIM at its default steps, seed 0 (+ triple index);
+- ``ndn:<label>=CHECKPOINT``: the diffusion model (its weight average when the checkpoint has one), DDIM at
+  its saved steps, seed 0 (+ triple index); ``CHECKPOINT@steps=5,ensemble=3,reduce=median`` overrides the
+  saved sampling settings (an ensemble: the per-pixel median or mean of several samples);
 - ``regression:<label>=CHECKPOINT``: the same network trained with ``--prediction regression``
   (one forward pass);
 - ``sfm``: SIFT + exhaustive matching + triangulation with the known poses (pycolmap) on the
@@ -41,10 +43,20 @@ def scene_shards(data_dir: Path, split: str) -> list[tuple[str, dict]]:
 
 
 def score_network(checkpoint: str, shards: list[tuple[str, dict]]) -> dict[str, list[dict]]:
+    """Scores of a checkpoint (its EMA weights when it has them). ``CHECKPOINT@steps=5,ensemble=3,reduce=median``
+    overrides the sampling settings saved with it."""
     from esgs.core.ndn.infer import evaluate_arrays
     from esgs.core.ndn.train import load_checkpoint
 
+    checkpoint, _, options = checkpoint.partition("@")
     model, diffusion, _, payload = load_checkpoint(checkpoint)
+    names = {"steps": "sample_steps", "ensemble": "sample_ensemble", "reduce": "sample_reduce"}
+    for option in filter(None, options.split(",")):
+        key, _, value = option.partition("=")
+        if key not in names:
+            sys.exit(f"unknown sampling option {key!r} (steps, ensemble, reduce)")
+        setattr(diffusion.config, names[key], value if key == "reduce" else int(value))
+    diffusion.config.validate()
     results, offset = {}, 0
     for scene, arrays in shards:
         # seeds continue across scenes so each triple's noise matches `esgs ndn eval` on the split
@@ -97,7 +109,7 @@ def table(results: dict[str, dict], title: str) -> str:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("data", type=Path, nargs="+", help="data folders (shards/, scenes/)")
-    parser.add_argument("--split", default="heldout")
+    parser.add_argument("--split", default="heldout", help="heldout (default) or validation")
     parser.add_argument("--method", action="append", required=True,
                         help="ndn:LABEL=CHECKPOINT, regression:LABEL=CHECKPOINT or sfm (repeatable)")
     parser.add_argument("--threads", type=int, default=1)

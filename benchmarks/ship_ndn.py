@@ -92,10 +92,11 @@ def cut_slice(data_dir: Path) -> None:
             np.savez_compressed(handle, **{key: np.stack(value) for key, value in parts.items()})
 
 
-def training_facts(checkpoint: Path, step: int) -> dict:
-    """Training time up to ``step`` and the number of training triples, from the run's files."""
+def _stage_facts(checkpoint: Path, step: int) -> dict:
+    """One training run's facts up to ``step``: wall time from its events, CPU time and the
+    validation scores from the checkpoint, its config and where it started from."""
     model_dir = checkpoint.parent.parent
-    facts: dict = {"model_dir": str(model_dir)}
+    facts: dict = {"model_dir": str(model_dir), "to_step": step}
     events = model_dir / "events.jsonl"
     if events.exists():
         times = {}
@@ -106,9 +107,11 @@ def training_facts(checkpoint: Path, step: int) -> dict:
                 continue
             if event.get("stage") == "ndn-train" and event.get("kind") == "progress":
                 times.setdefault(int(event["step"]), float(event["time"]))
-        if 1 in times and step in times:
-            facts["train_seconds"] = round(times[step] - times[1], 1)
-            facts["started"] = datetime.datetime.fromtimestamp(times[1], datetime.timezone.utc).strftime(
+        first = min(times) if times else None
+        if first is not None and step in times:
+            facts["from_step"] = first - 1
+            facts["train_seconds"] = round(times[step] - times[first], 1)
+            facts["started"] = datetime.datetime.fromtimestamp(times[first], datetime.timezone.utc).strftime(
                 "%Y-%m-%d %H:%M UTC")
     config = model_dir / "config.json"
     if config.exists():
@@ -116,15 +119,76 @@ def training_facts(checkpoint: Path, step: int) -> dict:
     summary = model_dir / "train_summary.json"
     if summary.exists():
         facts["train_triples"] = json.loads(summary.read_text()).get("train_triples")
+    if checkpoint.exists():
+        import torch
+
+        payload = torch.load(checkpoint, map_location="cpu", weights_only=True)
+        for key in ("cpu_seconds", "validation", "lineage"):
+            if key in payload:
+                facts[key] = payload[key]
     return facts
 
 
+def training_facts(checkpoint: Path, step: int) -> dict:
+    """The facts of the run that wrote ``checkpoint`` and, for a fine-tune (``--init``), of the
+    runs it started from: ``stages`` lists them oldest first; ``train_seconds`` sums their wall time."""
+    stages = [_stage_facts(checkpoint, step)]
+    while stages[0].get("lineage", {}).get("init_from") or stages[0].get("config", {}).get("init_from"):
+        lineage = stages[0].get("lineage") or stages[0]["config"]
+        stages.insert(0, _stage_facts(Path(lineage["init_from"]), int(lineage["init_step"])))
+    facts = dict(stages[-1])
+    facts["stages"] = stages
+    if all("train_seconds" in stage for stage in stages):
+        facts["train_seconds"] = round(sum(stage["train_seconds"] for stage in stages), 1)
+    facts["started"] = stages[0].get("started")
+    return facts
+
+
+def _schedule(train: dict) -> str:
+    if train.get("lr_schedule", "constant") == "constant":
+        return f"constant lr {train.get('learning_rate')}"
+    warmup = f", {train['warmup_steps']} warm-up steps" if train.get("warmup_steps") else ""
+    return (f"{train['lr_schedule']} lr {train.get('learning_rate')} -> {train.get('min_lr_ratio')} x that{warmup}")
+
+
+def stage_lines(facts: dict) -> list[str]:
+    """One bullet per training run behind the shipped weights."""
+    lines = []
+    for stage in facts["stages"]:
+        train = stage.get("config", {}).get("train", {})
+        ema = train.get("ema_decay", 0.0)
+        start = stage.get("lineage", {}).get("init_step", stage.get("from_step", 0)) or 0
+        cpu = stage.get("cpu_seconds")
+        text = (f"- Steps {start} -> {stage['to_step']} (`{stage['model_dir']}`): AdamW, {_schedule(train)}, "
+                f"batch {train.get('batch_size')}, seed {train.get('seed')}, {train.get('threads')} torch thread(s), "
+                "horizontal flips" + (f", EMA of the weights (decay {ema}, the average is what ships)" if ema else
+                                      ", no weight average"))
+        if stage.get("train_seconds"):
+            text += f"; wall time {stage['train_seconds'] / 3600:.2f} h"
+        if stage.get("started"):
+            text += f" (started {stage['started']})"
+        if cpu:
+            text += (f"; CPU time {cpu['train'] / 3600:.2f} h training + {cpu['validation'] / 3600:.2f} h "
+                     "validation scoring")
+        lines.append(text + ".")
+    return lines
+
+
 def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | None, slice_scores: dict,
-         baselines: dict, data_dir: Path, landform_dir: Path, seconds: float, note: str) -> str:
+         baselines: dict, data_dir: Path, landform_dir: Path, seconds: float, note: str,
+         validation: dict | None = None) -> str:
     config = facts.get("config", {})
     train = config.get("train", {})
     ndn = config.get("ndn", {})
     hours = facts.get("train_seconds")
+    shipped_diffusion = torch_config(weights)
+    last_model = "MODEL" if len(facts["stages"]) == 1 else f"MODEL_FT{len(facts['stages']) - 1}"  # as in the commands
+    sampling_text = (f"DDIM {shipped_diffusion['sample_steps']} steps"
+                     + (f", median of {shipped_diffusion['sample_ensemble']} samples"
+                        if shipped_diffusion.get("sample_ensemble", 1) > 1 and
+                        shipped_diffusion.get("sample_reduce") == "median" else
+                        f", mean of {shipped_diffusion.get('sample_ensemble')} samples"
+                        if shipped_diffusion.get("sample_ensemble", 1) > 1 else ""))
     row = lambda label, s: (f"| {label} | {s['triples']} | " + " | ".join(fmt(k, s[k]) for k in METRICS) + " |")  # noqa: E731
     header = ["| method | triples | AbsRel | delta1 | normal mean error (deg) | < 11.25 deg |", "|---|---|---|---|---|---|"]
     lines = [
@@ -147,13 +211,12 @@ def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | 
         "add layered_outcrop, a preset training never saw."
         + f" Training scenes in the data folder now: {len(list((data_dir / 'shards').glob('train_*.npz')))}"
         f" ({8 * len(list((data_dir / 'shards').glob('train_*.npz')))} triples)." + (f" {note}" if note else ""),
-        f"- Optimiser: AdamW, lr {train.get('learning_rate')}, batch {train.get('batch_size')}, seed "
-        f"{train.get('seed')}, {train.get('threads')} torch thread(s), horizontal flips.",
+        *stage_lines(facts),
         f"- Steps: {step}" + (f"; wall time to this step {hours / 3600:.2f} h" if hours else "")
-        + (f" (run started {facts['started']})" if facts.get("started") else "")
+        + (f" (first run started {facts['started']})" if facts.get("started") else "")
         + " on the shared 2-core CPU machine, under heavy load from other jobs.",
         "",
-        "## Held-out scores (these weights, DDIM 15 steps, seed 0 + triple index)",
+        f"## Held-out scores (these weights, {sampling_text}, seed 0 + triple index)",
         "",
         *header, row("NDN (shipped)", heldout),
         "",
@@ -163,6 +226,19 @@ def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | 
         *[f"| {scene} | " + " | ".join(fmt(k, s[k]) for k in METRICS) + " |"
           for scene, s in heldout["per_scene"].items()],
     ]
+    if validation:
+        lines += ["", f"Validation split (`{data_dir}` shards `validation_*`: training presets, seeds >= 50000, "
+                  "never trained on nor held out; the step to ship is chosen on it, see docs/ndn.md):", "",
+                  *header, row("NDN (shipped)", validation)]
+        picked = facts.get("validation")
+        record = Path(facts["model_dir"]) / "validation.json"
+        if picked and record.exists():
+            best = json.loads(record.read_text())["best"]
+            lines += ["", f"Validation score of this checkpoint at training time: {picked['score']:.3f} over "
+                      f"{picked['triples']} triples (AbsRel / 0.065 + (1 - delta1) / 0.027 + normal error / 20 deg, "
+                      f"EMA weights, DDIM {ndn.get('diffusion', {}).get('sample_steps')} steps; lower is better); the "
+                      f"run's best checkpoint on it: step {best['step']} ({best['score']:.3f}). Every checkpoint's "
+                      f"score: `{record}`."]
     if landform:
         lines += ["", f"Real-mesh views (`{landform_dir}`, mars_landform rendered, never used in training):", "",
                   *header, row("NDN (shipped)", landform)]
@@ -188,9 +264,11 @@ def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | 
         f"esgs ndn build-data --out {data_dir} --scenes {len(list((data_dir / 'shards').glob('train_*.npz')))} --heldout 6 --presets cratered_plain crater_survey_nadir "
         "dune_field rocky_slope navcam_panorama --heldout-presets layered_outcrop --views 8 --resolution 160x90 "
         "--samples 8 --working-size 128 --keep-scenes",
-        f"esgs ndn train {data_dir} --out MODEL --steps {train.get('steps', step)} --batch-size "
-        f"{train.get('batch_size', 8)} --checkpoint-every 100 --threads 1 --seed {train.get('seed', 0)}",
-        f".venv/bin/python benchmarks/ship_ndn.py MODEL/checkpoints/step_{step:07d}.pt --data {data_dir}",
+        *reproduce_train_lines(facts, data_dir),
+        f".venv/bin/python benchmarks/ship_ndn.py {last_model}/checkpoints/step_{step:07d}.pt --data {data_dir}"
+        + (f" --sample-steps {shipped_diffusion['sample_steps']}" if shipped_diffusion["sample_steps"] != 15 else "")
+        + (f" --ensemble {shipped_diffusion['sample_ensemble']} --reduce {shipped_diffusion['sample_reduce']}"
+           if shipped_diffusion.get("sample_ensemble", 1) > 1 else ""),
         f"esgs ndn eval core/ndn/weights/ndn_mars.pt {data_dir}",
         "# the real-mesh set (one scene per rig), and its shards",
         *[f"esgs scene --mesh ../shared/data/mars_landform/terrain.glb --rig {rig} --views 8 --resolution 160x90 "
@@ -210,6 +288,35 @@ def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | 
     return "\n".join(lines)
 
 
+def torch_config(weights: Path) -> dict:
+    """The diffusion settings stored in a weights file (what inference uses)."""
+    import torch
+
+    return torch.load(weights, map_location="cpu", weights_only=True)["config"]["diffusion"]
+
+
+def reproduce_train_lines(facts: dict, data_dir: Path) -> list[str]:
+    """The `esgs ndn train` command of every run behind the weights."""
+    lines, previous = [], None
+    for index, stage in enumerate(facts["stages"]):
+        train = stage.get("config", {}).get("train", {})
+        out = "MODEL" if index == 0 else f"MODEL_FT{index}"
+        command = (f"esgs ndn train {data_dir} --out {out} --steps {train.get('steps', stage['to_step'])} --batch-size "
+                   f"{train.get('batch_size', 8)} --checkpoint-every {train.get('checkpoint_every', 100)} --threads 1 "
+                   f"--seed {train.get('seed', 0)}")
+        if "lr_schedule" in train:
+            command += (f" --learning-rate {train['learning_rate']} --lr-schedule {train['lr_schedule']} "
+                        f"--min-lr-ratio {train['min_lr_ratio']} --warmup-steps {train['warmup_steps']} "
+                        f"--ema-decay {train['ema_decay']} --validation-triples {train['validation_triples']}")
+        else:
+            command += " --lr-schedule constant --ema-decay 0  # (run before schedules and EMA existed)"
+        if previous is not None:
+            command += f" --init {previous}/checkpoints/step_{stage.get('lineage', {}).get('init_step', 0):07d}.pt"
+        lines.append(command)
+        previous = out
+    return lines
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("checkpoint", type=Path, help="MODEL/checkpoints/step_<N>.pt (or weights.pt)")
@@ -221,6 +328,9 @@ def main() -> int:
                         help="the registered Navcam station for docs/images (skipped when absent)")
     parser.add_argument("--note", default=DEFAULT_NOTE, help="how the run used the data (goes into the card)")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--sample-steps", type=int, default=None, help="DDIM steps stored with the shipped weights")
+    parser.add_argument("--ensemble", type=int, default=None, help="samples per view stored with the shipped weights")
+    parser.add_argument("--reduce", choices=("median", "mean"), default=None, help="how the ensemble is combined")
     parser.add_argument("--card-only", action="store_true",
                         help="only rewrite the model card from the scores the last ship saved (e.g. after new "
                              "baseline figures); the checkpoint must be the one shipped")
@@ -240,14 +350,21 @@ def main() -> int:
     facts = training_facts(args.checkpoint, step)
     if args.card_only:
         return rewrite_card(args, step, facts, started)
-    export_weights(args.checkpoint, SHIPPED_WEIGHTS, provenance={
+    sampling = {key: value for key, value in (("sample_steps", args.sample_steps), ("sample_ensemble", args.ensemble),
+                                              ("sample_reduce", args.reduce)) if value is not None}
+    export_weights(args.checkpoint, SHIPPED_WEIGHTS, sampling=sampling, provenance={
         "source": args.checkpoint.name, "step": step, "data": str(args.data),
-        "train_seconds": facts.get("train_seconds"), "train_triples": facts.get("train_triples")})
+        "train_seconds": facts.get("train_seconds"), "train_triples": facts.get("train_triples"),
+        "cpu_seconds": facts.get("cpu_seconds"), "lineage": facts.get("lineage")})
     model, diffusion, _, _ = load_checkpoint(SHIPPED_WEIGHTS)  # score what ships (float16 -> float32)
     print(f"wrote {SHIPPED_WEIGHTS} ({SHIPPED_WEIGHTS.stat().st_size / 1e6:.1f} MB, step {step})", flush=True)
 
     heldout = evaluate_split(model, diffusion, shard_arrays(args.data, "heldout"))
     print("held-out:", json.dumps({k: heldout[k] for k in ("triples", *METRICS)}), flush=True)
+    validation = None
+    if any((args.data / "shards").glob("validation_*.npz")):
+        validation = evaluate_split(model, diffusion, shard_arrays(args.data, "validation"))
+        print("validation:", json.dumps({k: validation[k] for k in ("triples", *METRICS)}), flush=True)
     landform = None
     if (args.landform / "shards").exists():
         landform = evaluate_split(model, diffusion, shard_arrays(args.landform, "heldout"))
@@ -257,7 +374,8 @@ def main() -> int:
         cut_slice(args.data)
     with np.load(SLICE, allow_pickle=False) as arrays:
         slice_arrays = {key: arrays[key] for key in arrays.files}
-    slice_scores = {"weights_sha256": sha256(SHIPPED_WEIGHTS), "step": step, "ddim_steps": diffusion.config.sample_steps, "seed": 0,
+    slice_scores = {"weights_sha256": sha256(SHIPPED_WEIGHTS), "step": step, "ddim_steps": diffusion.config.sample_steps,
+                    "ensemble": diffusion.config.sample_ensemble, "seed": 0,
                     "names": [str(name) for name in slice_arrays["names"]],
                     "scores": mean_scores(evaluate_arrays(model, diffusion, slice_arrays, seed=0))}
     atomic_write_json(SLICE_SCORES, slice_scores)
@@ -271,9 +389,9 @@ def main() -> int:
             print(f"wrote {path}", flush=True)
     baselines = json.loads(args.baselines.read_text()) if args.baselines.exists() else {}
     atomic_write_text(CARD, card(step, facts, SHIPPED_WEIGHTS, heldout, landform, slice_scores, baselines,
-                                 args.data, args.landform, time.time() - started, args.note))
+                                 args.data, args.landform, time.time() - started, args.note, validation))
     atomic_write_json(REPO / "benchmarks" / "results" / "ndn_shipped_scores.json",
-                      {"step": step, "heldout": heldout, "landform": landform,
+                      {"step": step, "heldout": heldout, "landform": landform, "validation": validation,
                        "seconds": round(time.time() - started, 1)})
     print(f"wrote {CARD} and {SLICE_SCORES} in {time.time() - started:.0f} s")
     return 0
@@ -289,7 +407,8 @@ def rewrite_card(args: argparse.Namespace, step: int, facts: dict, started: floa
         sys.exit(f"the shipped weights are not step {step}'s scored ones: run without --card-only")
     baselines = json.loads(args.baselines.read_text()) if args.baselines.exists() else {}
     atomic_write_text(CARD, card(step, facts, SHIPPED_WEIGHTS, saved["heldout"], saved["landform"], slice_scores,
-                                 baselines, args.data, args.landform, saved.get("seconds", 0.0), args.note))
+                                 baselines, args.data, args.landform, saved.get("seconds", 0.0), args.note,
+                                 saved.get("validation")))
     print(f"rewrote {CARD}")
     return 0
 
