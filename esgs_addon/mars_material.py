@@ -45,13 +45,63 @@ def _color_ramp(nodes: bpy.types.Nodes, low: tuple, high: tuple, low_pos: float 
     return ramp
 
 
-def _noise(nodes: bpy.types.Nodes, scale: float, detail: float, roughness: float = 0.55):
+def _noise(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, coordinates, scale: float, detail: float,
+           roughness: float = 0.55):
+    """A 3D noise texture of the vector output ``coordinates``; returns its Fac output."""
     noise = nodes.new("ShaderNodeTexNoise")
     noise.noise_dimensions = "3D"
     noise.inputs["Scale"].default_value = scale
     noise.inputs["Detail"].default_value = detail
     noise.inputs["Roughness"].default_value = roughness
-    return noise
+    links.new(coordinates, noise.inputs["Vector"])
+    return noise.outputs["Fac"]
+
+
+def _map_range(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, value, from_min: float, from_max: float,
+               to_min: float = 0.0, to_max: float = 1.0):
+    """A (clamped, linear) Map Range node of the float output ``value``; returns its Result output."""
+    node = nodes.new("ShaderNodeMapRange")
+    node.inputs["From Min"].default_value = from_min
+    node.inputs["From Max"].default_value = from_max
+    node.inputs["To Min"].default_value = to_min
+    node.inputs["To Max"].default_value = to_max
+    links.new(value, node.inputs["Value"])
+    return node.outputs["Result"]
+
+
+def _multiply(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, value_a, value_b):
+    """The product of two float outputs (a Math node); returns its Value output."""
+    node = nodes.new("ShaderNodeMath")
+    node.operation = "MULTIPLY"
+    links.new(value_a, node.inputs[0])
+    links.new(value_b, node.inputs[1])
+    return node.outputs["Value"]
+
+
+def _color(nodes: bpy.types.Nodes, rgba: tuple):
+    """A constant colour (an RGB node); returns its Color output."""
+    node = nodes.new("ShaderNodeRGB")
+    node.outputs["Color"].default_value = rgba
+    return node.outputs["Color"]
+
+
+def _cover(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, albedo, rgba: tuple, value,
+           from_min: float, from_max: float, most: float):
+    """``albedo`` covered with the colour ``rgba`` (dust, dark sand): not at all where the float
+    output ``value`` is at most ``from_min``, by ``most`` where it is at least ``from_max``."""
+    amount = _map_range(nodes, links, value, from_min, from_max, 0.0, most)
+    return _mix_color(nodes, links, amount, albedo, _color(nodes, rgba))
+
+
+def _modulate(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, albedo, noise, low: float, high: float):
+    """``albedo`` scaled by ``low`` to ``high`` as the noise output ``noise`` goes from 0.3 to 0.7
+    (most of a noise's values): fine texture that keeps close-up views matchable."""
+    gain = _map_range(nodes, links, noise, 0.3, 0.7, low, high)
+    scaled = nodes.new("ShaderNodeVectorMath")
+    scaled.operation = "SCALE"
+    links.new(albedo, scaled.inputs[0])
+    links.new(gain, scaled.inputs["Scale"])
+    return scaled.outputs["Vector"]
 
 
 def _mix_color(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, factor, color_a, color_b):
@@ -86,49 +136,30 @@ def make_terrain_material(name: str = "ESGS Mars terrain") -> bpy.types.Material
     the pattern keeps its size whatever the terrain resolution.
     """
     material, nodes, links, shader = _new_material(name)
-    coords = nodes.new("ShaderNodeTexCoord")
+    coordinates = nodes.new("ShaderNodeTexCoord").outputs["Object"]
 
-    fine = _noise(nodes, scale=2.5, detail=3.0, roughness=0.6)  # pebbles and clods, ~0.4 m
-    coarse = _noise(nodes, scale=0.08, detail=3.0)  # albedo patches, ~10 m
-    grain = _noise(nodes, scale=20.0, detail=1.0, roughness=0.5)  # granules, ~5 cm: texture for matching
-    for noise in (fine, coarse, grain):
-        links.new(coords.outputs["Object"], noise.inputs["Vector"])
+    fine = _noise(nodes, links, coordinates, scale=2.5, detail=3.0, roughness=0.6)  # pebbles and clods, ~0.4 m
+    coarse = _noise(nodes, links, coordinates, scale=0.08, detail=3.0)  # albedo patches, ~10 m
+    # granules, ~5 cm: texture for matching
+    grain = _noise(nodes, links, coordinates, scale=20.0, detail=1.0, roughness=0.5)
 
     sand_ramp = _color_ramp(nodes, _SAND_DARK, _SAND_LIGHT, 0.35, 0.65)
     bedrock_ramp = _color_ramp(nodes, _BEDROCK_DARK, _BEDROCK_LIGHT, 0.3, 0.7)
-    links.new(fine.outputs["Fac"], sand_ramp.inputs["Fac"])
-    links.new(fine.outputs["Fac"], bedrock_ramp.inputs["Fac"])
+    links.new(fine, sand_ramp.inputs["Fac"])
+    links.new(fine, bedrock_ramp.inputs["Fac"])
 
     sand = nodes.new("ShaderNodeAttribute")
     sand.attribute_type = "GEOMETRY"
     sand.attribute_name = SAND_ATTRIBUTE
     ground = _mix_color(nodes, links, sand.outputs["Fac"], bedrock_ramp.outputs["Color"], sand_ramp.outputs["Color"])
-    ground = _add_basaltic_lag(nodes, links, coords.outputs["Object"], sand.outputs["Fac"], ground)
+    ground = _add_basaltic_lag(nodes, links, coordinates, sand.outputs["Fac"], ground)
 
     # bright dust settles in patches; the coarse noise decides where
-    dust_amount = nodes.new("ShaderNodeMapRange")
-    dust_amount.inputs["From Min"].default_value = 0.45
-    dust_amount.inputs["From Max"].default_value = 0.75
-    dust_amount.inputs["To Min"].default_value = 0.0
-    dust_amount.inputs["To Max"].default_value = 0.45
-    links.new(coarse.outputs["Fac"], dust_amount.inputs["Value"])
-    dust = nodes.new("ShaderNodeRGB")
-    dust.outputs["Color"].default_value = _DUST
-    albedo = _mix_color(nodes, links, dust_amount.outputs["Result"], ground, dust.outputs["Color"])
+    albedo = _cover(nodes, links, ground, _DUST, coarse, 0.45, 0.75, most=0.45)
     # granules darken or lighten the albedo by up to ~50 %, so close-up views keep texture
-    grain_gain = nodes.new("ShaderNodeMapRange")
-    grain_gain.inputs["From Min"].default_value = 0.3
-    grain_gain.inputs["From Max"].default_value = 0.7
-    grain_gain.inputs["To Min"].default_value = 0.5
-    grain_gain.inputs["To Max"].default_value = 1.45
-    links.new(grain.outputs["Fac"], grain_gain.inputs["Value"])
-    textured = nodes.new("ShaderNodeVectorMath")
-    textured.operation = "SCALE"
-    links.new(albedo, textured.inputs[0])
-    links.new(grain_gain.outputs["Result"], textured.inputs["Scale"])
-    pebbled = _add_pebbles(nodes, links, coords.outputs["Object"], textured.outputs["Vector"], scale=9.0,
-                           fraction=0.4, radius=0.2)
-    pebbled = _add_pebbles(nodes, links, coords.outputs["Object"], pebbled, scale=2.5, fraction=0.12, radius=0.16)
+    textured = _modulate(nodes, links, albedo, grain, 0.5, 1.45)
+    pebbled = _add_pebbles(nodes, links, coordinates, textured, scale=9.0, fraction=0.4, radius=0.2)
+    pebbled = _add_pebbles(nodes, links, coordinates, pebbled, scale=2.5, fraction=0.12, radius=0.16)
     links.new(pebbled, shader.inputs["Base Color"])
     return material
 
@@ -142,21 +173,10 @@ def _add_basaltic_lag(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, coordi
     from ~0.2 m to a few metres: the blobs and corners a feature matcher needs on sand,
     which otherwise only shades smoothly.
     """
-    patches = _noise(nodes, scale=0.45, detail=6.0, roughness=0.62)  # ~2 m patches with finer lobes
-    links.new(coordinates, patches.inputs["Vector"])
-    edge = nodes.new("ShaderNodeMapRange")
-    edge.inputs["From Min"].default_value = 0.53
-    edge.inputs["From Max"].default_value = 0.57
-    edge.inputs["To Min"].default_value = 0.0
-    edge.inputs["To Max"].default_value = 0.6
-    links.new(patches.outputs["Fac"], edge.inputs["Value"])
-    amount = nodes.new("ShaderNodeMath")
-    amount.operation = "MULTIPLY"
-    links.new(edge.outputs["Result"], amount.inputs[0])
-    links.new(sand_amount, amount.inputs[1])
-    basalt = nodes.new("ShaderNodeRGB")
-    basalt.outputs["Color"].default_value = _BASALTIC_SAND
-    return _mix_color(nodes, links, amount.outputs["Value"], albedo, basalt.outputs["Color"])
+    patches = _noise(nodes, links, coordinates, scale=0.45, detail=6.0, roughness=0.62)  # ~2 m, finer lobes
+    edge = _map_range(nodes, links, patches, 0.53, 0.57, 0.0, 0.6)
+    amount = _multiply(nodes, links, edge, sand_amount)
+    return _mix_color(nodes, links, amount, albedo, _color(nodes, _BASALTIC_SAND))
 
 
 def _add_pebbles(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, coordinates, albedo, scale: float,
@@ -172,63 +192,37 @@ def _add_pebbles(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, coordinates
     cells.feature = "F1"
     cells.inputs["Scale"].default_value = scale
     links.new(coordinates, cells.inputs["Vector"])
-    edge = nodes.new("ShaderNodeMapRange")
-    edge.inputs["From Min"].default_value = radius * 1.3
-    edge.inputs["From Max"].default_value = radius * 0.9
-    links.new(cells.outputs["Distance"], edge.inputs["Value"])
+    edge = _map_range(nodes, links, cells.outputs["Distance"], radius * 1.3, radius * 0.9)
     cell_random = nodes.new("ShaderNodeSeparateColor")
     links.new(cells.outputs["Color"], cell_random.inputs["Color"])
     present = nodes.new("ShaderNodeMath")
     present.operation = "GREATER_THAN"
     present.inputs[1].default_value = 1.0 - fraction
     links.new(cell_random.outputs["Red"], present.inputs[0])
-    amount = nodes.new("ShaderNodeMath")
-    amount.operation = "MULTIPLY"
-    links.new(edge.outputs["Result"], amount.inputs[0])
-    links.new(present.outputs["Value"], amount.inputs[1])
+    amount = _multiply(nodes, links, edge, present.outputs["Value"])
     shade = _color_ramp(nodes, _ROCK_DARK, _DUST, 0.0, 1.0)
     links.new(cell_random.outputs["Green"], shade.inputs["Fac"])
-    return _mix_color(nodes, links, amount.outputs["Value"], albedo, shade.outputs["Color"])
+    return _mix_color(nodes, links, amount, albedo, shade.outputs["Color"])
 
 
 def make_rock_material(name: str = "ESGS Mars rock") -> bpy.types.Material:
     """Dark basaltic rock with mottled albedo and dust on its upward-facing parts."""
     material, nodes, links, shader = _new_material(name)
     shader.inputs["Roughness"].default_value = 0.8
-    coords = nodes.new("ShaderNodeTexCoord")
-    mottling = _noise(nodes, scale=6.0, detail=3.0, roughness=0.65)
-    links.new(coords.outputs["Object"], mottling.inputs["Vector"])
+    coordinates = nodes.new("ShaderNodeTexCoord").outputs["Object"]
+    mottling = _noise(nodes, links, coordinates, scale=6.0, detail=3.0, roughness=0.65)
     rock_ramp = _color_ramp(nodes, _ROCK_DARK, _ROCK_LIGHT, 0.3, 0.75)
-    links.new(mottling.outputs["Fac"], rock_ramp.inputs["Fac"])
+    links.new(mottling, rock_ramp.inputs["Fac"])
 
     # dust on faces that look up: the geometric normal's z, read but never used for shading
     geometry = nodes.new("ShaderNodeNewGeometry")
     up = nodes.new("ShaderNodeSeparateXYZ")
     links.new(geometry.outputs["Normal"], up.inputs["Vector"])
-    dust_amount = nodes.new("ShaderNodeMapRange")
-    dust_amount.inputs["From Min"].default_value = 0.75
-    dust_amount.inputs["From Max"].default_value = 1.0
-    dust_amount.inputs["To Min"].default_value = 0.0
-    dust_amount.inputs["To Max"].default_value = 0.35
-    links.new(up.outputs["Z"], dust_amount.inputs["Value"])
-    dust = nodes.new("ShaderNodeRGB")
-    dust.outputs["Color"].default_value = _DUST
-    albedo = _mix_color(nodes, links, dust_amount.outputs["Result"], rock_ramp.outputs["Color"], dust.outputs["Color"])
+    albedo = _cover(nodes, links, rock_ramp.outputs["Color"], _DUST, up.outputs["Z"], 0.75, 1.0, most=0.35)
     # fine speckle (vesicles, crystals) keeps close-up rock faces textured; coordinates are
     # the unit prototype's, so ~40 per rock diameter
-    speckle = _noise(nodes, scale=40.0, detail=1.0)
-    links.new(coords.outputs["Object"], speckle.inputs["Vector"])
-    speckle_gain = nodes.new("ShaderNodeMapRange")
-    speckle_gain.inputs["From Min"].default_value = 0.3
-    speckle_gain.inputs["From Max"].default_value = 0.7
-    speckle_gain.inputs["To Min"].default_value = 0.6
-    speckle_gain.inputs["To Max"].default_value = 1.4
-    links.new(speckle.outputs["Fac"], speckle_gain.inputs["Value"])
-    textured = nodes.new("ShaderNodeVectorMath")
-    textured.operation = "SCALE"
-    links.new(albedo, textured.inputs[0])
-    links.new(speckle_gain.outputs["Result"], textured.inputs["Scale"])
-    links.new(textured.outputs["Vector"], shader.inputs["Base Color"])
+    speckle = _noise(nodes, links, coordinates, scale=40.0, detail=1.0)
+    links.new(_modulate(nodes, links, albedo, speckle, 0.6, 1.4), shader.inputs["Base Color"])
     return material
 
 
@@ -259,10 +253,7 @@ def make_sky_world(name: str, *, sky: bool, sun_elevation_deg: float = 30.0) -> 
     direction = nodes.new("ShaderNodeSeparateXYZ")
     links.new(coords.outputs["Generated"], direction.inputs["Vector"])
     # elevation z in [-1, 1] -> ramp position in [0, 1]; horizon at 0.5
-    to_ramp = nodes.new("ShaderNodeMapRange")
-    to_ramp.inputs["From Min"].default_value = -1.0
-    to_ramp.inputs["From Max"].default_value = 1.0
-    links.new(direction.outputs["Z"], to_ramp.inputs["Value"])
+    to_ramp = _map_range(nodes, links, direction.outputs["Z"], -1.0, 1.0)
     ramp = nodes.new("ShaderNodeValToRGB")
     elements = ramp.color_ramp.elements
     elements[0].position, elements[0].color = 0.0, (0.16, 0.08, 0.04, 1.0)  # distant ground
@@ -272,7 +263,7 @@ def make_sky_world(name: str, *, sky: bool, sun_elevation_deg: float = 30.0) -> 
                             (0.62, (0.45, 0.28, 0.16, 1.0))):
         element = elements.new(position)
         element.color = color
-    links.new(to_ramp.outputs["Result"], ramp.inputs["Fac"])
+    links.new(to_ramp, ramp.inputs["Fac"])
     links.new(ramp.outputs["Color"], background.inputs["Color"])
     background.inputs["Strength"].default_value = 0.15 + 0.35 * max(0.0, math.sin(math.radians(sun_elevation_deg)))
     return world
