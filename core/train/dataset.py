@@ -182,7 +182,9 @@ def load_scene_data(scene: str | Path, *, images_dir: str = "images", resolution
     folder = scene / images_dir
     if not folder.is_dir():
         raise DatasetError("scene has no image folder", path=folder, hint="COLMAP scenes keep their images in images/")
-    model = read_model(scene)
+    # The project's checked parser gives the same model as pycolmap (tests/core/test_colmap_io.py)
+    # without importing pycolmap (~56 MiB resident) or building its per-point objects.
+    model = read_model(scene, use_pycolmap=False)
     undistorter = _Undistorter()
     images = model.sorted_images()
     if not images:

@@ -39,6 +39,7 @@ from .dataset import SceneData, load_scene_data
 from .densify import DensifyReport, DensifySettings, DensifyState, densify_and_prune, reset_opacity
 from .gaussians import GaussianModel, RenderParams
 from .hooks import StepContext, TrainHook
+from .memory import release_free_memory
 from .losses import LossContext, LossTerm, needed_channels, photometric_terms, total_loss
 from .optim import ExponentialDecay, TrainOptimizer
 from .rendering import backend_device, render_view, resolve_backend
@@ -245,6 +246,8 @@ class Trainer:
             hook.setup(self)
         if checkpoint is not None:
             self._load_state(checkpoint)
+        # loading left ~100 MiB of freed heap (decoded files, the COLMAP model's objects)
+        release_free_memory()
 
     # --- checkpoints ---------------------------------------------------------------
     def _state(self) -> dict:
