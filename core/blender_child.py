@@ -5,7 +5,8 @@ runs ``python -m esgs.esgs_addon.<module> ... --events-stdout`` in a child proce
 prints one line ``ESGS_EVENT <json>`` per progress event and, on a handled failure, one line
 ``ESGS_ERROR {"type": ..., "message": ...}`` before exiting with a non-zero status; every
 other line is Blender's own log. The child side writes these lines with :func:`print_event`
-and :func:`print_error`; the parent side reads them with :func:`run_child`.
+and :func:`print_error` (or :func:`report_error`); the parent side reads them with
+:func:`run_child`.
 """
 from __future__ import annotations
 
@@ -31,6 +32,16 @@ def print_event(event: ProgressEvent) -> None:
 def print_error(error: BaseException) -> None:
     """Child side: write the error line the parent raises again as ``type(error)`` where it can."""
     print(ERROR_PREFIX + json.dumps({"type": type(error).__name__, "message": str(error)}), flush=True)
+
+
+def report_error(error: BaseException, *, program: str, events_stdout: bool) -> int:
+    """Child side: report a handled failure, as the error line for the parent with
+    ``events_stdout``, else as ``"<program>: error: ..."`` on stderr; returns exit status 2."""
+    if events_stdout:
+        print_error(error)
+    else:
+        print(f"{program}: error: {error}", file=sys.stderr)
+    return 2
 
 
 def run_child(command: list[str], progress: ProgressCallback, *, verbose: bool = False,

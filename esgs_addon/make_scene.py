@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from ..core.blender_child import print_error, print_event
+from ..core.blender_child import print_event, report_error
 from ..core.commands.scene import add_arguments, job_from_args
 from ..core.errors import ESGSError
 from ..core.progress import ConsoleProgress, JsonLinesProgress, combine
@@ -71,11 +71,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         job = job_from_args(args)
         out = make_scene(job, args.out, progress=progress, save_blend=args.save_blend)
     except ESGSError as error:
-        if args.events_stdout:
-            print_error(error)
-        else:
-            print(f"make_scene: error: {error}", file=sys.stderr)
-        return 2
+        return report_error(error, program="make_scene", events_stdout=args.events_stdout)
     finally:
         if console is not None:
             console.close()

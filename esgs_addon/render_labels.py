@@ -163,7 +163,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``python -m esgs.esgs_addon.render_labels`` (see the module docstring)."""
-    from ..core.blender_child import print_error, print_event
+    from ..core.blender_child import print_event, report_error
     from ..core.progress import ConsoleProgress
 
     args = build_parser().parse_args(argv)
@@ -181,11 +181,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                       fill=FillOptions(max_hole_fraction=args.max_hole_fraction, edge_radius_px=args.edge_radius_px),
                       metadata=json.loads(args.metadata), progress=emit)
     except ESGSError as error:
-        if args.events_stdout:
-            print_error(error)
-        else:
-            print(f"render_labels: error: {error}", file=sys.stderr)
-        return 2
+        return report_error(error, program="render_labels", events_stdout=args.events_stdout)
     finally:
         if console is not None:
             console.close()

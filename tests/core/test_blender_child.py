@@ -7,7 +7,7 @@ import textwrap
 
 import pytest
 
-from esgs.core.blender_child import run_child
+from esgs.core.blender_child import report_error, run_child
 from esgs.core.errors import ConfigError, DatasetError, ESGSError
 
 # a stand-in for a Blender child: mixes log lines with protocol lines, then exits as asked
@@ -59,3 +59,12 @@ def test_child_dying_without_an_error_line_names_task_and_status():
     with pytest.raises(ESGSError, match=r"label rendering failed \(exit status 3\)") as raised:
         run_child(child_command(status=3), lambda event: None, task="label rendering")
     assert "--verbose" in str(raised.value)
+
+
+def test_report_error_goes_to_the_parent_or_to_the_console(capsys):
+    assert report_error(ConfigError("bad preset"), program="make_scene", events_stdout=False) == 2
+    captured = capsys.readouterr()
+    assert captured.err.strip() == "make_scene: error: bad preset" and captured.out == ""
+    assert report_error(DatasetError("no images"), program="make_scene", events_stdout=True) == 2
+    line = capsys.readouterr().out
+    assert line.startswith("ESGS_ERROR ") and '"type": "DatasetError"' in line and "no images" in line
