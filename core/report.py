@@ -243,6 +243,12 @@ def _geometry_figure(config: Any, scene: Path, out: Path) -> tuple[str, dict[str
             truth_panels.append(_label(colorize_normals(truth.normal, truth.mask), "true normals" + as_prior))
     rendered = [_label(colorize_depth(depth, alpha, limits), "ESGS depth"),
                 _label(colorize_normals(normals, alpha), "ESGS normals")]
+    def titled(title: str, panels: list[np.ndarray]) -> np.ndarray:
+        # a first column naming the row keeps depth under depth and normals under normals
+        block = np.zeros((view.height, view.width, 3), np.uint8)
+        cv2.putText(block, title, (4, view.height // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.4, _WHITE, 1, cv2.LINE_AA)
+        return _hstack([_label(block, "")] + panels)
+
     rows = [_hstack([image] + truth_panels)]
     scores: dict[str, dict[str, float]] = {}
     used = None
@@ -251,8 +257,8 @@ def _geometry_figure(config: Any, scene: Path, out: Path) -> tuple[str, dict[str
                                world_to_camera_rotation=rotation)
         prior = _prior_panels(config, used, depth, alpha, limits)
         if prior:
-            rows.append(_hstack(prior))
-    rows.append(_hstack(rendered))
+            rows.append(titled(f"{config.priors} priors", prior))
+    rows.append(titled("ESGS rendering", rendered))
     path = out / "geometry.png"
     write_png(path, _vstack(rows))
     if truth is not None and truth.depth is not None:
