@@ -28,6 +28,8 @@ from .progress import ProgressCallback, ProgressEvent, no_progress
 
 #: Prior sources the demo can train ESGS with (folders under SCENE/priors/).
 PRIOR_SOURCES = ("ndn", "sfm", "gt")
+#: What an ESGS switch the demo does not set means in a saved run config (the 3DGS baseline's).
+_DEFAULT_ESGS = {"priors": "", "depth": False, "normal": False, "consistency": False, "gpdfn": False}
 
 
 @dataclass
@@ -214,6 +216,7 @@ def train_method(config: DemoConfig, scene: Path, name: str, esgs: dict, progres
     from .train import TrainConfig, train
 
     run = config.out / "runs" / name
+    _check_same_settings(run, esgs, {"iterations": config.iterations, "max_gaussians": config.max_gaussians})
     result_path = run / "train_result.json"
     if result_path.is_file() and json.loads(result_path.read_text()).get("status") in ("completed", "time_limit") \
             and (run / "metrics.json").is_file():
@@ -233,6 +236,28 @@ def train_method(config: DemoConfig, scene: Path, name: str, esgs: dict, progres
 
     train(train_config, progress=relabel, hooks=hooks)
     return _run_summary(run)
+
+
+def _check_same_settings(run: Path, esgs: dict, train: dict) -> None:
+    """Refuse to reuse or resume ``run`` when it was started with other settings.
+
+    A finished run is reused and an unfinished one resumed; either would silently report
+    (or mix) the old settings, e.g. after changing ``--priors`` in the same output folder.
+    """
+    saved_path = run / "config.json"
+    if not saved_path.is_file():
+        return
+    try:
+        saved = json.loads(saved_path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return  # a damaged config: the trainer's own resume check reports it
+    saved_esgs = saved.get("esgs") or {}
+    differences = [f"{key} {saved_esgs.get(key)!r} -> {value!r}" for key, value in esgs.items()
+                   if saved_esgs.get(key, _DEFAULT_ESGS.get(key)) != value]
+    differences += [f"{key} {saved.get(key)!r} -> {value!r}" for key, value in train.items() if saved.get(key) != value]
+    if differences:
+        raise ConfigError(f"{run} holds a run started with other settings ({'; '.join(differences)})", path=run,
+                          hint="choose another --out, or delete that run folder to train it again")
 
 
 def _run_summary(run: Path) -> dict:

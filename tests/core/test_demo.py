@@ -47,6 +47,30 @@ def test_the_command_line_offers_exactly_the_demo_prior_sources():
     assert "ndn, sfm, gt" in result.stderr or "'ndn', 'sfm', 'gt'" in result.stderr
 
 
+def test_a_run_folder_from_other_settings_is_neither_reused_nor_resumed(tmp_path):
+    config = DemoConfig(out=tmp_path, priors="ndn", iterations=1500)
+    run = tmp_path / "runs" / "esgs"
+    run.mkdir(parents=True)
+    saved = {"iterations": 1500, "max_gaussians": config.max_gaussians, "esgs": esgs_settings("sfm")}
+    (run / "config.json").write_text(json.dumps(saved))
+    (run / "train_result.json").write_text(json.dumps({"status": "completed"}))
+    (run / "metrics.json").write_text("{}")
+    with pytest.raises(ConfigError, match=r"normal False -> True") as error:
+        demo.train_method(config, tmp_path / "scene", "esgs", esgs_settings("ndn"), lambda event: None,
+                          snapshots=False)
+    assert "'sfm' -> 'ndn'" in str(error.value) and "another --out" in str(error.value)
+    # the same settings are reused as before (no training: the scene does not even exist)
+    saved["esgs"] = esgs_settings("ndn")
+    (run / "config.json").write_text(json.dumps(saved))
+    events = []
+    summary = demo.train_method(config, tmp_path / "scene", "esgs", esgs_settings("ndn"), events.append,
+                                snapshots=False)
+    assert summary["status"] == "completed" and "reusing finished run" in events[0].message
+    with pytest.raises(ConfigError, match="iterations 1500 -> 300"):
+        demo.train_method(DemoConfig(out=tmp_path, iterations=300), tmp_path / "scene", "esgs",
+                          esgs_settings("ndn"), lambda event: None, snapshots=False)
+
+
 # --- the report's geometry pictures and scores -----------------------------------------
 def _plane_depth(height: int, width: int, focal: float) -> np.ndarray:
     """z depth [H, W] of a plane tilted toward a camera at the origin (about 3 to 6 units)."""
