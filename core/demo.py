@@ -158,9 +158,9 @@ def make_priors(config: DemoConfig, scene: Path, progress: ProgressCallback) -> 
 
         write_sfm_priors(scene, read_model(scene / "sparse" / "0"), progress=progress)
     elif source == "ndn":
-        from .ndn.infer import write_ndn_priors
-
         import torch
+
+        from .ndn.infer import write_ndn_priors
 
         def relabel(event: ProgressEvent) -> None:
             progress(ProgressEvent(event.step, event.total, "ndn priors", dict(event.metrics), event.kind,
@@ -170,7 +170,7 @@ def make_priors(config: DemoConfig, scene: Path, progress: ProgressCallback) -> 
         try:
             if config.threads > 0:
                 torch.set_num_threads(config.threads)
-            write_ndn_priors(scene, progress=relabel)  # the weights shipped in the package
+            write_ndn_priors(scene, progress=relabel)  # the shipped weights, unless $ESGS_NDN_WEIGHTS names others
         finally:
             torch.set_num_threads(threads)
     if not _priors_complete(scene, source):

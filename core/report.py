@@ -281,6 +281,22 @@ def _esgs_terms(config: Any) -> str:
     return ", ".join(used) if used else "no ESGS terms"
 
 
+def _ndn_weights(scene: Path) -> str:
+    """Which NDN weights wrote the scene's ndn priors, from a depth map's EXR header."""
+    from .imageio import read_depth_exr
+    from .ndn.shipped import SHIPPED_WEIGHTS
+
+    maps = sorted((scene / "priors" / "ndn" / "depth").glob("*.exr"))
+    try:
+        weights = read_depth_exr(maps[0])[1].get("weights", "") if maps else ""
+    except Exception:  # noqa: BLE001 - provenance only: an unreadable header must not sink the report
+        weights = ""
+    if weights and Path(weights).resolve() == SHIPPED_WEIGHTS.resolve():
+        return ("the weights shipped in the package, trained on our synthetic Mars scenes only; see "
+                "docs/ndn_model_card.md")
+    return f"weights `{weights}`" if weights else "weights not recorded"
+
+
 def _is_synthetic(scene: Path) -> bool:
     try:
         return json.loads((scene / "scene.json").read_text()).get("source") == "synthetic"
@@ -300,10 +316,9 @@ def write_report(config: Any, scene: Path, runs: dict[str, dict], distances: dic
              f"ESGS used the `{config.priors}` priors ({_esgs_terms(config)}). Every 8th view (sorted by name) "
              "is held out.", ""]
     if config.priors == "ndn":
-        lines += ["The `ndn` priors are predicted by the NDN diffusion network with the weights shipped in the "
-                  "package (trained on our synthetic Mars scenes only; see docs/ndn_model_card.md): dense depth "
-                  "known up to scale and shift, which the depth loss aligns to the rendered depth, and camera-frame "
-                  "normals.", ""]
+        lines += [f"The `ndn` priors are predicted by the NDN diffusion network ({_ndn_weights(scene)}): dense "
+                  "depth known up to scale and shift, which the depth loss aligns to the rendered depth, and "
+                  "camera-frame normals.", ""]
     if config.priors == "sfm" and _is_synthetic(scene):
         lines += ["Note: in a synthetic scene the COLMAP points are sampled on the true surface, so the `sfm` "
                   "prior here is sparse but exact depth; on real images it carries SfM's errors.", ""]

@@ -174,6 +174,7 @@ def test_ndn_priors_come_from_the_shipped_weights_and_are_reused(ndn_scene):
         assert maps.mask.any() and np.allclose(lengths, 1.0, atol=1e-3)
     # the plane is seen from above: the predicted normals face the cameras (negative z)
     assert np.mean(maps.normal[maps.mask][:, 2]) < 0
+    assert report._ndn_weights(scene).startswith("the weights shipped in the package")
     again = []
     demo.make_priors(DemoConfig(out=scene.parent, priors="ndn"), scene, again.append)
     assert [e.kind for e in again] == ["message"] and "reusing" in again[0].message
@@ -233,6 +234,7 @@ def test_tiny_demo_runs_every_stage_and_reuses_finished_work(tmp_path, monkeypat
     report_path = demo.run_demo(config, progress=events.append)
     text = report_path.read_text()
     assert "| ESGS |" in text and "| 3DGS |" in text and "| `ndn` prior |" in text
+    assert "weights shipped in the package" in text
     for name in ("curves.png", "geometry.png", "heat_map.png", "training_progress.png"):
         assert (tmp_path / "demo" / "report" / name).stat().st_size > 0, name
     assert (tmp_path / "demo" / "blender" / "results.blend").is_file()
