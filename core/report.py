@@ -174,7 +174,8 @@ def _prior_panels(config: Any, used: Any, rendered_depth: np.ndarray, rendered_v
 
 
 def geometry_scores(depth: Optional[np.ndarray], normal: Optional[np.ndarray], valid: np.ndarray,
-                    truth_depth: np.ndarray, truth_normal: Optional[np.ndarray], truth_mask: np.ndarray) -> dict[str, float]:
+                    truth_depth: np.ndarray, truth_normal: Optional[np.ndarray],
+                    truth_mask: np.ndarray) -> dict[str, float]:
     """Depth and normal scores of one map pair against the truth, as NDN is scored (docs/ndn.md).
 
     ``depth`` [H, W] (metric or relative: aligned to the truth by the robust scale/shift fit

@@ -50,8 +50,9 @@ def test_a_plain_checkout_is_loaded_as_the_package_when_esgs_is_not_installed():
 
 def test_terrain_preview_writes_its_overview_picture(tmp_path):
     out = tmp_path / "preview.png"
-    result = subprocess.run([sys.executable, str(EXAMPLES / "terrain_preview.py"), "--preset", "dune_field",
-                             "--seed", "3", "--out", str(out)], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    command = [sys.executable, str(EXAMPLES / "terrain_preview.py"), "--preset", "dune_field", "--seed", "3",
+               "--out", str(out)]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     assert "dune_field seed 3" in result.stdout
     from esgs.core.imageio import read_image
