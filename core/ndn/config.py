@@ -91,6 +91,10 @@ class NDNTrainConfig:
     validation_triples: int = field(default=24, metadata={
         "help": "validation triples scored (with the EMA weights) at each checkpoint, evenly spaced over "
                 "DATA's validation split (0 = all; skipped when DATA has no validation shards)"})
+    validation_steps: int = field(default=0, metadata={
+        "help": "DDIM steps of the validation scoring (0 = the model's --sample-steps)"})
+    validation_ensemble: int = field(default=0, metadata={
+        "help": "samples per view of the validation scoring (0 = the model's --sample-ensemble)"})
     init: str = field(default="", metadata={
         "help": "fine-tune: start from this checkpoint's weights and optimiser moments (steps continue from "
                 "its step; the schedule spans from there to --steps); ignored when --resume finds a checkpoint"})
@@ -103,8 +107,8 @@ class NDNTrainConfig:
             raise ConfigError(f"learning_rate must be positive, got {self.learning_rate}")
         if self.lr_schedule not in ("constant", "linear", "cosine"):
             raise ConfigError(f"lr_schedule must be constant, linear or cosine, got {self.lr_schedule!r}")
-        if self.warmup_steps < 0 or self.validation_triples < 0:
-            raise ConfigError("warmup_steps and validation_triples must not be negative")
+        if min(self.warmup_steps, self.validation_triples, self.validation_steps, self.validation_ensemble) < 0:
+            raise ConfigError("warmup_steps and the validation settings must not be negative")
         if not 0.0 <= self.min_lr_ratio <= 1.0:
             raise ConfigError(f"min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
         if not 0.0 <= self.ema_decay < 1.0:

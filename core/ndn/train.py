@@ -346,9 +346,14 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
             name = f"step_{step:07d}.pt"
             if validation is not None:
                 scored = average.averaged_model(model) if average is not None else copy.deepcopy(model).eval()
-                scores = mean_scores(evaluate_arrays(scored, diffusion, validation, seed=0))
+                scores = mean_scores(evaluate_arrays(scored, diffusion, validation, seed=0,
+                                                     steps=train_config.validation_steps or None,
+                                                     ensemble=train_config.validation_ensemble or None))
                 scores["score"] = selection_score(scores)
-                extra["validation"] = {**scores, "triples": int(validation["views"].shape[0])}
+                extra["validation"] = {**scores, "triples": int(validation["views"].shape[0]),
+                                       "ddim_steps": train_config.validation_steps or diffusion.config.sample_steps,
+                                       "ensemble": train_config.validation_ensemble
+                                       or diffusion.config.sample_ensemble}
                 best = _record_validation(out_dir, {"step": step, "checkpoint": name, **extra["validation"]})["best"]
                 progress(ProgressEvent(step, train_config.steps, "ndn-validation", metrics=scores, kind="message",
                                        message=f"validation at step {step}: " + ", ".join(

@@ -182,16 +182,27 @@ def test_resume_restores_weights_average_optimiser_and_schedule_exactly(tmp_path
 def test_validation_scores_every_checkpoint_and_names_the_best(tmp_path):
     data = _data(tmp_path)
     events = []
-    summary = train_ndn(data, tmp_path / "model", _settings(), tiny_config(), progress=events.append)
+    summary = train_ndn(data, tmp_path / "model", _settings(validation_steps=2, validation_ensemble=3), tiny_config(),
+                        progress=events.append)
     record = json.loads((tmp_path / "model/validation.json").read_text())
     assert [entry["step"] for entry in record["checkpoints"]] == [2, 4]
     for entry in record["checkpoints"]:
         assert entry["triples"] == 2 and entry["score"] == pytest.approx(selection_score(entry))
+        assert (entry["ddim_steps"], entry["ensemble"]) == (2, 3)  # the validation's own sampling settings
     assert record["best"] == min(record["checkpoints"], key=lambda entry: entry["score"])
     assert summary["best_validation"] == record["best"]
     assert best_checkpoint(tmp_path / "model") == tmp_path / "model/checkpoints" / record["best"]["checkpoint"]
     payload = torch.load(tmp_path / "model/checkpoints/step_0000002.pt", weights_only=True)
     assert payload["validation"]["score"] == record["checkpoints"][0]["score"]
+    # the scores are those of `evaluate_arrays` on the averaged weights with these settings
+    from esgs.core.ndn.data import load_shards
+    from esgs.core.ndn.infer import evaluate_arrays, mean_scores
+
+    model, diffusion, _, _ = load_checkpoint(tmp_path / "model/checkpoints/step_0000004.pt")
+    arrays = validation_subset(load_shards(data, "validation"), 2)
+    again = mean_scores(evaluate_arrays(model, diffusion, arrays, seed=0, steps=2, ensemble=3))
+    assert again["abs_rel"] == pytest.approx(record["checkpoints"][1]["abs_rel"], abs=1e-6)
+    assert again["normal_mean_deg"] == pytest.approx(record["checkpoints"][1]["normal_mean_deg"], abs=1e-4)
     assert [e.step for e in events if e.stage == "ndn-validation"] == [2, 4]
     # without validation shards nothing is scored (and nothing breaks)
     train_ndn(_data(tmp_path / "plain", validation=False), tmp_path / "plain_model", _settings(steps=2),
