@@ -2,7 +2,12 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
+import signal
+import threading
 from pathlib import Path
+from typing import Iterator
 
 HELP = "compute depth/normal prior maps for a scene (priors/<method>/)"
 
@@ -21,32 +26,70 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "shipped with the package)")
     parser.add_argument("--steps", type=int, default=None, help="ndn: DDIM steps (default: the model's)")
     parser.add_argument("--seed", type=int, default=0, help="ndn: seed of the starting noise")
+    parser.add_argument("--events", type=Path, default=None,
+                        help="also append progress events to this JSON-lines file (what the Blender job runner reads)")
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.method == "ndn":
-        return _run_ndn(args)
+    from ..errors import ESGSError
+    from ..progress import ConsoleProgress, JsonLinesProgress, ProgressEvent, combine
+
+    bar = ConsoleProgress()
+    events = JsonLinesProgress(args.events) if args.events is not None else None
+    progress = combine(bar, events)
+    try:
+        with _sigterm_interrupts():
+            try:
+                count, weights = _run_ndn(args, progress) if args.method == "ndn" else (_run_sfm(args, progress), None)
+            except ESGSError as error:
+                # the job runner shows this message rather than guessing from the console output
+                if events is not None:
+                    events(ProgressEvent(0, 0, f"{args.method} priors", kind="error", message=str(error)))
+                raise
+        line = f"wrote {args.method} priors for {count} views to {args.scene / 'priors' / args.method}"
+        if weights is not None:
+            line += f" (weights: {weights})"
+        if events is not None:
+            events(ProgressEvent(count, count, f"{args.method} priors", kind="done", message=line))
+    finally:
+        bar.close()
+        if events is not None:
+            events.close()
+    print(line)
+    return 0
+
+
+def _run_sfm(args: argparse.Namespace, progress) -> int:
     from ..colmap import read_model
     from ..priors.sfm import write_sfm_priors
-    from ..progress import ConsoleProgress
 
     model = read_model(args.scene)
-    bar = ConsoleProgress()
-    count = write_sfm_priors(args.scene, model, progress=bar, max_error_px=args.max_error_px,
-                             min_track_length=args.min_track_length)
-    bar.close()
-    print(f"wrote {args.method} priors for {count} views to {args.scene / 'priors' / args.method}")
-    return 0
+    return write_sfm_priors(args.scene, model, progress=progress, max_error_px=args.max_error_px,
+                            min_track_length=args.min_track_length)
 
 
-def _run_ndn(args: argparse.Namespace) -> int:
+def _run_ndn(args: argparse.Namespace, progress) -> tuple[int, Path]:
     from ..ndn.infer import write_ndn_priors
     from ..ndn.shipped import resolve_default_weights
-    from ..progress import ConsoleProgress
 
     weights = resolve_default_weights(args.weights)
-    bar = ConsoleProgress()
-    count = write_ndn_priors(args.scene, weights, steps=args.steps, seed=args.seed, progress=bar)
-    bar.close()
-    print(f"wrote ndn priors for {count} views to {args.scene / 'priors' / 'ndn'} (weights: {weights})")
-    return 0
+    count = write_ndn_priors(args.scene, weights, steps=args.steps, seed=args.seed, progress=progress)
+    return count, weights
+
+
+@contextlib.contextmanager
+def _sigterm_interrupts() -> Iterator[None]:
+    """Turn SIGTERM (a cancel from Blender's job runner) into KeyboardInterrupt, so the writers'
+    clean-up runs (staging folders removed, the previous priors kept) before the process ends."""
+    if os.name == "nt" or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)

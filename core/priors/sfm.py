@@ -1,13 +1,17 @@
 """Sparse SfM depth priors: each view's triangulated COLMAP points, projected into it."""
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from ..colmap import ColmapModel
 from ..progress import ProgressCallback, ProgressEvent, no_progress
-from .io import write_prior_maps
+from ..io_utils import atomic_directory
+from .io import prior_dir, write_prior_maps
 
 
 def sparse_depth_map(model: ColmapModel, image_id: int, *, max_error_px: float = 2.0,
@@ -48,11 +52,24 @@ def sparse_depth_map(model: ColmapModel, image_id: int, *, max_error_px: float =
 
 def write_sfm_priors(scene_dir: str | Path, model: ColmapModel, progress: ProgressCallback = no_progress,
                      **options) -> int:
-    """Write ``priors/sfm/depth`` and ``mask`` for every registered image; returns the count."""
+    """Write ``priors/sfm/depth`` and ``mask`` for every registered image; returns the count.
+
+    The maps are written to a staging folder that replaces ``priors/sfm`` only when every view
+    is done, so a failure or an interrupt keeps the previous priors (or leaves none).
+    """
+    scene_dir = Path(scene_dir)
     images = model.sorted_images()
-    for index, image in enumerate(images):
-        depth = sparse_depth_map(model, image.image_id, **options)
-        write_prior_maps(scene_dir, "sfm", image.name, depth=depth, mask=depth > 0, units="sfm",
-                         metadata={"note": "sparse: projected COLMAP points"})
-        progress(ProgressEvent(step=index + 1, total=len(images), stage="sfm priors"))
+    (scene_dir / "priors").mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=".sfm.work.", dir=scene_dir / "priors"))
+    try:
+        prior_dir(work, "sfm").mkdir(parents=True)
+        for index, image in enumerate(images):
+            depth = sparse_depth_map(model, image.image_id, **options)
+            write_prior_maps(work, "sfm", image.name, depth=depth, mask=depth > 0, units="sfm",
+                             metadata={"note": "sparse: projected COLMAP points"})
+            progress(ProgressEvent(step=index + 1, total=len(images), stage="sfm priors"))
+        with atomic_directory(prior_dir(scene_dir, "sfm"), overwrite=True) as staging:
+            os.replace(prior_dir(work, "sfm"), staging)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
     return len(images)
