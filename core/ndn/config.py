@@ -95,6 +95,8 @@ class NDNTrainConfig:
         "help": "DDIM steps of the validation scoring (0 = the model's --sample-steps)"})
     validation_ensemble: int = field(default=0, metadata={
         "help": "samples per view of the validation scoring (0 = the model's --sample-ensemble)"})
+    validation_reduce: str = field(default="", metadata={
+        "help": "how the validation ensemble is combined: median or mean ('' = the model's --sample-reduce)"})
     init: str = field(default="", metadata={
         "help": "fine-tune: start from this checkpoint's weights and optimiser moments (steps continue from "
                 "its step; the schedule spans from there to --steps); ignored when --resume finds a checkpoint"})
@@ -109,6 +111,8 @@ class NDNTrainConfig:
             raise ConfigError(f"lr_schedule must be constant, linear or cosine, got {self.lr_schedule!r}")
         if min(self.warmup_steps, self.validation_triples, self.validation_steps, self.validation_ensemble) < 0:
             raise ConfigError("warmup_steps and the validation settings must not be negative")
+        if self.validation_reduce not in ("", "median", "mean"):
+            raise ConfigError(f"validation_reduce must be median, mean or empty, got {self.validation_reduce!r}")
         if not 0.0 <= self.min_lr_ratio <= 1.0:
             raise ConfigError(f"min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
         if not 0.0 <= self.ema_decay < 1.0:

@@ -346,14 +346,18 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
             name = f"step_{step:07d}.pt"
             if validation is not None:
                 scored = average.averaged_model(model) if average is not None else copy.deepcopy(model).eval()
+                reduce = diffusion.config.sample_reduce
+                diffusion.config.sample_reduce = train_config.validation_reduce or reduce
                 scores = mean_scores(evaluate_arrays(scored, diffusion, validation, seed=0,
                                                      steps=train_config.validation_steps or None,
                                                      ensemble=train_config.validation_ensemble or None))
+                extra["validation_reduce"] = diffusion.config.sample_reduce
+                diffusion.config.sample_reduce = reduce  # the model's own setting stays as saved
                 scores["score"] = selection_score(scores)
                 extra["validation"] = {**scores, "triples": int(validation["views"].shape[0]),
                                        "ddim_steps": train_config.validation_steps or diffusion.config.sample_steps,
                                        "ensemble": train_config.validation_ensemble
-                                       or diffusion.config.sample_ensemble}
+                                       or diffusion.config.sample_ensemble, "reduce": extra.pop("validation_reduce")}
                 best = _record_validation(out_dir, {"step": step, "checkpoint": name, **extra["validation"]})["best"]
                 progress(ProgressEvent(step, train_config.steps, "ndn-validation", metrics=scores, kind="message",
                                        message=f"validation at step {step}: " + ", ".join(

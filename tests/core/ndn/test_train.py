@@ -182,13 +182,14 @@ def test_resume_restores_weights_average_optimiser_and_schedule_exactly(tmp_path
 def test_validation_scores_every_checkpoint_and_names_the_best(tmp_path):
     data = _data(tmp_path)
     events = []
-    summary = train_ndn(data, tmp_path / "model", _settings(validation_steps=2, validation_ensemble=3), tiny_config(),
+    summary = train_ndn(data, tmp_path / "model", _settings(validation_steps=2, validation_ensemble=3,
+                                                                  validation_reduce="mean"), tiny_config(),
                         progress=events.append)
     record = json.loads((tmp_path / "model/validation.json").read_text())
     assert [entry["step"] for entry in record["checkpoints"]] == [2, 4]
     for entry in record["checkpoints"]:
         assert entry["triples"] == 2 and entry["score"] == pytest.approx(selection_score(entry))
-        assert (entry["ddim_steps"], entry["ensemble"]) == (2, 3)  # the validation's own sampling settings
+        assert (entry["ddim_steps"], entry["ensemble"], entry["reduce"]) == (2, 3, "mean")  # validation's own settings
     assert record["best"] == min(record["checkpoints"], key=lambda entry: entry["score"])
     assert summary["best_validation"] == record["best"]
     assert best_checkpoint(tmp_path / "model") == tmp_path / "model/checkpoints" / record["best"]["checkpoint"]
@@ -199,6 +200,8 @@ def test_validation_scores_every_checkpoint_and_names_the_best(tmp_path):
     from esgs.core.ndn.infer import evaluate_arrays, mean_scores
 
     model, diffusion, _, _ = load_checkpoint(tmp_path / "model/checkpoints/step_0000004.pt")
+    assert diffusion.config.sample_reduce == "median"  # the saved model's own setting is untouched
+    diffusion.config.sample_reduce = "mean"
     arrays = validation_subset(load_shards(data, "validation"), 2)
     again = mean_scores(evaluate_arrays(model, diffusion, arrays, seed=0, steps=2, ensemble=3))
     assert again["abs_rel"] == pytest.approx(record["checkpoints"][1]["abs_rel"], abs=1e-6)
