@@ -38,13 +38,13 @@ class ESGS_PT_training(ESGSSection, bpy.types.Panel):
         if "--width" in supported:
             column.prop(settings, "width")
         switches = [name for name in ("depth", "normal", "consistency", "gpdfn") if f"--{name}" in supported]
-        if switches or "--priors" in supported:
-            box = column.box()
-            box.label(text="ESGS")
-            for name in switches:
-                box.prop(settings, name)
-            if "--priors" in supported:
-                box.prop(settings, "priors")
+        box = column.box()
+        box.label(text="ESGS")
+        for name in switches:
+            box.prop(settings, name)
+        if "--priors" in supported:
+            box.prop(settings, "priors")
+        _draw_priors(box, context.scene.esgs.priors)
         column.prop(settings, "import_result")
 
         if running:
@@ -74,6 +74,26 @@ class ESGS_PT_training(ESGSSection, bpy.types.Panel):
             box = layout.box()
             for index, line in enumerate(_wrap(settings.error, 48)):
                 box.label(text=line, icon="ERROR" if index == 0 else "NONE")
+
+
+def _draw_priors(layout: bpy.types.UILayout, priors) -> None:
+    """The prior-map computation beside the prior source: method, button, its job's progress."""
+    if priors.status in ("pending", "running"):
+        text = f"{priors.last_method or 'priors'}: {priors.step} / {priors.total} views"
+        row = layout.row(align=True)
+        row.progress(factor=priors.progress, type="BAR", text=text)
+        row.operator("esgs.compute_priors_cancel", text="", icon="CANCEL")
+        return
+    row = layout.row(align=True)
+    row.prop(priors, "method", text="")
+    row.operator("esgs.compute_priors", icon="IMAGE_ZDEPTH")
+    if priors.method == "ndn":
+        layout.prop(priors, "ndn_weights")
+    if priors.error:
+        for index, line in enumerate(_wrap(f"Priors {priors.status}: {priors.error}", 48)):
+            layout.label(text=line, icon="ERROR" if index == 0 else "NONE")
+    elif priors.status == "finished":
+        layout.label(text=f"Priors written: priors/{priors.last_method}", icon="CHECKMARK")
 
 
 def _wrap(text: str, width: int) -> list[str]:

@@ -1,0 +1,233 @@
+"""Prior maps from Blender: run ``esgs priors SCENE --method ndn|sfm`` in a separate process.
+
+NDN inference takes ~1-2 s per view on a CPU and needs torch, which Blender's own Python
+lacks, so the priors are computed by the same kind of child process as training
+(:class:`esgs.core.jobs.TrainingJob`, here with the ``priors`` command and its ``--events``
+progress file). Public entry points (``operators/priors.py`` wraps them):
+
+- :func:`check_scene` - the checks that fail at once, before a process starts;
+- :func:`start_priors` - start the job for a scene folder, non-blocking;
+- :func:`wait_for_priors` - block with console progress (headless: ``blender -b``);
+- :func:`compute_priors` - both: the call a script makes;
+- :func:`start_polling` - the UI path: a timer mirrors the job into ``scene.esgs.priors``.
+
+Both writers replace ``SCENE/priors/<method>`` only when every view is done, and a cancel
+(SIGTERM) lets them remove their staging folders: a failed or cancelled job leaves the
+previous priors, or none.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+import bpy
+
+from ..core import jobs
+from ..core.colmap.io import find_model_dir
+from ..core.errors import CheckpointError, ConfigError, DatasetError, ESGSError
+from ..core.jobs import JobState, TrainingJob
+from . import preferences
+
+METHODS = ("ndn", "sfm")
+#: the weights ``esgs priors --method ndn`` loads when none are named; the same path as
+#: ``core/ndn/shipped.py``'s SHIPPED_WEIGHTS (a test checks), which cannot be imported here
+#: because it imports torch and Blender's Python has none
+SHIPPED_NDN_WEIGHTS = Path(__file__).resolve().parents[1] / "core" / "ndn" / "weights" / "ndn_mars.pt"
+NDN_WEIGHTS_VARIABLE = "ESGS_NDN_WEIGHTS"
+#: Tests replace the command prefix (``[python, script]``) with a fake one.
+COMMAND_OVERRIDE: Optional[list[str]] = None
+POLL_INTERVAL_S = 0.5
+
+
+class PriorsJob(TrainingJob):
+    """``esgs priors SCENE --method M --events FILE [--weights W]`` in a child process.
+
+    The job runner of training (start, progress events, cancel with SIGTERM, failure
+    message) with the priors command line. The events file lives in a temporary folder
+    (``events_dir``), never in the scene folder; :meth:`cleanup` removes it once the job ended.
+    """
+
+    def __init__(self, scene_dir: str | Path, method: str, *, weights: str | Path | None = None,
+                 command: Optional[list[str]] = None, python: Optional[str] = None, threads: int = 0,
+                 on_output: Optional[Callable[[str], None]] = None):
+        if method not in METHODS:
+            raise ConfigError(f"unknown prior method {method!r}", hint=f"choose one of {', '.join(METHODS)}")
+        events_dir = Path(tempfile.mkdtemp(prefix="esgs_priors_"))
+        prefix = list(command) if command else jobs.trainer_command(python)[:-1] + ["priors"]
+        # iterations=1 only until the first event brings the view count
+        super().__init__(scene_dir, events_dir, iterations=1, events_path=events_dir / "events.jsonl",
+                         trainer=prefix, threads=threads, on_output=on_output)
+        self.method = method
+        self.weights = Path(weights) if weights else None
+
+    def command(self, resume: bool = False) -> list[str]:
+        """The full command line the child runs (``resume`` has no meaning here)."""
+        args = [str(self.scene_dir), "--method", self.method, "--events", str(self.events_path)]
+        if self.weights is not None:
+            args += ["--weights", str(self.weights)]
+        return self.trainer + args
+
+    def cleanup(self) -> None:
+        """Remove the temporary events folder (only once the child has ended)."""
+        if not self.running:
+            shutil.rmtree(self.run_dir, ignore_errors=True)
+
+
+def job_key(scene_dir: str | Path) -> str:
+    """One priors job per scene folder (a key apart from the training job's)."""
+    return "priors:" + str(Path(scene_dir).resolve())
+
+
+def default_ndn_weights(weights: str | Path | None = None) -> Path:
+    """What the child will load: ``weights``, else ``$ESGS_NDN_WEIGHTS``, else the shipped file."""
+    if weights:
+        return Path(weights)
+    if os.environ.get(NDN_WEIGHTS_VARIABLE):
+        return Path(os.environ[NDN_WEIGHTS_VARIABLE])
+    return SHIPPED_NDN_WEIGHTS
+
+
+def check_scene(scene_dir: str | Path, method: str, weights: str | Path | None = None) -> None:
+    """Fail at once, in Blender, for what would make the child fail (no process started).
+
+    Raises:
+        DatasetError: the folder, its COLMAP model (sparse/0) or, for ndn, its images/ folder is missing.
+        CheckpointError: ``ndn`` and the weights file or folder does not exist.
+        ConfigError: an unknown method.
+    """
+    if method not in METHODS:
+        raise ConfigError(f"unknown prior method {method!r}", hint=f"choose one of {', '.join(METHODS)}")
+    scene_dir = Path(scene_dir)
+    if not scene_dir.is_dir():
+        raise DatasetError("the scene folder does not exist", path=scene_dir, hint="choose an existing scene folder")
+    # the folders the command reads the model from (sparse/0, sparse, the folder itself);
+    # the error names what is missing
+    find_model_dir(scene_dir)
+    if method == "ndn":
+        if not (scene_dir / "images").is_dir():
+            raise DatasetError("the scene folder has no images/ folder (NDN predicts from the images)",
+                               path=scene_dir, hint="put the views named in the COLMAP model in SCENE/images")
+        path = default_ndn_weights(weights)
+        if not path.exists():
+            raise CheckpointError("NDN weights not found", path=path,
+                                  hint="choose a weights file or model folder, or reinstall the extension "
+                                       "(it ships weights)")
+
+
+def start_priors(scene_dir: str | Path, method: str = "ndn", *, weights: str | Path | None = None,
+                 python: Optional[str] = None, threads: Optional[int] = None,
+                 on_output: Optional[Callable[[str], None]] = None) -> PriorsJob:
+    """Check the scene and start ``esgs priors`` for it in a child process (non-blocking).
+
+    Args:
+        scene_dir: the COLMAP scene folder (images/ + sparse/0); priors go to ``priors/<method>``.
+        method: ``ndn`` (dense relative depth and normals) or ``sfm`` (sparse depth).
+        weights: ndn weights file or model folder (default: ``$ESGS_NDN_WEIGHTS``, else shipped).
+        python: interpreter (default: the add-on preference, then :func:`esgs.core.jobs.find_python`).
+        threads: CPU threads for the child (default: the preference).
+
+    Raises:
+        ESGSError: a check failed (:func:`check_scene`), a priors job is already running for
+            this scene, or the process could not start.
+    """
+    scene_dir = Path(scene_dir)
+    check_scene(scene_dir, method, weights)
+    key = job_key(scene_dir)
+    current = jobs.get_job(key)
+    if current is not None and current.running:
+        raise ESGSError("priors are already being computed for this scene", path=scene_dir,
+                        hint="wait for them or cancel them first")
+    if current is not None:
+        current.cleanup()
+    threads = preferences.trainer_threads() if threads is None else threads
+    command = list(COMMAND_OVERRIDE) if COMMAND_OVERRIDE else None
+    job = PriorsJob(scene_dir, method, weights=weights, command=command,
+                    python=None if command else (python or preferences.trainer_python()), threads=threads,
+                    on_output=on_output)
+    try:
+        return jobs.start_job(key, job)
+    except BaseException:
+        job.cleanup()
+        raise
+
+
+def running_job(scene_dir: str | Path) -> Optional[PriorsJob]:
+    """The priors job of ``scene_dir`` while it runs, else None."""
+    job = jobs.get_job(job_key(scene_dir))
+    return job if job is not None and job.running else None
+
+
+def wait_for_priors(job: PriorsJob, *, report: Callable[[str], None] = print, interval_s: float = 2.0) -> JobState:
+    """Block until ``job`` ends, reporting its progress (one line every ``interval_s``); then
+    remove its events folder."""
+    last = [0.0]
+
+    def show(state: JobState) -> None:
+        now = time.monotonic()
+        if now - last[0] >= interval_s or not state.active:
+            last[0] = now
+            report(f"ESGS priors ({job.method}): {state.summary()}")
+
+    try:
+        return job.wait(on_update=show, poll_s=min(0.5, interval_s))
+    finally:
+        job.cleanup()
+
+
+def compute_priors(scene_dir: str | Path, method: str = "ndn", *, weights: str | Path | None = None,
+                   python: Optional[str] = None, threads: Optional[int] = None,
+                   report: Callable[[str], None] = print) -> JobState:
+    """Compute ``SCENE/priors/<method>`` blocking, with console progress; returns the final
+    state (check ``state.status`` and ``state.error``)."""
+    job = start_priors(scene_dir, method, weights=weights, python=python, threads=threads)
+    return wait_for_priors(job, report=report)
+
+
+# --------------------------------------------------------------------------- UI state
+
+
+def copy_state(settings: Any, state: JobState, scene_dir: str | Path | None = None,
+               method: str | None = None) -> None:
+    """Mirror a job state into ``scene.esgs.priors``."""
+    settings.status = state.status
+    settings.step = state.step
+    settings.total = state.total
+    settings.progress = state.fraction
+    settings.error = state.error
+    if scene_dir is not None:
+        settings.last_scene_dir = str(scene_dir)
+    if method is not None:
+        settings.last_method = method
+
+
+def start_polling(scene_name: str, key: str) -> None:
+    """Follow the priors job of ``key`` with a timer: its state into the scene's
+    ``esgs.priors`` settings and the window manager's progress bar (UI only)."""
+    window_manager = bpy.context.window_manager
+    window_manager.progress_begin(0, 1000)
+
+    def poll() -> Optional[float]:
+        job = jobs.get_job(key)
+        scene = bpy.data.scenes.get(scene_name)
+        if job is None:
+            window_manager.progress_end()
+            return None
+        state = job.state()
+        if scene is not None:
+            copy_state(scene.esgs.priors, state)
+        window_manager.progress_update(int(state.fraction * 1000))
+        for window in getattr(window_manager, "windows", ()):
+            for area in window.screen.areas:
+                if area.type in ("VIEW_3D", "STATUSBAR"):
+                    area.tag_redraw()
+        if state.active:
+            return POLL_INTERVAL_S
+        window_manager.progress_end()
+        job.cleanup()
+        return None
+
+    bpy.app.timers.register(poll, first_interval=POLL_INTERVAL_S, persistent=True)
