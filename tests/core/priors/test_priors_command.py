@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import sys
 
 import numpy as np
 import pytest
@@ -67,3 +68,33 @@ def test_a_failed_sfm_run_keeps_the_previous_priors(scene, monkeypatch):
     after = {p.relative_to(scene): p.read_bytes() for p in (scene / "priors").rglob("*") if p.is_file()}
     assert after == before
     assert [p.name for p in (scene / "priors").iterdir()] == ["sfm"]  # no staging folder left
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+def test_sigterm_becomes_an_interrupt_so_the_writers_clean_up(scene, monkeypatch):
+    """A cancel (SIGTERM) arriving while the maps are written leaves the previous priors."""
+    import os
+    import signal
+
+    from esgs.core.commands.priors import _sigterm_interrupts
+
+    model = read_model(scene)
+    write_sfm_priors(scene, model)
+    before = {p.relative_to(scene): p.read_bytes() for p in (scene / "priors").rglob("*") if p.is_file()}
+    original, calls = sfm.sparse_depth_map, []
+
+    def cancelled_midway(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            os.kill(os.getpid(), signal.SIGTERM)  # what TrainingJob.cancel sends
+        return 2 * original(*args, **kwargs)
+
+    monkeypatch.setattr(sfm, "sparse_depth_map", cancelled_midway)
+    previous = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(KeyboardInterrupt):
+        with _sigterm_interrupts():
+            write_sfm_priors(scene, model)
+    assert signal.getsignal(signal.SIGTERM) is previous
+    assert len(calls) == 3
+    after = {p.relative_to(scene): p.read_bytes() for p in (scene / "priors").rglob("*") if p.is_file()}
+    assert after == before and [p.name for p in (scene / "priors").iterdir()] == ["sfm"]
