@@ -6,6 +6,8 @@ real command: SfM priors on a synthetic COLMAP model, NDN priors with a tiny net
 """
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 
@@ -73,13 +75,13 @@ def test_headless_operator_writes_sfm_priors(sfm_scene, monkeypatch):
     for image in model.sorted_images()[:2]:
         maps = load_prior_maps(sfm_scene, "sfm", image.name)
         np.testing.assert_array_equal(maps.depth, sparse_depth_map(model, image.image_id))
+        assert maps.mask.sum() == np.count_nonzero(maps.depth) > 0
     assert [p.name for p in (sfm_scene / "priors").iterdir()] == ["sfm"]  # no staging folder left
     assert not started[0].events_path.parent.exists()  # the temporary events folder is gone
 
 
 def test_headless_operator_writes_ndn_priors_like_the_library_call(ndn_scene, tmp_path):
     from esgs.core.ndn.infer import write_ndn_priors
-    import shutil
 
     scene, weights = ndn_scene
     gt_before = _files(scene / "priors" / "gt")
