@@ -212,9 +212,10 @@ class _FusionCore(torch.autograd.Function):
             grad_head_bias.add_(grad_block.sum(0))
             grad_summary = grad_block @ head_weight  # [B, H]
             stack = second.view(fused, rows, hidden)
-            # softmax backward, [K, B]: d score_k = p_k (h_k . g' - summary . g')
+            # softmax backward, [K, B]: d score_k = p_k (h_k . g' - summary . g'), where
+            # summary . g' = sum_k p_k (h_k . g') as summary = sum_k p_k h_k
             along = (stack * grad_summary).sum(2)
-            grad_scores = attention * (along - (summary * grad_summary).sum(1))
+            grad_scores = attention * (along - (attention * along).sum(0))
             grad_attention_weight.addmv_(second.t(), grad_scores.view(-1))
             grad_attention_bias.add_(grad_scores.sum())
             # d h_k = p_k g' + d score_k * attention_weight, then through the second ReLU
