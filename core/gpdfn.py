@@ -275,18 +275,20 @@ class GPDFN(nn.Module):
     # ----------------------------------------------------------------------------------
     def gaussian_features(self, means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
                           opacity_logits: torch.Tensor, sh_dc: torch.Tensor,
-                          coordinates: Optional[torch.Tensor] = None) -> torch.Tensor:
+                          coordinates: Optional[torch.Tensor] = None, unit_quats: bool = False) -> torch.Tensor:
         """[N, 14] normalised parameter vectors (positions in voxel units inside the voxel).
 
         ``coordinates`` [N, 3]: the voxel of each Gaussian when already known (the voxel table's).
+        ``unit_quats``: ``quats`` are already ``q / max(|q|, 1e-12)`` (the renderer's), not normalised again.
         """
         voxel = self.voxel_size
         if coordinates is None:
             coordinates = torch.floor(means.detach() / voxel)
         local = means / voxel - coordinates.to(means.dtype) - 0.5
-        unit_quats = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        if not unit_quats:
+            quats = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         relative_scale = log_scales - torch.log(torch.tensor(voxel, dtype=means.dtype))
-        return torch.cat([local, relative_scale, unit_quats, opacity_logits.reshape(-1, 1), sh_dc], dim=-1)
+        return torch.cat([local, relative_scale, quats, opacity_logits.reshape(-1, 1), sh_dc], dim=-1)
 
     def voxel_table(self, means: torch.Tensor) -> VoxelTable:
         """The voxel table of ``means`` [N, 3], reusing the last one when no Gaussian changed voxel."""
@@ -311,12 +313,14 @@ class GPDFN(nn.Module):
         return index, weight
 
     def forward(self, means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
-                opacity_logits: torch.Tensor, sh_dc: torch.Tensor) -> dict[str, torch.Tensor]:
+                opacity_logits: torch.Tensor, sh_dc: torch.Tensor, unit_quats: bool = False) -> dict[str, torch.Tensor]:
         """Residuals for the rendering parameters.
 
         Inputs: means [N,3], log_scales [N,3], quats [N,4] (wxyz), opacity_logits [N],
         sh_dc [N,3]. Returns {"sh_dc": [N,3], "opacity_logits": [N], "log_scales": [N,3]}
         to ADD to the Gaussians' own parameters (all zero when disabled or at initialisation).
+        ``unit_quats``: ``quats`` are already normalised as ``q / max(|q|, 1e-12)`` (the trainer
+        hook passes the renderer's, so a step normalises once; same values and gradients).
         """
         count = means.shape[0]
         if not self.enabled or count == 0:
@@ -325,7 +329,8 @@ class GPDFN(nn.Module):
         if self.voxel_size <= 0:
             self.voxel_size = automatic_voxel_size(means)
         table = self.voxel_table(means)
-        features = self.gaussian_features(means, log_scales, quats, opacity_logits, sh_dc, table.coordinates)
+        features = self.gaussian_features(means, log_scales, quats, opacity_logits, sh_dc, table.coordinates,
+                                          unit_quats)
         voxels = table.counts.shape[0]
         per_voxel = table.counts.unsqueeze(1)
         voxel_features = features.new_zeros(voxels, features.shape[1]).index_add_(0, table.inverse, features)

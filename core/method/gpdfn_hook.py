@@ -16,12 +16,20 @@ from ..train.hooks import StepContext, TrainHook
 from .config import ESGSConfig
 
 
+def gpdfn_residuals(module: GPDFN, gaussians: Any, params: Any) -> dict[str, torch.Tensor]:
+    """GPDFN's residuals for ``gaussians`` (raw parameters) given their activated ``params``.
+
+    The rotations come from ``params.quats``, the renderer's unit quaternions
+    (``GaussianModel.render_params``), so a step normalises them once, not twice.
+    """
+    raw = gaussians.params
+    return module(raw["means"], raw["log_scales"], params.quats, raw["opacity_logit"].reshape(-1),
+                  raw["sh_dc"].reshape(-1, 3), unit_quats=True)
+
+
 def fused_render_params(module: GPDFN, gaussians: Any, params: Any) -> Any:
     """Apply GPDFN residuals to activated rendering parameters (a new RenderParams)."""
-    raw = gaussians.params
-    residual = module(raw["means"], raw["log_scales"], raw["quats"], raw["opacity_logit"].reshape(-1),
-                      raw["sh_dc"].reshape(-1, 3))
-    return apply_residuals(gaussians, params, residual)
+    return apply_residuals(gaussians, params, gpdfn_residuals(module, gaussians, params))
 
 
 def apply_residuals(gaussians: Any, params: Any, residual: dict[str, torch.Tensor]) -> Any:
@@ -62,9 +70,7 @@ class GPDFNHook(TrainHook):
             return params
         if self.every > 1 and self._cached is not None and context.step % self.every != 0:
             return apply_residuals(trainer.gaussians, params, self._cached)
-        raw = trainer.gaussians.params
-        residual = self.module(raw["means"], raw["log_scales"], raw["quats"], raw["opacity_logit"].reshape(-1),
-                               raw["sh_dc"].reshape(-1, 3))
+        residual = gpdfn_residuals(self.module, trainer.gaussians, params)
         if self.every > 1:
             self._cached = {name: value.detach() for name, value in residual.items()}
         return apply_residuals(trainer.gaussians, params, residual)

@@ -273,3 +273,49 @@ def test_hook_every_k_steps_reuses_detached_residuals_until_the_set_changes():
     assert GPDFNHook(ESGSConfig(gpdfn=True)).every == 1
     with pytest.raises(ConfigError, match="every"):
         ESGSConfig(gpdfn=True, gpdfn_every=0).validate()
+
+
+def test_unit_quaternions_from_the_renderer_give_the_same_outputs_and_gradients():
+    torch.manual_seed(6)
+    params = {name: value.double() for name, value in _gaussians(count=300).items()}
+    params["quats"][:3] *= 1e-14  # below the 1e-12 clamp: both paths divide by the clamp
+    module = GPDFN(GPDFNConfig(fused_k=3)).double()
+    for parameter in module.parameters():
+        torch.nn.init.normal_(parameter, std=0.3)
+
+    def via_renderer(means, log_scales, quats, opacity_logits, sh_dc):
+        unit = torch.nn.functional.normalize(quats, dim=-1)  # GaussianModel.unit_quats
+        return module(means, log_scales, unit, opacity_logits, sh_dc, unit_quats=True)
+
+    plain, plain_gradients = _outputs_and_gradients(module, params, module)
+    shared, shared_gradients = _outputs_and_gradients(via_renderer, params, module)
+    for name in plain:
+        torch.testing.assert_close(shared[name], plain[name], rtol=1e-12, atol=1e-14)
+    names = list(params) + [name for name, _ in module.named_parameters()]
+    for name, a, b in zip(names, shared_gradients, plain_gradients):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11, msg=f"gradient of {name}")
+
+
+def test_hook_residuals_equal_the_module_on_raw_parameters():
+    from esgs.core.method.gpdfn_hook import fused_render_params
+    from esgs.core.train.gaussians import GaussianModel
+
+    params = _gaussians(count=200)
+    model = GaussianModel.from_tensors(means=params["means"], sh_dc=params["sh_dc"][:, None, :],
+                                       sh_rest=torch.zeros(200, 3, 3), opacity_logit=params["opacity_logits"],
+                                       log_scales=params["log_scales"], quats=params["quats"], max_sh_degree=1)
+    torch.manual_seed(1)
+    module = GPDFN(GPDFNConfig(fused_k=3))
+    for parameter in module.parameters():
+        torch.nn.init.normal_(parameter, std=0.3)
+    raw = model.params
+    fused = fused_render_params(module, model, model.render_params(1))
+    residual = module(raw["means"], raw["log_scales"], raw["quats"], raw["opacity_logit"], raw["sh_dc"].reshape(-1, 3))
+    torch.testing.assert_close(fused.scales, torch.exp(raw["log_scales"] + residual["log_scales"]))
+    torch.testing.assert_close(fused.opacities, torch.sigmoid(raw["opacity_logit"] + residual["opacity_logits"]))
+    torch.testing.assert_close(fused.colors[:, 0], raw["sh_dc"][:, 0] + residual["sh_dc"])
+    loss = fused.colors.sum() + fused.opacities.sum() + fused.scales.sum()
+    gradient = torch.autograd.grad(loss, raw["quats"])[0]
+    expected = torch.autograd.grad(residual["sh_dc"].sum() + torch.sigmoid(raw["opacity_logit"] + residual["opacity_logits"]).sum()
+                                   + torch.exp(raw["log_scales"] + residual["log_scales"]).sum(), raw["quats"])[0]
+    torch.testing.assert_close(gradient, expected, rtol=1e-4, atol=1e-6)
