@@ -120,8 +120,9 @@ FUSION_BLOCK = 4096
 
 
 def _fusion_forward_block(own, voxel_projection, index, weight, bias1, weight2, bias2, attention_weight,
-                          attention_bias, head_weight, head_bias):
-    """One block of :class:`_FusionCore`'s forward -> (result [B, O], first, second, attention, summary).
+                          attention_bias, summary):
+    """One block of :class:`_FusionCore`'s forward up to the attention-weighted ``summary`` [B, H]
+    (written in place) -> (first, second, attention).
 
     Layout is entry-major, ``[K, B, H]`` (row k = 0 the Gaussian itself), so that every
     per-entry slice is contiguous and the softmax runs over the leading axis (a softmax
@@ -141,11 +142,10 @@ def _fusion_forward_block(own, voxel_projection, index, weight, bias1, weight2, 
     stack = second.view(fused, count, hidden)
     scores = (torch.mv(second, attention_weight) + attention_bias).view(fused, count)
     attention = torch.softmax(scores, dim=0)  # [K, B]
-    summary = stack[0] * attention[0].unsqueeze(1)
+    torch.mul(stack[0], attention[0].unsqueeze(1), out=summary)
     for k in range(1, fused):
         summary.addcmul_(stack[k], attention[k].unsqueeze(1))
-    result = torch.addmm(head_bias, summary, head_weight.t())
-    return result, first, second, attention, summary
+    return first, second, attention
 
 
 class _FusionCore(torch.autograd.Function):
@@ -159,8 +159,8 @@ class _FusionCore(torch.autograd.Function):
     gathered rows. The Gaussians go through in blocks of :data:`FUSION_BLOCK` (each block's
     temporaries stay in the CPU cache); the forward keeps each block's activations when a
     gradient is needed and the backward differentiates block by block by hand (recomputing
-    them instead measured ~5-10 % slower). Weight gradients are summed block by block in a
-    fixed order: deterministic.
+    them instead measured ~5-10 % slower). The linear head runs once on the summaries of all
+    blocks. Weight gradients are summed block by block in a fixed order: deterministic.
 
     Inputs: own [N, H] (first layer of the Gaussian's own entry, bias included),
     voxel_projection [V, H], index [K-1, N] int64 (clamped to valid ids), weight [K-1, N]
@@ -172,25 +172,26 @@ class _FusionCore(torch.autograd.Function):
     @staticmethod
     def forward(ctx, own, voxel_projection, index, weight, bias1, weight2, bias2, attention_weight, attention_bias,
                 head_weight, head_bias):
-        count = own.shape[0]
-        result = own.new_empty(count, head_weight.shape[0])
+        count, hidden = own.shape
         parameters = (bias1, weight2, bias2, attention_weight, attention_bias, head_weight, head_bias)
+        # the attention-weighted summaries of all blocks in one tensor, so the linear head is one
+        # matrix product (and its gradients two) instead of one per block
+        summaries = own.new_empty(count, hidden)
         saved = []
         keep = any(ctx.needs_input_grad)
         for start in range(0, count, FUSION_BLOCK):
             block = slice(start, start + FUSION_BLOCK)
             outputs = _fusion_forward_block(own[block], voxel_projection, index[:, block], weight[:, block],
-                                            *parameters)
-            result[block] = outputs[0]
+                                            *parameters[:5], summaries[block])
             if keep:
-                saved.append(outputs[1:])
+                saved.append(outputs)
         ctx.blocks = saved
-        ctx.save_for_backward(own, voxel_projection, index, weight, *parameters)
-        return result
+        ctx.save_for_backward(own, voxel_projection, index, weight, summaries, *parameters)
+        return torch.addmm(head_bias, summaries, head_weight.t())
 
     @staticmethod
     def backward(ctx, grad_result):
-        own, voxel_projection, index, weight, *parameters = ctx.saved_tensors
+        own, voxel_projection, index, weight, summaries, *parameters = ctx.saved_tensors
         bias1, weight2, bias2, attention_weight, attention_bias, head_weight, head_bias = parameters
         count, hidden = own.shape
         fused = index.shape[0] + 1
@@ -201,16 +202,16 @@ class _FusionCore(torch.autograd.Function):
         grads = [torch.zeros_like(p) for p in parameters]
         grad_bias1, grad_weight2, grad_bias2, grad_attention_weight, grad_attention_bias, grad_head_weight, \
             grad_head_bias = grads
+        grad_head_weight.addmm_(grad_result.t(), summaries)
+        grad_head_bias.add_(grad_result.sum(0))
+        grad_summaries = grad_result @ head_weight  # [N, H]
         for start in range(0, count, FUSION_BLOCK):
             block = slice(start, start + FUSION_BLOCK)
             block_weight = weight[:, block]
-            first, second, attention, summary = ctx.blocks[start // FUSION_BLOCK]
+            first, second, attention = ctx.blocks[start // FUSION_BLOCK]
             block_index = index[:, block].reshape(-1)
-            rows = summary.shape[0]
-            grad_block = grad_result[block]
-            grad_head_weight.addmm_(grad_block.t(), summary)
-            grad_head_bias.add_(grad_block.sum(0))
-            grad_summary = grad_block @ head_weight  # [B, H]
+            rows = attention.shape[1]
+            grad_summary = grad_summaries[block]  # [B, H]
             stack = second.view(fused, rows, hidden)
             # softmax backward, [K, B]: d score_k = p_k (h_k . g' - summary . g'), where
             # summary . g' = sum_k p_k (h_k . g') as summary = sum_k p_k h_k
