@@ -183,6 +183,35 @@ def _row_span(dy, b, inverse_a, a_level, conic_det, mean_x, x_first, x_stop, hal
     return start, stop
 
 
+@njit(cache=True, inline="always")
+def _tile_bounds(tile, tiles_x, tile_size, width, height):
+    """Pixels [x0, x1) x [y0, y1) of tile number ``tile`` (row-major), clipped to the image."""
+    tile_y = tile // tiles_x
+    tile_x = tile - tile_y * tiles_x
+    x0 = tile_x * tile_size
+    y0 = tile_y * tile_size
+    return x0, y0, min(x0 + tile_size, width), min(y0 + tile_size, height)
+
+
+@njit(cache=True, inline="always")
+def _footprint(boxes, g, x0, y0, x1, y1):
+    """Rows [row_first, row_stop) and columns [col_first, col_stop) of pair ``g``'s box inside
+    the tile [x0, x1) x [y0, y1) (empty ranges when they do not meet)."""
+    return max(boxes[g, 2], y0), min(boxes[g, 3] + 1, y1), max(boxes[g, 0], x0), min(boxes[g, 1] + 1, x1)
+
+
+@njit(cache=True, inline="always")
+def _splat(splats, g, one):
+    """Pair ``g``'s mean x, y, conic a, b, c, opacity and level, then what :func:`_row_span`
+    needs per Gaussian: 1 / a, a level and a c - b^2."""
+    a = splats[g, S_CONIC_A]
+    b = splats[g, S_CONIC_B]
+    c = splats[g, S_CONIC_C]
+    q_max = splats[g, S_LEVEL]
+    return (splats[g, S_MEAN_X], splats[g, S_MEAN_Y], a, b, c, splats[g, S_OPACITY], q_max,
+            one / a, a * q_max, a * c - b * b)
+
+
 @njit(cache=True, parallel=True)
 def composite_forward(tile_order, tile_start, tiles_x, tile_size, centres_x, centres_y,
                       splats, boxes, features, constants,
@@ -201,19 +230,11 @@ def composite_forward(tile_order, tile_start, tiles_x, tile_size, centres_x, cen
     alpha_max = constants[C_ALPHA_MAX]
     t_min = constants[C_T_MIN]
     slack = constants[C_SLACK]
-    zero = one - one
-    height = out_features.shape[0]
-    width = out_features.shape[1]
-    channels = out_features.shape[2]
+    height, width, channels = out_features.shape
     tile_pixels = tile_size * tile_size
     for i in prange(tile_order.shape[0]):
         tile = tile_order[i]
-        tile_y = tile // tiles_x
-        tile_x = tile - tile_y * tiles_x
-        x0 = tile_x * tile_size
-        y0 = tile_y * tile_size
-        x1 = min(x0 + tile_size, width)
-        y1 = min(y0 + tile_size, height)
+        x0, y0, x1, y1 = _tile_bounds(tile, tiles_x, tile_size, width, height)
         start = tile_start[tile]
         end = tile_start[tile + 1]
         transmittance = np.ones(tile_pixels, dtype=features.dtype)
@@ -223,20 +244,8 @@ def composite_forward(tile_order, tile_start, tiles_x, tile_size, centres_x, cen
         evaluations = 0
         for k in range(start, end):
             g = k
-            row_first = max(boxes[g, 2], y0)
-            row_stop = min(boxes[g, 3] + 1, y1)
-            col_first = max(boxes[g, 0], x0)
-            col_stop = min(boxes[g, 1] + 1, x1)
-            mx = splats[g, S_MEAN_X]
-            my = splats[g, S_MEAN_Y]
-            a = splats[g, S_CONIC_A]
-            b = splats[g, S_CONIC_B]
-            c = splats[g, S_CONIC_C]
-            o = splats[g, S_OPACITY]
-            q_max = splats[g, S_LEVEL]
-            inverse_a = one / a
-            a_level = a * q_max
-            conic_det = a * c - b * b
+            row_first, row_stop, col_first, col_stop = _footprint(boxes, g, x0, y0, x1, y1)
+            mx, my, a, b, c, o, q_max, inverse_a, a_level, conic_det = _splat(splats, g, one)
             for y in range(row_first, row_stop):
                 dy = centres_y[y] - my
                 xa, xb = _row_span(dy, b, inverse_a, a_level, conic_det, mx, col_first, col_stop, half, slack)
@@ -296,18 +305,11 @@ def composite_backward(tile_order, tile_start, tiles_x, tile_size, centres_x, ce
     alpha_max = constants[C_ALPHA_MAX]
     slack = constants[C_SLACK]
     zero = one - one
-    height = grad_features.shape[0]
-    width = grad_features.shape[1]
-    channels = grad_features.shape[2]
+    height, width, channels = grad_features.shape
     tile_pixels = tile_size * tile_size
     for i in prange(tile_order.shape[0]):
         tile = tile_order[i]
-        tile_y = tile // tiles_x
-        tile_x = tile - tile_y * tiles_x
-        x0 = tile_x * tile_size
-        y0 = tile_y * tile_size
-        x1 = min(x0 + tile_size, width)
-        y1 = min(y0 + tile_size, height)
+        x0, y0, x1, y1 = _tile_bounds(tile, tiles_x, tile_size, width, height)
         start = tile_start[tile]
         end = tile_start[tile + 1]
         if end == start:
@@ -332,20 +334,8 @@ def composite_backward(tile_order, tile_start, tiles_x, tile_size, centres_x, ce
         grad_feature_sum = np.zeros(channels, dtype=features.dtype)
         for k in range(end - 1, start - 1, -1):
             g = k
-            row_first = max(boxes[g, 2], y0)
-            row_stop = min(boxes[g, 3] + 1, y1)
-            col_first = max(boxes[g, 0], x0)
-            col_stop = min(boxes[g, 1] + 1, x1)
-            mx = splats[g, S_MEAN_X]
-            my = splats[g, S_MEAN_Y]
-            a = splats[g, S_CONIC_A]
-            b = splats[g, S_CONIC_B]
-            c = splats[g, S_CONIC_C]
-            o = splats[g, S_OPACITY]
-            q_max = splats[g, S_LEVEL]
-            inverse_a = one / a
-            a_level = a * q_max
-            conic_det = a * c - b * b
+            row_first, row_stop, col_first, col_stop = _footprint(boxes, g, x0, y0, x1, y1)
+            mx, my, a, b, c, o, q_max, inverse_a, a_level, conic_det = _splat(splats, g, one)
             g_mx = zero
             g_my = zero
             g_a = zero

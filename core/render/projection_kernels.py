@@ -49,6 +49,22 @@ def _shortest_axis(scales, n):
     return best
 
 
+@njit(cache=True, inline="always")
+def _intrinsics(Ks, cam):
+    """fx, fy, cx, cy of camera ``cam`` (Ks [C, 3, 3]) in float64."""
+    return np.float64(Ks[cam, 0, 0]), np.float64(Ks[cam, 1, 1]), np.float64(Ks[cam, 0, 2]), np.float64(Ks[cam, 1, 2])
+
+
+@njit(cache=True, inline="always")
+def _camera_point(view, means, n):
+    """Mean ``n`` (means [N, 3]) in the frame of the world-to-camera ``view`` [4, 4], float64 [3]."""
+    p = np.empty(3)
+    for i in range(3):
+        p[i] = (np.float64(view[i, 0]) * means[n, 0] + np.float64(view[i, 1]) * means[n, 1]
+                + np.float64(view[i, 2]) * means[n, 2] + np.float64(view[i, 3]))
+    return p
+
+
 @njit(cache=True, parallel=True)
 def project_forward(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane,
                     dilation, antialiased, margin, need_normals,
@@ -62,14 +78,8 @@ def project_forward(means, quats, scales, opacities, viewmats, Ks, width, height
         shortest = _shortest_axis(scales, n)
         for cam in range(cameras):
             view = viewmats[cam]
-            fx = np.float64(Ks[cam, 0, 0])
-            fy = np.float64(Ks[cam, 1, 1])
-            cx = np.float64(Ks[cam, 0, 2])
-            cy = np.float64(Ks[cam, 1, 2])
-            p = np.empty(3)
-            for i in range(3):
-                p[i] = (np.float64(view[i, 0]) * means[n, 0] + np.float64(view[i, 1]) * means[n, 1]
-                        + np.float64(view[i, 2]) * means[n, 2] + np.float64(view[i, 3]))
+            fx, fy, cx, cy = _intrinsics(Ks, cam)
+            p = _camera_point(view, means, n)
             valid = p[2] > near_plane and p[2] < far_plane
             depth = p[2] if valid else 1.0
             inv_depth = 1.0 / depth
@@ -139,14 +149,8 @@ def project_backward(means, quats, scales, opacities, viewmats, Ks, width, heigh
         g_opacity = 0.0
         for cam in range(cameras):
             view = viewmats[cam]
-            fx = np.float64(Ks[cam, 0, 0])
-            fy = np.float64(Ks[cam, 1, 1])
-            cx = np.float64(Ks[cam, 0, 2])
-            cy = np.float64(Ks[cam, 1, 2])
-            p = np.empty(3)
-            for i in range(3):
-                p[i] = (np.float64(view[i, 0]) * means[n, 0] + np.float64(view[i, 1]) * means[n, 1]
-                        + np.float64(view[i, 2]) * means[n, 2] + np.float64(view[i, 3]))
+            fx, fy, cx, cy = _intrinsics(Ks, cam)
+            p = _camera_point(view, means, n)
             in_range = p[2] > near_plane and p[2] < far_plane
             g_p = np.zeros(3)
             g_p[2] = np.float64(grad_depths[cam, n])
