@@ -107,3 +107,12 @@ def test_an_ensemble_combines_the_samples_of_each_view():
         NDNDiffusionConfig(sample_ensemble=0).validate()
     with pytest.raises(ConfigError, match="sample_reduce"):
         NDNDiffusionConfig(sample_reduce="mode").validate()
+
+
+def test_an_ensemble_samples_fewer_views_per_batch():
+    from esgs.core.ndn.diffusion import GaussianDiffusion
+    from esgs.core.ndn.infer import views_per_batch
+
+    assert views_per_batch(4, GaussianDiffusion(NDNDiffusionConfig())) == 4
+    assert views_per_batch(4, GaussianDiffusion(NDNDiffusionConfig(sample_ensemble=5))) == 1
+    assert views_per_batch(8, GaussianDiffusion(NDNDiffusionConfig(sample_ensemble=3))) == 2
