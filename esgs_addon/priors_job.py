@@ -40,7 +40,6 @@ SHIPPED_NDN_WEIGHTS = Path(__file__).resolve().parents[1] / "core" / "ndn" / "we
 NDN_WEIGHTS_VARIABLE = "ESGS_NDN_WEIGHTS"
 #: Tests replace the command prefix (``[python, script]``) with a fake one.
 COMMAND_OVERRIDE: Optional[list[str]] = None
-POLL_INTERVAL_S = 0.5
 
 
 class PriorsJob(TrainingJob):
@@ -207,27 +206,7 @@ def copy_state(settings: Any, state: JobState, scene_dir: str | Path | None = No
 def start_polling(scene_name: str, key: str) -> None:
     """Follow the priors job of ``key`` with a timer: its state into the scene's
     ``esgs.priors`` settings and the window manager's progress bar (UI only)."""
-    window_manager = bpy.context.window_manager
-    window_manager.progress_begin(0, 1000)
+    from .training_job import follow_job
 
-    def poll() -> Optional[float]:
-        job = jobs.get_job(key)
-        scene = bpy.data.scenes.get(scene_name)
-        if job is None:
-            window_manager.progress_end()
-            return None
-        state = job.state()
-        if scene is not None:
-            copy_state(scene.esgs.priors, state)
-        window_manager.progress_update(int(state.fraction * 1000))
-        for window in getattr(window_manager, "windows", ()):
-            for area in window.screen.areas:
-                if area.type in ("VIEW_3D", "STATUSBAR"):
-                    area.tag_redraw()
-        if state.active:
-            return POLL_INTERVAL_S
-        window_manager.progress_end()
-        job.cleanup()
-        return None
-
-    bpy.app.timers.register(poll, first_interval=POLL_INTERVAL_S, persistent=True)
+    follow_job(scene_name, key, lambda scene, state: copy_state(scene.esgs.priors, state),
+               lambda scene, job, state: job.cleanup())

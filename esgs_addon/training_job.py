@@ -252,9 +252,11 @@ def _redraw_views() -> None:
                 area.tag_redraw()
 
 
-def start_polling(scene_name: str, key: str, import_result: bool = True) -> None:
-    """Follow the job of ``key`` with a timer: state into the scene's settings, the window
-    manager's progress bar, and the result imported at the end (UI only)."""
+def follow_job(scene_name: str, key: str, on_state: Callable[[Any, Any], None],
+               on_end: Optional[Callable[[Any, Any, Any], None]] = None) -> None:
+    """Follow the background job of ``key`` with a timer (UI only): each poll passes the scene
+    (or None once it is gone) and the job's state to ``on_state`` and moves the window
+    manager's progress bar; when the job ends, ``on_end(scene, job, state)`` runs once."""
     window_manager = bpy.context.window_manager
     window_manager.progress_begin(0, 1000)
 
@@ -266,22 +268,34 @@ def start_polling(scene_name: str, key: str, import_result: bool = True) -> None
             return None
         state = job.state()
         if scene is not None:
-            copy_state(scene.esgs.training, state)
+            on_state(scene, state)
         window_manager.progress_update(int(state.fraction * 1000))
         _redraw_views()
         if state.active:
             return POLL_INTERVAL_S
         window_manager.progress_end()
-        if scene is not None and state.status == jobs.FINISHED and import_result:
-            # timers run without a window in the context; operators used by the import
-            # (point-cloud conversion) want one
-            windows = list(getattr(window_manager, "windows", ()))
-            override = bpy.context.temp_override(window=windows[0]) if windows else contextlib.nullcontext()
-            try:
-                with override:
-                    import_run_result(job.run_dir, scene=scene, scene_dir=job.scene_dir)
-            except Exception as error:  # noqa: BLE001 - a timer must not raise; show it instead
-                scene.esgs.training.error = f"training finished but importing failed: {error}"
+        if on_end is not None:
+            on_end(scene, job, state)
         return None
 
     bpy.app.timers.register(poll, first_interval=POLL_INTERVAL_S, persistent=True)
+
+
+def start_polling(scene_name: str, key: str, import_result: bool = True) -> None:
+    """Follow the training job of ``key``: state into the scene's settings, the window
+    manager's progress bar, and the result imported at the end (UI only)."""
+
+    def import_at_end(scene: Any, job: Any, state: Any) -> None:
+        if scene is None or state.status != jobs.FINISHED or not import_result:
+            return
+        # timers run without a window in the context; operators used by the import
+        # (point-cloud conversion) want one
+        windows = list(getattr(bpy.context.window_manager, "windows", ()))
+        override = bpy.context.temp_override(window=windows[0]) if windows else contextlib.nullcontext()
+        try:
+            with override:
+                import_run_result(job.run_dir, scene=scene, scene_dir=job.scene_dir)
+        except Exception as error:  # noqa: BLE001 - a timer must not raise; show it instead
+            scene.esgs.training.error = f"training finished but importing failed: {error}"
+
+    follow_job(scene_name, key, lambda scene, state: copy_state(scene.esgs.training, state), import_at_end)
