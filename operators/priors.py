@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import bpy
 
-from ..core import jobs
 from ..core.errors import ESGSError
 from ..esgs_addon import priors_job, training_job
+from ._blocking import finish_headless_job
 
 
 def _scene_dir(context):
@@ -49,13 +49,10 @@ class ESGS_OT_compute_priors(bpy.types.Operator):
             self.report({"INFO"}, f"Computing {settings.method} priors into {target}")
             return {"FINISHED"}
         # headless: timers never fire, so follow the job here, printing progress
-        state = priors_job.wait_for_priors(job)
-        priors_job.copy_state(settings, state)
-        if state.status != jobs.FINISHED:
-            self.report({"ERROR"}, f"Priors {state.status}: {state.error or 'see the console'}")
-            return {"CANCELLED"}
-        self.report({"INFO"}, f"Wrote {settings.method} priors for {state.total} views to {target}")
-        return {"FINISHED"}
+        method = settings.method
+        return finish_headless_job(
+            self, job, settings, wait=priors_job.wait_for_priors, copy_state=priors_job.copy_state, name="Priors",
+            success_message=lambda state: f"Wrote {method} priors for {state.total} views to {target}")
 
 
 class ESGS_OT_compute_priors_cancel(bpy.types.Operator):

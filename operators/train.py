@@ -6,6 +6,7 @@ import bpy
 from ..core import jobs
 from ..core.errors import ESGSError
 from ..esgs_addon import training_job
+from ._blocking import finish_headless_job
 
 #: the ESGS switches of the panel, passed only when the installed trainer has them
 SWITCHES = ("depth", "normal", "consistency", "gpdfn")
@@ -44,20 +45,16 @@ def _run(operator, context, resume: bool) -> set[str]:
         operator.report({"INFO"}, f"Training started: {job.run_dir}")
         return {"FINISHED"}
     # headless: timers never fire, so follow the job here, printing progress
-    state = training_job.wait_for_training(job)
-    training_job.copy_state(settings, state)
-    if state.status != jobs.FINISHED:
-        operator.report({"ERROR"}, f"Training {state.status}: {state.error or 'see the console'}")
-        return {"CANCELLED"}
-    if settings.import_result:
-        try:
-            obj = training_job.import_run_result(job.run_dir, scene=context.scene, scene_dir=job.scene_dir)
-        except ESGSError as error:
-            operator.report({"ERROR"}, f"Training finished but importing failed: {error}")
-            return {"CANCELLED"}
+
+    def import_result(state) -> None:
+        obj = training_job.import_run_result(job.run_dir, scene=context.scene, scene_dir=job.scene_dir)
         context.view_layer.objects.active = obj
-    operator.report({"INFO"}, f"Training finished: {job.run_dir}")
-    return {"FINISHED"}
+
+    return finish_headless_job(
+        operator, job, settings, wait=training_job.wait_for_training, copy_state=training_job.copy_state,
+        name="Training", success_message=lambda state: f"Training finished: {job.run_dir}",
+        after_success=import_result if settings.import_result else None,
+        after_success_failure="Training finished but importing failed")
 
 
 class ESGS_OT_train(bpy.types.Operator):

@@ -1,5 +1,6 @@
 """The shared frame of blocking operators (operators/_blocking.py): the result, the reports,
-and Blender's progress indicator opened, driven and closed on success and on failure."""
+and Blender's progress indicator opened, driven and closed on success and on failure; the
+headless end of background jobs (finish_headless_job) on its three branches."""
 from __future__ import annotations
 
 from types import SimpleNamespace
@@ -7,9 +8,11 @@ from types import SimpleNamespace
 import bpy
 import pytest
 
+from esgs.core import jobs
 from esgs.core.errors import ConfigError
+from esgs.core.jobs import JobState
 from esgs.core.progress import ProgressEvent
-from esgs.operators._blocking import BlockingJobOperator
+from esgs.operators._blocking import BlockingJobOperator, finish_headless_job
 
 
 class RecordingWindowManager:
@@ -94,3 +97,62 @@ def test_as_a_registered_operator():
             bpy.ops.esgs.test_blocking_job(fail=True)
     finally:
         bpy.utils.unregister_class(ESGS_OT_test_blocking_job)
+
+
+# --------------------------------------------------------------------------- finish_headless_job
+
+
+class Reporter:
+    def __init__(self):
+        self.reports: list[tuple[set[str], str]] = []
+
+    def report(self, kind, message):
+        self.reports.append((kind, message))
+
+
+def finish(state: JobState, **kwargs):
+    """Run finish_headless_job on a job whose wait returns ``state``; settings record the copy."""
+    operator, settings, waited = Reporter(), SimpleNamespace(copied=None), []
+
+    def wait(job):
+        waited.append(job)
+        return state
+
+    def copy_state(target, final):
+        target.copied = final
+
+    result = finish_headless_job(operator, "the job", settings, wait=wait, copy_state=copy_state, name="Work",
+                                 success_message=lambda final: f"did {final.total} things", **kwargs)
+    assert waited == ["the job"]
+    assert settings.copied is state  # the final state reaches the settings on every branch
+    return result, operator.reports
+
+
+def test_headless_job_success_reports_the_message():
+    after = []
+    result, reports = finish(JobState(status=jobs.FINISHED, step=7, total=7), after_success=after.append)
+    assert result == {"FINISHED"}
+    assert reports == [({"INFO"}, "did 7 things")]
+    assert [state.total for state in after] == [7]
+
+
+@pytest.mark.parametrize("status, error, shown", [
+    (jobs.FAILED, "out of memory", "Work failed: out of memory"),
+    (jobs.CANCELLED, "", "Work cancelled: see the console"),
+])
+def test_headless_job_that_did_not_finish_is_an_error(status, error, shown):
+    after = []
+    result, reports = finish(JobState(status=status, error=error), after_success=after.append)
+    assert result == {"CANCELLED"}
+    assert reports == [({"ERROR"}, shown)]
+    assert after == []  # nothing is imported from a run that did not finish
+
+
+def test_headless_job_whose_after_step_fails_is_an_error():
+    def broken_import(state):
+        raise ConfigError("the PLY has no vertices")
+
+    result, reports = finish(JobState(status=jobs.FINISHED), after_success=broken_import,
+                             after_success_failure="Work finished but importing failed")
+    assert result == {"CANCELLED"}
+    assert reports == [({"ERROR"}, "Work finished but importing failed: the PLY has no vertices")]
