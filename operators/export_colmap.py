@@ -5,6 +5,7 @@ import bpy
 
 from ..core.errors import ESGSError
 from ..esgs_addon.colmap_scene import export_cameras_to_colmap
+from ._menu import menu_hooks
 
 
 class ESGS_OT_export_colmap(bpy.types.Operator):
@@ -42,16 +43,5 @@ class ESGS_OT_export_colmap(bpy.types.Operator):
         return {"FINISHED"}
 
 
-def menu_entry(self, context):
-    self.layout.operator(ESGS_OT_export_colmap.bl_idname, text="COLMAP Cameras (ESGS)")
-
-
 CLASSES = (ESGS_OT_export_colmap,)
-
-
-def register_hooks() -> None:
-    bpy.types.TOPBAR_MT_file_export.append(menu_entry)
-
-
-def unregister_hooks() -> None:
-    bpy.types.TOPBAR_MT_file_export.remove(menu_entry)
+register_hooks, unregister_hooks = menu_hooks("TOPBAR_MT_file_export", ESGS_OT_export_colmap, "COLMAP Cameras (ESGS)")

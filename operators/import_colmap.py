@@ -6,6 +6,7 @@ import bpy
 from ..core.errors import ESGSError
 from ..esgs_addon.colmap_scene import import_colmap_scene
 from ..esgs_addon.settings_colmap_import import options_from_properties
+from ._menu import menu_hooks
 
 
 class ESGS_OT_import_colmap(bpy.types.Operator):
@@ -62,16 +63,5 @@ def show_textures_in_solid_view(context) -> None:
                 shading.color_type = "TEXTURE"
 
 
-def menu_entry(self, context):
-    self.layout.operator(ESGS_OT_import_colmap.bl_idname, text="COLMAP Scene (ESGS)")
-
-
 CLASSES = (ESGS_OT_import_colmap,)
-
-
-def register_hooks() -> None:
-    bpy.types.TOPBAR_MT_file_import.append(menu_entry)
-
-
-def unregister_hooks() -> None:
-    bpy.types.TOPBAR_MT_file_import.remove(menu_entry)
+register_hooks, unregister_hooks = menu_hooks("TOPBAR_MT_file_import", ESGS_OT_import_colmap, "COLMAP Scene (ESGS)")

@@ -6,6 +6,7 @@ from bpy_extras.io_utils import ImportHelper
 
 from ..core.errors import ESGSError
 from ..esgs_addon.gaussians_import import import_gaussians
+from ._menu import menu_hooks
 
 
 class ESGS_OT_import_gaussians(bpy.types.Operator, ImportHelper):
@@ -39,16 +40,5 @@ class ESGS_OT_import_gaussians(bpy.types.Operator, ImportHelper):
         return {"FINISHED"}
 
 
-def menu_entry(self, context):
-    self.layout.operator(ESGS_OT_import_gaussians.bl_idname, text="Gaussian Splats (.ply, ESGS)")
-
-
 CLASSES = (ESGS_OT_import_gaussians,)
-
-
-def register_hooks() -> None:
-    bpy.types.TOPBAR_MT_file_import.append(menu_entry)
-
-
-def unregister_hooks() -> None:
-    bpy.types.TOPBAR_MT_file_import.remove(menu_entry)
+register_hooks, unregister_hooks = menu_hooks("TOPBAR_MT_file_import", ESGS_OT_import_gaussians, "Gaussian Splats (.ply, ESGS)")
