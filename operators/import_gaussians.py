@@ -41,4 +41,5 @@ class ESGS_OT_import_gaussians(bpy.types.Operator, ImportHelper):
 
 
 CLASSES = (ESGS_OT_import_gaussians,)
-register_hooks, unregister_hooks = menu_hooks("TOPBAR_MT_file_import", ESGS_OT_import_gaussians, "Gaussian Splats (.ply, ESGS)")
+register_hooks, unregister_hooks = menu_hooks("TOPBAR_MT_file_import", ESGS_OT_import_gaussians,
+                                              "Gaussian Splats (.ply, ESGS)")
