@@ -7,7 +7,7 @@ from ._section import ESGSSection
 
 from ..core.errors import ESGSError
 from ..core.jobs import format_duration
-from ..esgs_addon import training_job
+from ..esgs_addon import interrupted_jobs, training_job
 
 ORDER = 110  # after the import panel
 
@@ -66,7 +66,7 @@ class ESGS_PT_training(ESGSSection, bpy.types.Panel):
 
         row = layout.row(align=True)
         row.operator("esgs.train", icon="PLAY")
-        if settings.last_run_dir and settings.status in ("cancelled", "failed"):
+        if settings.last_run_dir and settings.status in ("cancelled", "failed", interrupted_jobs.INTERRUPTED):
             row.operator("esgs.train_resume", icon="FILE_REFRESH")
         if settings.status:
             layout.label(text=f"Last run: {settings.status}", icon="CHECKMARK" if settings.status == "finished" else "INFO")
