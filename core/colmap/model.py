@@ -102,6 +102,25 @@ class ColmapModel:
         """Images sorted by name (the order 3DGS uses for its train/test split)."""
         return sorted(self.images.values(), key=lambda image: image.name)
 
+    def observed_points(self, image_id: int, *, max_error_px: float = 2.0,
+                        min_track_length: int = 2) -> tuple[np.ndarray, np.ndarray]:
+        """The 3D points image ``image_id`` observes: (xyz [M,3] float64 world, keypoints [M,2] pixels).
+
+        Only points with reprojection error <= ``max_error_px`` and a track of at least
+        ``min_track_length`` images count (single-view or badly fitted points are noise).
+        """
+        image = self.images[image_id]
+        xyz, keypoints = [], []
+        for keypoint, point_id in zip(image.points2d, image.point3d_ids):
+            point = self.points.get(int(point_id)) if point_id >= 0 else None
+            if point is None or point.error > max_error_px or point.track_length < min_track_length:
+                continue
+            xyz.append(point.xyz)
+            keypoints.append(keypoint)
+        if not xyz:
+            return np.zeros((0, 3)), np.zeros((0, 2))
+        return np.asarray(xyz, dtype=np.float64), np.asarray(keypoints, dtype=np.float64)
+
     def points_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(xyz [P,3] float64, rgb [P,3] uint8, error [P] float64, track_length [P] int64), id order."""
         ids = sorted(self.points)

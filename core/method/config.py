@@ -7,6 +7,7 @@ from ..errors import ConfigError
 from ..gpdfn_config import GPDFNConfig
 
 DEPTH_MODES = ("log", "inverse")
+ALIGNMENTS = ("sfm", "render")
 
 
 @dataclass
@@ -27,6 +28,11 @@ class ESGSConfig:
     normal_weight: float = field(default=0.05, metadata={"help": "weight of the normal-prior loss"})
     consistency_weight: float = field(default=0.05, metadata={"help": "weight of the depth-normal consistency loss"})
     depth_mode: str = field(default="log", metadata={"help": "depth error space: log or inverse", "choices": DEPTH_MODES})
+    relative_alignment: str = field(default="sfm", metadata={
+        "help": "scale/shift of relative depth priors (NDN): sfm = fitted once to the SfM points each image "
+                "observes, so the prior holds the surface's distance too (falls back to render per view when "
+                "too few points); render = refitted to the rendered depth every step (shape only)",
+        "choices": ALIGNMENTS})
     prior_start_step: int = field(default=500, metadata={"help": "first step of the prior losses (of 30,000)"})
     consistency_start_step: int = field(default=7000, metadata={"help": "first step of the consistency loss (of 30,000)"})
     edge_strength: float = field(default=10.0, metadata={"help": "edge-aware weighting exp(-s |grad I|); 0 = uniform"})
@@ -43,6 +49,8 @@ class ESGSConfig:
                               hint="pass --priors gt|labels|ndn|sfm (folders under SCENE/priors/)")
         if self.depth_mode not in DEPTH_MODES:
             raise ConfigError(f"depth_mode must be one of {DEPTH_MODES}, got {self.depth_mode!r}")
+        if self.relative_alignment not in ALIGNMENTS:
+            raise ConfigError(f"relative_alignment must be one of {ALIGNMENTS}, got {self.relative_alignment!r}")
         for name in ("depth_weight", "normal_weight", "consistency_weight", "edge_strength", "max_prior_depth"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")

@@ -6,6 +6,7 @@ from typing import Any, Optional
 import torch
 
 from ..priors import load_prior_maps
+from ..priors.align import align_depth_to_points
 from ..priors.losses import depth_loss, depth_normal_consistency_loss, edge_aware_weights, normal_loss
 from ..train.hooks import TrainHook
 from ..train.losses import LossContext, LossTerm
@@ -46,6 +47,7 @@ class PriorLossHook(TrainHook):
     def _load(self, trainer: Any) -> None:
         source = self.config.priors
         device = trainer.device
+        alignments = []
         for view in trainer.data.train:
             rotation = view.viewmat[:3, :3].double().numpy()
             maps = load_prior_maps(trainer.data.source or trainer.config.scene, source, view.name,
@@ -54,16 +56,25 @@ class PriorLossHook(TrainHook):
             if not self.config.use_masks:
                 mask = torch.ones_like(mask)
             depth = torch.from_numpy(maps.depth.copy()) if maps.depth is not None else None
-            if depth is not None and self.config.max_prior_depth > 0:
-                mask = mask & (depth <= self.config.max_prior_depth)
             if view.mask is not None and self.config.use_masks:
                 mask = mask & view.mask[..., 0].bool()
+            relative = bool(maps.relative_depth)
+            if depth is not None and relative and self.config.relative_alignment == "sfm":
+                alignment = align_depth_to_points(depth, mask, view.K, view.viewmat, view.observed_xyz)
+                alignments.append((view.name, alignment))
+                if alignment.depth is not None:
+                    depth, relative = alignment.depth, False
+            # a depth limit is in scene units: it cannot apply to a prior still relative
+            if depth is not None and not relative and self.config.max_prior_depth > 0:
+                mask = mask & (depth <= self.config.max_prior_depth)
             self.priors[view.name] = {
                 "depth": depth.to(device) if depth is not None else None,
                 "normal": torch.from_numpy(maps.normal.copy()).to(device) if maps.normal is not None else None,
                 "mask": mask.to(device),
-                "relative": torch.tensor(bool(maps.relative_depth)),
+                "relative": torch.tensor(relative),
             }
+        if alignments:
+            trainer.message(_alignment_summary(alignments))
         if self.config.depth and all(p["depth"] is None for p in self.priors.values()):
             trainer.message(f"warning: prior source {source!r} has no depth maps; the depth loss stays at zero")
         if self.config.normal and all(p["normal"] is None for p in self.priors.values()):
@@ -101,3 +112,19 @@ class PriorLossHook(TrainHook):
             mask = mask & context.mask[..., 0]
         return depth_normal_consistency_loss(context.depth[..., 0], context.normals, context.view.K.to(context.depth),
                                              mask=mask)
+
+
+def _alignment_summary(alignments: list) -> str:
+    """One line on how the relative depth priors were pinned to the SfM points."""
+    fitted = [a for _, a in alignments if a.depth is not None]
+    line = f"relative depth priors aligned to SfM points in {len(fitted)}/{len(alignments)} views"
+    if fitted:
+        points = sorted(a.points for a in fitted)[len(fitted) // 2]
+        error = sorted(a.median_error for a in fitted)[len(fitted) // 2]
+        line += f" (median {points} points, median fit error {error:.1%})"
+    refused = [(name, a.reason) for name, a in alignments if a.depth is None]
+    if refused:
+        line += "; aligned to the rendered depth instead: " + "; ".join(f"{n}: {r}" for n, r in refused[:3])
+        if len(refused) > 3:
+            line += f"; and {len(refused) - 3} more"
+    return line

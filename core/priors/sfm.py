@@ -25,22 +25,10 @@ def sparse_depth_map(model: ColmapModel, image_id: int, *, max_error_px: float =
     image = model.images[image_id]
     camera = model.cameras[image.camera_id]
     depth = np.zeros((camera.height, camera.width), np.float32)
-    linked = image.point3d_ids >= 0
-    if not np.any(linked):
+    xyz, pixels = model.observed_points(image_id, max_error_px=max_error_px, min_track_length=min_track_length)
+    if len(xyz) == 0:
         return depth
     rotation = image.rotation_matrix()
-    keypoints = image.points2d[linked]
-    xyz_list, keep = [], []
-    for point_id in image.point3d_ids[linked]:
-        point = model.points.get(int(point_id))
-        ok = point is not None and point.error <= max_error_px and point.track_length >= min_track_length
-        keep.append(ok)
-        xyz_list.append(point.xyz if point is not None else np.zeros(3))
-    keep_mask = np.array(keep, bool)
-    if not np.any(keep_mask):
-        return depth
-    xyz = np.stack(xyz_list)[keep_mask]
-    pixels = keypoints[keep_mask]
     z = (xyz @ rotation.T + image.translation)[:, 2]
     columns = np.floor(pixels[:, 0]).astype(int)
     rows = np.floor(pixels[:, 1]).astype(int)

@@ -31,7 +31,9 @@ class View:
 
     K: [3, 3] float32; viewmat: [4, 4] float32 world-to-camera (OpenCV axes); image:
     [H, W, 3] uint8; mask: [H, W, 1] bool (True = counts in the loss) or None;
-    center: [3] camera centre in world coordinates (float64).
+    center: [3] camera centre in world coordinates (float64). observed_xyz: [M, 3] world
+    coordinates (float64) of the SfM points this image observes (well-fitted, seen by two or
+    more images), which pin relative depth priors to the scene's scale.
     """
 
     index: int
@@ -43,6 +45,7 @@ class View:
     image: torch.Tensor
     mask: Optional[torch.Tensor] = None
     center: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    observed_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @property
     def stem(self) -> str:
@@ -219,7 +222,8 @@ def load_scene_data(scene: str | Path, *, images_dir: str = "images", resolution
                 mask = _mask_tensor(undistorter.image(raw, distorted, nearest=True), size)
         views.append(View(index=index, name=entry.name, K=K,
                           viewmat=torch.from_numpy(entry.world_to_camera()).float(), width=size[0], height=size[1],
-                          image=torch.from_numpy(pixels), mask=mask, center=entry.camera_center()))
+                          image=torch.from_numpy(pixels), mask=mask, center=entry.camera_center(),
+                          observed_xyz=model.observed_points(entry.image_id)[0]))
 
     train_idx, test_idx = split_indices(len(views), test_every)
     if not train_idx:

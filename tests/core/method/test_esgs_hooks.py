@@ -50,11 +50,11 @@ def scene(tmp_path_factory):
     return root
 
 
-def _trainer(scene, out, esgs: ESGSConfig, iterations=40, **overrides):
+def _trainer(scene, out, esgs: ESGSConfig, iterations=40, progress=None, **overrides):
     config = TrainConfig(scene=scene, out=out, iterations=iterations, backend="cpu", evaluate=False, densify_until=0,
                          checkpoint_every=0, progress_every=1000, test_every=0, lpips=False, sh_degree=1,
                          mask_source="none", esgs=esgs, **overrides)
-    trainer = Trainer(config)
+    trainer = Trainer(config, progress=progress)
     trainer.setup()
     return trainer
 
@@ -161,3 +161,49 @@ def test_cli_runs_full_esgs_and_saves_its_settings(scene, tmp_path):
     bad = subprocess.run([sys.executable, "-m", "esgs.core", "train", str(scene), "--out", str(tmp_path / "r2"),
                           "--depth"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "need a prior source" in bad.stderr
+
+
+def _add_observations(scene):
+    """Give the tiny scene's images the keypoints of the points they see (tracks, as SfM would)."""
+    from esgs.core.colmap import write_model
+
+    model = read_model(scene / "sparse" / "0")
+    tracks = {point_id: [] for point_id in model.points}
+    ids = np.array(sorted(model.points))
+    xyz = np.stack([model.points[i].xyz for i in ids])
+    for image in model.images.values():
+        camera = model.cameras[image.camera_id]
+        local = xyz @ image.rotation_matrix().T + image.translation
+        pixels = local[:, :2] / local[:, 2:] * np.diag(camera.K())[:2] + camera.K()[:2, 2]
+        inside = (local[:, 2] > 0) & np.all((pixels >= 0) & (pixels < [camera.width, camera.height]), axis=1)
+        image.points2d, image.point3d_ids = pixels[inside], ids[inside].astype(np.int64)
+        for index, point_id in enumerate(ids[inside]):
+            tracks[int(point_id)].append((image.image_id, index))
+    for point_id, track in tracks.items():
+        model.points[point_id].track_image_ids = np.array([t[0] for t in track], np.int64)
+        model.points[point_id].track_point2d_idxs = np.array([t[1] for t in track], np.int64)
+    write_model(model, scene / "sparse" / "0", overwrite=True)
+
+
+def test_relative_priors_are_pinned_to_the_sfm_points(tmp_path):
+    """NDN-like relative priors become metric (the scene's depth) with sfm alignment; render keeps them relative."""
+    from esgs.core.priors import load_prior_maps
+
+    root = make_scene(tmp_path / "scene", views=6, width=32, height=24)
+    _write_gt_priors(root)
+    _add_observations(root)
+    for name in sorted(p.name for p in (root / "images").iterdir()):
+        gt = load_prior_maps(root, "gt", name)
+        relative = np.where(gt.mask, (gt.depth - 1.0) / 4.0, 0.0).astype(np.float32)
+        write_prior_maps(root, "rel", name, depth=relative, mask=gt.mask, relative_depth=True)
+    messages = []
+    config = dict(priors="rel", depth=True, prior_start_step=0)
+    pinned = _trainer(root, tmp_path / "a", ESGSConfig(**config), progress=lambda event: messages.append(event.message))
+    shaped = _trainer(root, tmp_path / "b", ESGSConfig(relative_alignment="render", **config))
+    assert any("aligned to SfM points in 6/6 views" in str(m) for m in messages), messages
+    for view in pinned.data.train:
+        prior, gt = pinned.hooks[0].priors[view.name], load_prior_maps(root, "gt", view.name)
+        assert not bool(prior["relative"]) and bool(shaped.hooks[0].priors[view.name]["relative"])
+        valid = prior["mask"].numpy() & (gt.depth > 0)
+        error = np.abs(prior["depth"].numpy()[valid] - gt.depth[valid]) / gt.depth[valid]
+        assert np.median(error) < 0.03, np.median(error)  # the points are jittered centres, not the surface
