@@ -24,7 +24,7 @@ class ESGSConfig:
     consistency: bool = field(default=False, metadata={"help": "depth-normal consistency loss (needs no prior)"})
     gpdfn: bool = field(default=False, metadata={"help": "GPDFN neighbour fusion"})
     fused_k: int = field(default=3, metadata={"help": "Gaussians fused by GPDFN, itself included (1..5)"})
-    depth_weight: float = field(default=0.1, metadata={"help": "weight of the depth-prior loss"})
+    depth_weight: float = field(default=1.0, metadata={"help": "weight of the depth-prior loss (docs/esgs_acceptance.md: how it was chosen)"})
     normal_weight: float = field(default=0.05, metadata={"help": "weight of the normal-prior loss"})
     consistency_weight: float = field(default=0.05, metadata={"help": "weight of the depth-normal consistency loss"})
     depth_mode: str = field(default="log", metadata={"help": "depth error space: log or inverse", "choices": DEPTH_MODES})
