@@ -23,11 +23,12 @@ from pathlib import Path
 from typing import Any, Optional
 
 
-from .errors import ConfigError, ESGSError
+from .errors import ConfigError, DatasetError, ESGSError
 from .progress import ProgressCallback, ProgressEvent, no_progress
 
 #: Prior sources the demo can train ESGS with (folders under SCENE/priors/).
 PRIOR_SOURCES = ("ndn", "sfm", "gt")
+SPARSE_POINTS = ("triangulated", "exact")
 #: What an ESGS switch the demo does not set means in a saved run config (the 3DGS baseline's).
 _DEFAULT_ESGS = {"priors": "", "depth": False, "normal": False, "consistency": False, "gpdfn": False}
 
@@ -48,6 +49,10 @@ class DemoConfig:
         "help": "prior source for ESGS (ndn: dense relative depth and normals from the shipped NDN weights; "
                 "sfm: sparse depth from the COLMAP points; gt: the synthetic scene's exact maps)",
         "choices": PRIOR_SOURCES})
+    sparse_points: str = field(default="triangulated", metadata={
+        "help": "the scene's SfM points: triangulated = SIFT matches of the rendered images with the known "
+                "poses, as a real capture gives (sparse, noisy); exact = the generator's surface samples "
+                "(flatter every method's geometry)", "choices": SPARSE_POINTS})
     baseline: bool = field(default=True, metadata={"help": "also train the 3DGS baseline for comparison"})
     gpdfn: bool = field(default=True, metadata={"help": "use GPDFN in the ESGS run"})
     max_gaussians: int = field(default=40_000, metadata={"help": "cap on Gaussians per run"})
@@ -62,6 +67,8 @@ class DemoConfig:
             raise ConfigError(f"iterations must be at least 10, got {self.iterations}")
         if self.width < 32 or self.height < 32:
             raise ConfigError(f"image size must be at least 32x32, got {self.width}x{self.height}")
+        if self.sparse_points not in SPARSE_POINTS:
+            raise ConfigError(f"sparse_points must be one of {', '.join(SPARSE_POINTS)}, got {self.sparse_points!r}")
         if self.priors not in PRIOR_SOURCES:
             raise ConfigError(f"priors must be one of {', '.join(PRIOR_SOURCES)}, got {self.priors!r}")
 
@@ -69,8 +76,9 @@ class DemoConfig:
 def esgs_settings(priors: str, gpdfn: bool = True) -> dict:
     """The ``ESGSConfig`` values of the demo's ESGS run for a prior source.
 
-    Every source drives the depth-prior loss (relative NDN depth is aligned to the rendered
-    depth by a scale/shift fit inside the loss, since the prior's EXR says ``relative``).
+    Every source drives the depth-prior loss (relative NDN depth is pinned to the scene's
+    scale by a scale/shift fit to each image's SfM points, since the prior's EXR says
+    ``relative``).
     Sources with normals (ndn, gt) also drive the normal-prior loss, the paper's full
     alignment branch; sparse ``sfm`` has no normals, so the depth-normal consistency loss
     stands in for them there.
@@ -123,14 +131,32 @@ def _run_command(command: list[str], stage: str, progress: ProgressCallback, log
 
 
 def make_scene(config: DemoConfig, progress: ProgressCallback) -> Path:
+    """Render the synthetic scene (``OUT/scene``); with triangulated points, render it into
+    ``OUT/scene_rendered`` and make ``OUT/scene`` from it with SfM points of its own images."""
     scene = config.out / "scene"
     if (scene / "scene.json").is_file():
         progress(ProgressEvent(0, 1, "scene", kind="message", message=f"scene: reusing {scene}"))
         return scene
-    command = [sys.executable, "-m", "esgs.core", "scene", "--preset", config.preset, "--seed", str(config.seed),
-               "--views", str(config.views), "--resolution", f"{config.width}x{config.height}",
-               "--samples", str(config.samples), "--out", str(scene)]
-    _run_command(command, "scene", progress, config.out / "logs" / "scene.log")
+    rendered = scene if config.sparse_points == "exact" else config.out / "scene_rendered"
+    if not (rendered / "scene.json").is_file():
+        command = [sys.executable, "-m", "esgs.core", "scene", "--preset", config.preset, "--seed", str(config.seed),
+                   "--views", str(config.views), "--resolution", f"{config.width}x{config.height}",
+                   "--samples", str(config.samples), "--out", str(rendered)]
+        _run_command(command, "scene", progress, config.out / "logs" / "scene.log")
+    if config.sparse_points == "triangulated":
+        from .experiments.sfm_scene import make_sfm_scene
+
+        try:
+            record = make_sfm_scene(rendered, scene, progress=progress)
+        except DatasetError as error:  # tiny or textureless renders: say so and go on with exact points
+            progress(ProgressEvent(0, 1, "scene", kind="message",
+                                   message=f"scene: no SfM points could be triangulated ({error}); using the "
+                                           "generator's exact surface points instead"))
+            os.replace(rendered, scene)  # a second run then reuses it like any finished scene
+            return scene
+        progress(ProgressEvent(0, 1, "scene", kind="message",
+                               message=f"scene: {record['points']} SfM points triangulated from the images "
+                                       f"(mean reprojection error {record['mean_reprojection_error_px']:.2f} px)"))
     return scene
 
 

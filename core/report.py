@@ -305,6 +305,15 @@ def _is_synthetic(scene: Path) -> bool:
         return False
 
 
+def _sparse_points_record(scene: Path) -> Optional[dict]:
+    """``scene.json``'s record of triangulated SfM points (None for the generator's exact points)."""
+    try:
+        record = json.loads((scene / "scene.json").read_text()).get("sparse_points")
+    except (OSError, ValueError):
+        return None
+    return record if isinstance(record, dict) and "points" in record else None
+
+
 def write_report(config: Any, scene: Path, runs: dict[str, dict], distances: dict[str, dict],
                  blender: Optional[dict], timings: dict[str, float]) -> Path:
     """Write ``OUT/report.md`` and its pictures under ``OUT/report/``; returns the Markdown path."""
@@ -318,9 +327,17 @@ def write_report(config: Any, scene: Path, runs: dict[str, dict], distances: dic
              "is held out.", ""]
     if config.priors == "ndn":
         lines += [f"The `ndn` priors are predicted by the NDN diffusion network ({_ndn_weights(scene)}): dense "
-                  "depth known up to scale and shift, which the depth loss aligns to the rendered depth, and "
-                  "camera-frame normals.", ""]
-    if config.priors == "sfm" and _is_synthetic(scene):
+                  "depth known up to scale and shift, which training pins to the scene's scale with each image's SfM "
+                  "points, and camera-frame normals.", ""]
+    points = _sparse_points_record(scene)
+    if points:
+        lines += [f"The scene's {points['points']:,} SfM points were triangulated from its rendered images with the "
+                  f"known poses (mean reprojection error {points['mean_reprojection_error_px']:.2f} px), as a real "
+                  "capture would give them; they start both runs and pin the relative priors.", ""]
+    elif _is_synthetic(scene):
+        lines += ["Note: the scene's SfM points are the generator's exact surface samples (triangulation was "
+                  "not asked for or found no points), which flatters every method's distance to the mesh.", ""]
+    if not points and config.priors == "sfm" and _is_synthetic(scene):
         lines += ["Note: in a synthetic scene the COLMAP points are sampled on the true surface, so the `sfm` "
                   "prior here is sparse but exact depth; on real images it carries SfM's errors.", ""]
 
@@ -367,8 +384,8 @@ def write_report(config: Any, scene: Path, runs: dict[str, dict], distances: dic
         lines += ["## Geometry: priors and rendered depth / normals", "",
                   "The first held-out view: truth (top), the priors ESGS trained with, and the ESGS run's rendered "
                   "depth and normals (bottom). Camera-frame normals are shown as (n + 1) / 2; depth is coloured "
-                  "near = red, far = blue, on the true depth's range; a relative prior (ndn) is first aligned to "
-                  "the rendered depth by the scale/shift fit its loss uses.", "", f"![geometry](report/{name})", ""]
+                  "near = red, far = blue, on the true depth's range; for this picture a relative prior (ndn) is "
+                  "aligned to the rendered depth by a scale/shift fit (training pins it to the SfM points).", "", f"![geometry](report/{name})", ""]
         if scores:
             lines += ["| on this view, against the truth | AbsRel | delta1 | normal error (deg) | < 11.25 deg |",
                       "|---|---|---|---|---|"]

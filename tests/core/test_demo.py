@@ -40,6 +40,12 @@ def test_each_prior_source_drives_the_losses_its_maps_support():
         DemoConfig(priors="mvs").validate()
 
 
+def test_sparse_points_setting_is_checked():
+    with pytest.raises(ConfigError, match="sparse_points must be one of triangulated, exact"):
+        DemoConfig(sparse_points="lidar").validate()
+    assert DemoConfig().sparse_points == "triangulated"
+
+
 def test_the_command_line_offers_exactly_the_demo_prior_sources():
     result = subprocess.run([sys.executable, "-m", "esgs.core", "demo", "--priors", "labels", "--out", "unused"],
                             capture_output=True, text=True)
@@ -235,6 +241,9 @@ def test_tiny_demo_runs_every_stage_and_reuses_finished_work(tmp_path, monkeypat
     text = report_path.read_text()
     assert "| ESGS |" in text and "| 3DGS |" in text and "| `ndn` prior |" in text
     assert "weights shipped in the package" in text
+    # 4 renders of 96x54 give SIFT nothing to triangulate: the demo says so and keeps the exact points
+    assert any("no SfM points could be triangulated" in (e.message or "") for e in events)
+    assert "generator's exact surface samples" in text
     for name in ("curves.png", "geometry.png", "heat_map.png", "training_progress.png"):
         assert (tmp_path / "demo" / "report" / name).stat().st_size > 0, name
     assert (tmp_path / "demo" / "blender" / "results.blend").is_file()
