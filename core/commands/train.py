@@ -33,7 +33,7 @@ def build_config(args: argparse.Namespace):
     """The TrainConfig of a command line: a resumed run's config.json (or --config), then flags."""
     from ..config import config_from_dict, dataclass_from_args, load_config
     from ..errors import ConfigError
-    from ..train.config import TrainConfig
+    from ..train.config import TrainConfig, load_run_config
     from ..train.run_dir import RunDir
 
     if args.out is None:
@@ -41,7 +41,7 @@ def build_config(args: argparse.Namespace):
     base = None
     if args.resume and RunDir(args.out).config.is_file():
         # a resumed run keeps the settings it was started with; flags override the safe ones
-        base = load_config(TrainConfig, RunDir(args.out).config)
+        base = load_run_config(RunDir(args.out).config)
     elif args.config_file is not None:
         base = load_config(TrainConfig, args.config_file)
     from ..method.config import ESGSConfig

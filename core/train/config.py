@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
+from ..config import config_from_dict
 from ..errors import ConfigError
 from ..baselines.config import BaselinesConfig
 from ..method.config import ESGSConfig
@@ -95,6 +96,11 @@ class TrainConfig:
         "short runs: the scaled opacity-reset interval never falls below this many steps (opacities need "
         "hundreds of steps to recover from a reset)"))
     max_gaussians: int = field(default=3_000_000, metadata=_help("growth stops (with one warning) at this many Gaussians"))
+    spatial_order: bool = field(default=True, metadata=_help(
+        "keep the Gaussians sorted by the Morton (Z-order) code of their centres: sorted once after "
+        "initialisation and after every densification, Adam's moments and the densification statistics "
+        "moving with them, so GPDFN and the rasterizer read neighbours from nearby memory (same maths, "
+        "cache-friendlier; docs/esgs.md)"))
     esgs: ESGSConfig = field(default_factory=ESGSConfig, metadata=_help(
         "the ESGS additions: prior losses and GPDFN (all off = the 3DGS baseline)"))
     baselines: BaselinesConfig = field(default_factory=BaselinesConfig, metadata=_help(
@@ -154,6 +160,32 @@ class TrainConfig:
                                  if self.opacity_reset_every else 0),
             position_lr_delay_steps=self.scaled_step(self.position_lr_delay_steps),
         )
+
+
+#: Settings added after runs had been saved, with the value those older runs were trained
+#: with: a run folder or checkpoint whose config lacks one is read with this value, so an
+#: older run resumes as it was going (Gaussians in their old order) instead of changing.
+PREDATING_VALUES: dict = {"spatial_order": False}
+
+
+def run_config_from_dict(data: dict, *, source: str | Path | None = None) -> TrainConfig:
+    """The TrainConfig a run was saved with (config.json or a checkpoint's ``config``), older runs included."""
+    missing = {name: value for name, value in PREDATING_VALUES.items() if name not in data}
+    return config_from_dict(TrainConfig, {**data, **missing}, source=source)
+
+
+def load_run_config(path: str | Path) -> TrainConfig:
+    """Read a run's config.json with :func:`run_config_from_dict`."""
+    import json
+
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as err:
+        raise ConfigError(f"cannot read the run's settings: {err}", path=path) from err
+    if not isinstance(data, dict):
+        raise ConfigError("expected a JSON object", path=path)
+    return run_config_from_dict(data, source=path)
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,9 @@ Public entry point: :func:`train`. One step:
 3. render colour (plus depth/normals when an active loss term or a hook asks);
 4. total loss = weighted active terms (L1 + D-SSIM for the baseline); stop on NaN/Inf;
 5. backward, ``after_backward`` hooks, densification statistics, Adam step;
-6. densify / prune / reset opacity on schedule, then ``on_densify`` hooks;
+6. densify / prune / reset opacity on schedule (with ``spatial_order``, the changed set is put
+   back into Morton order of its centres, Adam's moments and statistics moving along), then
+   ``on_densify`` hooks;
 7. parameters checked finite; checkpoint, progress event, stop requests.
 
 Stops: SIGTERM (and Ctrl-C) finish the current step, save a checkpoint and return with
@@ -29,12 +31,12 @@ from typing import Any, Iterable, Optional, Sequence
 import numpy as np
 import torch
 
-from ..config import config_from_dict, config_to_dict, save_config
+from ..config import config_to_dict, save_config
 from ..errors import CheckpointError, ConfigError, ESGSError
 from ..io_utils import atomic_write_json
 from ..progress import JsonLinesProgress, ProgressCallback, ProgressEvent, combine
 from .checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint, save_checkpoint
-from .config import TrainConfig
+from .config import TrainConfig, run_config_from_dict
 from .dataset import SceneData, load_scene_data
 from .densify import DensifyReport, DensifySettings, DensifyState, densify_and_prune, reset_opacity
 from .gaussians import GaussianModel, RenderParams
@@ -44,6 +46,7 @@ from .losses import LossContext, LossTerm, needed_channels, photometric_terms, t
 from .optim import ExponentialDecay, TrainOptimizer
 from .rendering import backend_device, render_view, resolve_backend
 from .run_dir import RunDir
+from .spatial_order import sort_gaussians
 
 #: Settings that may change when a run is resumed (they do not change what is computed).
 RESUMABLE_SETTINGS = frozenset({
@@ -208,10 +211,14 @@ class Trainer:
         kwargs = dict(max_sh_degree=config.sh_degree, init_opacity=config.init_opacity,
                       neighbours=config.init_scale_neighbours)
         if len(self.data.points_xyz):
-            return GaussianModel.from_points(self.data.points_xyz, self.data.points_rgb, **kwargs)
-        self.message(f"the COLMAP model has no 3D points: starting from {config.random_init_points} random Gaussians")
-        rng = np.random.default_rng(config.seed)
-        return GaussianModel.random(config.random_init_points, self.data.center, self.data.extent, rng, **kwargs)
+            model = GaussianModel.from_points(self.data.points_xyz, self.data.points_rgb, **kwargs)
+        else:
+            self.message(f"the COLMAP model has no 3D points: starting from {config.random_init_points} random Gaussians")
+            rng = np.random.default_rng(config.seed)
+            model = GaussianModel.random(config.random_init_points, self.data.center, self.data.extent, rng, **kwargs)
+        if config.spatial_order:
+            sort_gaussians(model)  # before the optimizer and the hooks exist: nothing else to move
+        return model
 
     def _build_optimizer(self) -> None:
         config, extent = self.config, self.data.extent
@@ -371,6 +378,13 @@ class Trainer:
             warnings.simplefilter("always")
             report = densify_and_prune(self.gaussians, self.optimizer, self.densify_state, settings, step=step,
                                        generator=self.generator)
+        if config.spatial_order:
+            # clones and split children were appended at the end: one permutation of every
+            # per-Gaussian tensor (parameters, Adam moments, statistics) restores the spatial
+            # order, and the hooks see it folded into the report's source_index
+            order = sort_gaussians(self.gaussians, self.optimizer, self.densify_state)
+            if order is not None and report.source_index is not None:
+                report.source_index = report.source_index[order]
         for warning in caught:
             self.message(f"warning: {warning.message}")
             warnings.warn(warning.message, RuntimeWarning, stacklevel=2)
@@ -522,7 +536,7 @@ def _resume_state(run: RunDir, config: TrainConfig) -> Optional[dict]:
         if errors:
             raise CheckpointError("no readable checkpoint: " + "; ".join(errors), path=run.checkpoints)
         return None
-    stored = config_from_dict(TrainConfig, state["config"])
+    stored = run_config_from_dict(state["config"])
     current = config_to_dict(config)
     previous = config_to_dict(stored)
     changed = sorted(name for name in current if name not in RESUMABLE_SETTINGS and current[name] != previous.get(name))
