@@ -18,6 +18,13 @@ against the 30 % target, from the minimums and as the median over repeats of the
 two steps run back to back (steadier when the load of a shared machine swings). The Gaussians move at every step (real Adam updates), so the
 voxel-table reuse is exercised as in training.
 
+``--order given morton`` (the default) measures every column twice, side by side with the
+repeats interleaved: with the Gaussians in the order the surface sampler gives (random-like,
+the order densification leaves without ``TrainConfig.spatial_order``) and sorted by the Morton
+code of their centres (the trainer's order with ``spatial_order``, the default). Each order
+has its own copy of the module, so each keeps its own voxel table as in training. The
+``order`` line compares them: median over repeats of the back-to-back ratio.
+
 ``--every 2 4`` also prices an option that is NOT what the trainer does: running GPDFN
 only every k-th step and adding its last (detached) residuals on the steps between. A step
 with cached residuals is measured too, and the amortised share over k steps is printed as
@@ -25,7 +32,7 @@ with cached residuals is measured too, and the amortised share over k steps is p
 GPDFN gradients on one step in k), so it is a measured proposal, not a setting.
 
     .venv/bin/python benchmarks/bench_gpdfn.py [--counts 10000 100000] [--fused-k 3]
-        [--repeats 5] [--threads N] [--every 2 4]
+        [--repeats 5] [--threads N] [--every 2 4] [--order given morton]
 """
 from __future__ import annotations
 
@@ -45,6 +52,17 @@ from bench_rasterizer import DEFAULT_MESH, oblique_camera, terrain_gaussians  # 
 
 WIDTH, HEIGHT = 480, 270
 TARGET_SHARE = 0.30
+ORDERS = ("given", "morton")
+
+
+def ordered(scene: dict, order: str) -> dict:
+    """``scene`` as sampled ("given") or with every per-Gaussian tensor sorted by Morton code ("morton")."""
+    if order == "given":
+        return scene
+    from esgs.core.train.spatial_order import spatial_order
+
+    permutation = spatial_order(scene["means"])
+    return {name: value[permutation].contiguous() for name, value in scene.items()}
 
 
 def best_of(function, repeats: int) -> tuple[float, float]:
@@ -89,6 +107,8 @@ def main(argv=None) -> int:
     parser.add_argument("--every", type=int, nargs="*", default=[],
                         help="also price running GPDFN every k-th step with cached residuals in between")
     parser.add_argument("--mesh", type=Path, default=DEFAULT_MESH)
+    parser.add_argument("--order", nargs="+", choices=ORDERS, default=list(ORDERS),
+                        help="Gaussian orders to measure side by side: as sampled (random-like) and/or Morton-sorted")
     args = parser.parse_args(argv)
 
     from esgs.core.gpdfn import GPDFN, GPDFNConfig
@@ -107,86 +127,111 @@ def main(argv=None) -> int:
           f"{'target':>7} | cpu ms: {'gpdfn':>6} {'step':>6} {'step+gpdfn':>10} {'share':>6}")
     viewmat, K = (matrix[0] for matrix in oblique_camera(WIDTH, HEIGHT))
     for count in args.counts:
-        scene = terrain_gaussians(count, args.mesh)
+        sampled = terrain_gaussians(count, args.mesh)
         torch.manual_seed(0)
-        module = GPDFN(GPDFNConfig(fused_k=args.fused_k))
-        for parameter in module.parameters():
+        trained = GPDFN(GPDFNConfig(fused_k=args.fused_k))
+        for parameter in trained.parameters():
             torch.nn.init.normal_(parameter, std=0.05)  # a trained module, not the zero start
         with torch.no_grad():
-            reference = render_view(_model(scene).render_params(3), viewmat, K, WIDTH, HEIGHT, render_depth=True,
+            reference = render_view(_model(sampled).render_params(3), viewmat, K, WIDTH, HEIGHT, render_depth=True,
                                     backend="cpu")
             target_image = (reference.image * 0.9 + 0.05).clamp(0, 1)
             target_depth = reference.depth * 1.01
 
-        raw = _model(scene).params
-        gpdfn_inputs = {"means": raw["means"], "log_scales": raw["log_scales"], "quats": raw["quats"],
-                        "opacity_logits": raw["opacity_logit"], "sh_dc": raw["sh_dc"].reshape(-1, 3)}
+        def make_variant(scene: dict) -> dict:
+            """The measured functions of one Gaussian order, with their own copy of the module."""
+            module, alone = (GPDFN(GPDFNConfig(fused_k=args.fused_k)) for _ in range(2))
+            module.load_state_dict(trained.state_dict())
+            alone.load_state_dict(trained.state_dict())  # its own voxel table: its inputs do not move
+            raw = _model(scene).params
+            gpdfn_inputs = {"means": raw["means"], "log_scales": raw["log_scales"], "quats": raw["quats"],
+                            "opacity_logits": raw["opacity_logit"], "sh_dc": raw["sh_dc"].reshape(-1, 3)}
 
-        def gpdfn_only():
-            out = module(**gpdfn_inputs)
-            (out["sh_dc"].sum() + out["opacity_logits"].sum() + out["log_scales"].sum()).backward()
+            def gpdfn_only():
+                out = alone(**gpdfn_inputs)
+                (out["sh_dc"].sum() + out["opacity_logits"].sum() + out["log_scales"].sum()).backward()
 
-        def make_step(use_gpdfn: bool, cached: bool = False):
-            model = _model(scene)
-            optimizer = _optimizer(model, module if use_gpdfn and not cached else None)
-            if cached:
-                with torch.no_grad():
-                    raw_model = model.params
-                    residual = module(raw_model["means"], raw_model["log_scales"], raw_model["quats"],
-                                      raw_model["opacity_logit"], raw_model["sh_dc"].reshape(-1, 3))
-
-            def step():
-                params = model.render_params(3)
+            def make_step(use_gpdfn: bool, cached: bool = False):
+                model = _model(scene)
+                optimizer = _optimizer(model, module if use_gpdfn and not cached else None)
                 if cached:
-                    params = apply_residuals(model, params, residual)
-                elif use_gpdfn:
-                    params = fused_render_params(module, model, params)
-                out = render_view(params, viewmat, K, WIDTH, HEIGHT, render_depth=True, render_normals=True,
-                                  backend="cpu")
-                image = out.image
-                ssim = ssim_map(image.permute(2, 0, 1)[None], target_image.permute(2, 0, 1)[None]).mean()
-                loss = 0.8 * (image - target_image).abs().mean() + 0.2 * (1.0 - ssim) \
-                    + 0.1 * (out.depth - target_depth).abs().mean()
-                loss.backward()
-                optimizer.step()
-                optimizer.zero_grad()
-            return step
+                    with torch.no_grad():
+                        raw_model = model.params
+                        residual = module(raw_model["means"], raw_model["log_scales"], raw_model["quats"],
+                                          raw_model["opacity_logit"], raw_model["sh_dc"].reshape(-1, 3))
 
-        plain_step, gpdfn_step, cached_step = make_step(False), make_step(True), make_step(True, cached=True)
-        gpdfn_only(), plain_step(), gpdfn_step(), cached_step()  # warm-up (Numba compile / cache load)
-        module.zero_grad(set_to_none=True)
-        gpdfn_wall, gpdfn_cpu = best_of(gpdfn_only, args.repeats)
-        module.zero_grad(set_to_none=True)
-        # interleave the two steps so a change of machine load hits both alike
-        plain, fused, cached = [], [], []
-        for _ in range(args.repeats):
-            plain.append(best_of(plain_step, 1))
-            fused.append(best_of(gpdfn_step, 1))
+                def step():
+                    params = model.render_params(3)
+                    if cached:
+                        params = apply_residuals(model, params, residual)
+                    elif use_gpdfn:
+                        params = fused_render_params(module, model, params)
+                    out = render_view(params, viewmat, K, WIDTH, HEIGHT, render_depth=True, render_normals=True,
+                                      backend="cpu")
+                    image = out.image
+                    ssim = ssim_map(image.permute(2, 0, 1)[None], target_image.permute(2, 0, 1)[None]).mean()
+                    loss = 0.8 * (image - target_image).abs().mean() + 0.2 * (1.0 - ssim) \
+                        + 0.1 * (out.depth - target_depth).abs().mean()
+                    loss.backward()
+                    optimizer.step()
+                    optimizer.zero_grad()
+                return step
+
+            return {"module": alone, "gpdfn_only": gpdfn_only, "plain": make_step(False),
+                    "fused": make_step(True), "cached": make_step(True, cached=True),
+                    "times": {"gpdfn": [], "plain": [], "fused": [], "cached": []}}
+
+        variants = {order: make_variant(ordered(sampled, order)) for order in args.order}
+        for variant in variants.values():  # warm-up (Numba compile / cache load)
+            variant["gpdfn_only"](), variant["plain"](), variant["fused"](), variant["cached"]()
+            variant["module"].zero_grad(set_to_none=True)
+        # interleave everything (orders, and the steps with and without GPDFN) so a change of
+        # machine load hits all alike; the order of the orders alternates between repeats
+        for repeat in range(args.repeats):
+            names = list(variants) if repeat % 2 == 0 else list(reversed(variants))
+            for name in names:
+                variant = variants[name]
+                variant["times"]["gpdfn"].append(best_of(variant["gpdfn_only"], 1))
+                variant["module"].zero_grad(set_to_none=True)
+                variant["times"]["plain"].append(best_of(variant["plain"], 1))
+                variant["times"]["fused"].append(best_of(variant["fused"], 1))
+                if args.every:
+                    variant["times"]["cached"].append(best_of(variant["cached"], 1))
+        for name, variant in variants.items():
+            times = variant["times"]
+            gpdfn_wall, gpdfn_cpu = min(t[0] for t in times["gpdfn"]), min(t[1] for t in times["gpdfn"])
+            plain, fused = times["plain"], times["fused"]
+            plain_wall, plain_cpu = min(t[0] for t in plain), min(t[1] for t in plain)
+            fused_wall, fused_cpu = min(t[0] for t in fused), min(t[1] for t in fused)
+            share_wall = (fused_wall - plain_wall) / fused_wall
+            share_cpu = (fused_cpu - plain_cpu) / fused_cpu
+            # the two steps of one repeat ran back to back: their paired share is less exposed to
+            # load swings of a shared machine than the ratio of two minimums
+            paired_wall = statistics.median((f[0] - p[0]) / f[0] for p, f in zip(plain, fused))
+            paired_cpu = statistics.median((f[1] - p[1]) / f[1] for p, f in zip(plain, fused))
+            verdict = "met" if share_wall <= TARGET_SHARE else "over"
+            print(f"{count:>10,} {gpdfn_wall * 1e3:>9.0f} {plain_wall * 1e3:>8.0f} {fused_wall * 1e3:>14.0f} "
+                  f"{share_wall:>6.2f} {verdict:>7} | cpu ms: {gpdfn_cpu * 1e3:>6.0f} {plain_cpu * 1e3:>6.0f} "
+                  f"{fused_cpu * 1e3:>10.0f} {share_cpu:>6.2f}   order: {name}", flush=True)
+            print(f"{'':>10} paired share (median over repeats of back-to-back steps): wall {paired_wall:.2f}, "
+                  f"cpu {paired_cpu:.2f}", flush=True)
             if args.every:
-                cached.append(best_of(cached_step, 1))
-        plain_wall, plain_cpu = min(t[0] for t in plain), min(t[1] for t in plain)
-        fused_wall, fused_cpu = min(t[0] for t in fused), min(t[1] for t in fused)
-        share_wall = (fused_wall - plain_wall) / fused_wall
-        share_cpu = (fused_cpu - plain_cpu) / fused_cpu
-        # the two steps of one repeat ran back to back: their paired share is less exposed to
-        # load swings of a shared machine than the ratio of two minimums
-        paired_wall = statistics.median((f[0] - p[0]) / f[0] for p, f in zip(plain, fused))
-        paired_cpu = statistics.median((f[1] - p[1]) / f[1] for p, f in zip(plain, fused))
-        verdict = "met" if share_wall <= TARGET_SHARE else "over"
-        print(f"{count:>10,} {gpdfn_wall * 1e3:>9.0f} {plain_wall * 1e3:>8.0f} {fused_wall * 1e3:>14.0f} "
-              f"{share_wall:>6.2f} {verdict:>7} | cpu ms: {gpdfn_cpu * 1e3:>6.0f} {plain_cpu * 1e3:>6.0f} "
-              f"{fused_cpu * 1e3:>10.0f} {share_cpu:>6.2f}", flush=True)
-        print(f"{'':>10} paired share (median over repeats of back-to-back steps): wall {paired_wall:.2f}, "
-              f"cpu {paired_cpu:.2f}", flush=True)
-        if args.every:
-            cached_wall, cached_cpu = min(t[0] for t in cached), min(t[1] for t in cached)
-            print(f"{'':>10} step with cached residuals: {cached_wall * 1e3:.0f} ms (cpu {cached_cpu * 1e3:.0f} ms)")
-            for every in args.every:
-                wall = (fused_wall + (every - 1) * cached_wall) / every
-                cpu = (fused_cpu + (every - 1) * cached_cpu) / every
-                print(f"{'':>10} share@{every}: GPDFN every {every} steps -> {wall * 1e3:.0f} ms per step, share "
-                      f"{(wall - plain_wall) / wall:.2f} (cpu {cpu * 1e3:.0f} ms, share {(cpu - plain_cpu) / cpu:.2f})",
-                      flush=True)
+                cached = times["cached"]
+                cached_wall, cached_cpu = min(t[0] for t in cached), min(t[1] for t in cached)
+                print(f"{'':>10} step with cached residuals: {cached_wall * 1e3:.0f} ms (cpu {cached_cpu * 1e3:.0f} ms)")
+                for every in args.every:
+                    wall = (fused_wall + (every - 1) * cached_wall) / every
+                    cpu = (fused_cpu + (every - 1) * cached_cpu) / every
+                    print(f"{'':>10} share@{every}: GPDFN every {every} steps -> {wall * 1e3:.0f} ms per step, share "
+                          f"{(wall - plain_wall) / wall:.2f} (cpu {cpu * 1e3:.0f} ms, share {(cpu - plain_cpu) / cpu:.2f})",
+                          flush=True)
+        if len(variants) == 2:
+            # same repeat, back to back: morton / given, CPU time (the steadier clock on a loaded machine)
+            given, morton = variants["given"]["times"], variants["morton"]["times"]
+            ratios = {key: [m[1] / g[1] for g, m in zip(given[key], morton[key])] for key in ("gpdfn", "plain", "fused")}
+            spread = {key: (statistics.median(r), min(r), max(r)) for key, r in ratios.items()}
+            print(f"{'':>10} order: morton / given CPU time, median (min-max) over repeats: "
+                  + ", ".join(f"{key} {m:.3f} ({lo:.3f}-{hi:.3f})" for key, (m, lo, hi) in spread.items()), flush=True)
     print(f"load average after: {os.getloadavg()[0]:.2f}  (target: GPDFN share <= {TARGET_SHARE:.2f})")
     return 0
 
