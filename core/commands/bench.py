@@ -21,6 +21,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="training minutes per equal-budget run (default: the suite's; 0 = no budget comparison)")
     parser.add_argument("--budget-step-cap", type=int, default=0,
                         help="step cap (and schedule length) of the budget runs (0 = the suite's: twice --iterations)")
+    parser.add_argument("--priors", choices=("ndn", "sfm", "gt"), default="ndn",
+                        help="prior source of the ESGS rows: ndn (default; computed per scene with the shipped "
+                             "weights when missing), sfm, or gt (the generator's exact maps, flattering). A labelled "
+                             "upper-bound row with gt priors is always added")
     parser.add_argument("--executor", choices=("auto", "local", "ray"), default="auto",
                         help="local: process pool of --workers; ray: a local Ray instance (nothing to set up) or the "
                              "cluster at --address; auto: Ray for --address or the full/large suites, else local")
@@ -58,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
                        cpus_per_task=max(1, args.threads)) as executor:
         result = run_bench(args.out, args.suite, executor=executor, iterations=args.iterations or None,
                            budget_minutes=args.budget_minutes, budget_step_cap=args.budget_step_cap or None,
-                           train=train, command="esgs " + " ".join(sys.argv[1:]), on_outcome=report)
+                           train=train, priors=args.priors, command="esgs " + " ".join(sys.argv[1:]),
+                           on_outcome=report)
     print(f"wrote {Path(args.out) / 'benchmarks.md'}")
     for item in result["failed"]:
         print(f"FAILED {item['run']}: {item['error'].splitlines()[0]}")

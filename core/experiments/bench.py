@@ -7,7 +7,13 @@ this process) and cached under ``OUT/scenes/<preset>_s<seed>_...``. Each (scene,
 seed) is one :class:`~.runs.RunTask` in ``OUT/runs/...`` (equal steps) and, with a budget,
 one more in ``OUT/runs_budget/...`` (equal training time: ``max_minutes`` with a step cap);
 tasks run through an :class:`~.executor.Executor` (local process pool, or Ray), a failed run
-is retried once, and a restart repeats only unfinished runs.
+is retried once, and a restart repeats only unfinished runs and runs whose saved settings
+differ from the ones the bench asks for now (a changed default, another prior source).
+
+The prior-based rows use the priors a user would have: NDN's by default (``priors="ndn"``,
+computed once per scene with ``esgs priors --method ndn`` and kept in the scene), or SfM's.
+One extra row, full ESGS with the generator's exact depth and normals, is labelled as the
+upper bound: no real scene has those priors.
 """
 from __future__ import annotations
 
@@ -73,19 +79,30 @@ SUITES = {
 
 @dataclass(frozen=True)
 class Method:
-    """A compared method: TrainConfig ``esgs``/``baselines`` values; ``priors``: needs prior maps."""
+    """A compared method: TrainConfig ``esgs``/``baselines`` values; ``priors``: needs prior maps;
+    ``prior_source``: a fixed ``priors/<source>`` ("" = the bench's choice, see :func:`plan_bench`)."""
 
     key: str
     label: str
     esgs: tuple = ()
     baselines: tuple = ()
     priors: bool = False
+    prior_source: str = ""
 
 
-def _method(key: str, label: str, *, esgs: Optional[dict] = None, baselines: Optional[dict] = None) -> Method:
+def _method(key: str, label: str, *, esgs: Optional[dict] = None, baselines: Optional[dict] = None,
+            prior_source: str = "") -> Method:
     esgs = esgs or {}
     return Method(key, label, tuple(sorted(esgs.items())), tuple(sorted((baselines or {}).items())),
-                  priors=bool(esgs.get("depth") or esgs.get("normal")))
+                  priors=bool(esgs.get("depth") or esgs.get("normal")), prior_source=prior_source)
+
+
+#: Where the prior-based rows may take their priors from (``--priors``).
+PRIOR_SOURCES = ("ndn", "sfm", "gt")
+#: The sources ``esgs priors`` can compute for a scene that lacks them.
+COMPUTED_PRIOR_SOURCES = ("ndn", "sfm")
+UPPER_BOUND_KEY = "esgs_full_gt"
+_FULL_ESGS = {"depth": True, "normal": True, "gpdfn": True, "fused_k": 3}
 
 
 METHODS = (
@@ -95,9 +112,32 @@ METHODS = (
     _method("esgs_depth", "ESGS: depth prior", esgs={"depth": True}),
     _method("esgs_normal", "ESGS: normal prior", esgs={"normal": True}),
     _method("esgs_depth_normal", "ESGS: depth + normal", esgs={"depth": True, "normal": True}),
-    _method("esgs_full", "ESGS (depth + normal + GPDFN)", esgs={"depth": True, "normal": True, "gpdfn": True,
-                                                                 "fused_k": 3}),
+    _method("esgs_full", "ESGS (depth + normal + GPDFN)", esgs=_FULL_ESGS),
+    # not a method a user can run on real data: the same ESGS fed the exact synthetic depth and normals
+    _method(UPPER_BOUND_KEY, "ESGS, ground-truth priors (upper bound)", esgs=_FULL_ESGS, prior_source="gt"),
 )
+
+
+def ensure_priors(scene: Path, source: str) -> Path:
+    """``SCENE/priors/<source>``, computed with ``esgs priors --method <source>`` in a child
+    process when the scene has none (ndn, sfm); ``gt`` priors come only from the generator.
+
+    ``esgs priors`` writes the folder atomically, so an interrupted bench leaves either the
+    whole folder or none, and a restart reuses it.
+    """
+    scene = Path(scene)
+    folder = scene / "priors" / source
+    if source in available_priors(scene):
+        return folder
+    if source not in COMPUTED_PRIOR_SOURCES:
+        raise ConfigError(f"the scene has no {source} priors and the bench cannot compute them", path=scene,
+                          hint=f"use --priors {' or '.join(COMPUTED_PRIOR_SOURCES)}, or a scene made by esgs scene")
+    command = [sys.executable, "-m", "esgs.core.cli", "priors", str(scene), "--method", source]
+    completed = subprocess.run(command, capture_output=True, text=True)
+    if completed.returncode != 0:
+        raise ESGSError(f"esgs priors --method {source} failed: {completed.stdout[-500:]}{completed.stderr[-1500:]}",
+                        path=scene, hint="run the command by hand: esgs " + " ".join(command[3:]))
+    return folder
 
 
 def make_scene(preset: str, seed: int, suite: BenchSuite, scenes_dir: Path) -> Path:
@@ -116,9 +156,12 @@ def make_scene(preset: str, seed: int, suite: BenchSuite, scenes_dir: Path) -> P
 
 
 def plan_bench(scenes: dict[str, tuple[Path, int]], out: Path, *, iterations: int, methods: Sequence[Method] = METHODS,
-               train: Optional[dict] = None, budget_minutes: float = 0.0,
-               budget_step_cap: int = 0) -> tuple[list[RunTask], list[str]]:
+               train: Optional[dict] = None, budget_minutes: float = 0.0, budget_step_cap: int = 0,
+               priors: str = "ndn") -> tuple[list[RunTask], list[str]]:
     """Run tasks for every scene (name -> (folder, seed)) and method, and notes on what was left out.
+
+    Prior-based methods read ``priors/<priors>`` (a method's own ``prior_source`` wins, e.g.
+    the gt upper bound); a scene without the maps a method needs skips it with a note.
 
     Equal-step tasks train ``iterations`` steps in ``OUT/runs/<scene>/<method>``. With
     ``budget_minutes`` > 0 every method also trains in ``OUT/runs_budget/<scene>/<method>``
@@ -130,16 +173,19 @@ def plan_bench(scenes: dict[str, tuple[Path, int]], out: Path, *, iterations: in
     if budget_minutes > 0:
         modes.append(("budget", "runs_budget", {"iterations": budget_step_cap or 2 * iterations,
                                                 "max_minutes": float(budget_minutes)}))
+    if priors not in PRIOR_SOURCES:
+        raise ConfigError(f"unknown prior source {priors!r}", hint=f"use one of {', '.join(PRIOR_SOURCES)}")
     for scene_name, (folder, seed) in scenes.items():
         found = available_priors(folder)
-        source = next((s for s in ("gt", "labels", "ndn", "sfm") if s in found), "")
         mesh = folder / MESH_PATH
         for method in methods:
             esgs = dict(method.esgs)
             if method.priors:
+                source = method.prior_source or priors
                 needed = {kind for kind in ("depth", "normal") if esgs.get(kind)}
-                if not source or not needed <= found.get(source, set()):
-                    notes.append(f"{method.label} skipped on {scene_name}: no {'/'.join(sorted(needed))} priors")
+                if not needed <= found.get(source, set()):
+                    notes.append(f"{method.label} skipped on {scene_name}: no {source} "
+                                 f"{'/'.join(sorted(needed))} priors")
                     continue
                 esgs["priors"] = source
             for mode, folder_name, schedule in modes:
@@ -178,6 +224,20 @@ def _comparison_markdown(part: dict, title: str) -> list[str]:
     return lines
 
 
+def _priors_sentence(priors: Optional[dict]) -> str:
+    source = (priors or {}).get("source", "gt")
+    made_by = {"ndn": "NDN's relative depth and normals (`esgs priors --method ndn`, weights "
+                      f"{', '.join(priors.get('weights') or ['shipped'])}), pinned to each view's SfM points",
+               "sfm": "the sparse SfM depth (`esgs priors --method sfm`)",
+               "gt": "the generator's exact depth and normals"}[source]
+    sentence = f"Priors: the ESGS rows use {made_by}."
+    if source != "gt":
+        sentence += (" The row 'ESGS, ground-truth priors (upper bound)' is the same full ESGS fed the generator's "
+                     "exact depth and normals: a bound on what a perfect prior would give, not a method a user can "
+                     "run on real data.")
+    return sentence
+
+
 def bench_markdown(report: dict) -> str:
     """docs-style Markdown of a bench report (see :func:`run_bench`)."""
     suite = report["suite"]
@@ -198,6 +258,7 @@ def bench_markdown(report: dict) -> str:
              "mesh/ground_truth.ply (scene units, metres). Train time is training only; peak RSS is the run's "
              "process (ru_maxrss); render time is one held-out frame, mean over the held-out views. "
              "Mean ± std over scenes and seeds.", "",
+             _priors_sentence(report.get("priors")), "",
              f"Command: `{report['command']}`", ""]
     lines += _comparison_markdown(report, f"At equal step count ({report['iterations']} steps)")
     if budget:
@@ -211,6 +272,22 @@ def bench_markdown(report: dict) -> str:
     return "\n".join(lines)
 
 
+def _prior_description(source: str, scenes: dict[str, tuple[Path, int]]) -> dict[str, Any]:
+    """The prior source of the bench and, for NDN, the weights its maps were computed with
+    (the ``weights`` header of each scene's first depth map)."""
+    from ..imageio import read_exr
+
+    weights = set()
+    if source == "ndn":
+        for folder, _ in scenes.values():
+            for path in sorted((Path(folder) / "priors" / source / "depth").glob("*.exr"))[:1]:
+                try:
+                    weights.add(Path(read_exr(path)[1].get("weights", "")).name)
+                except (OSError, ValueError, ESGSError):
+                    pass  # the description is informative only; the run itself checks the maps
+    return {"source": source, "weights": sorted(w for w in weights if w)}
+
+
 def _comparison(summaries: list[dict], scene_names: Sequence[str], keys: Sequence[str]) -> dict:
     """Rows over all scenes and per scene (mean ± std over seeds) of one set of run summaries."""
     return {"overall": aggregate(summaries, keys),
@@ -222,8 +299,11 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
               scenes: Optional[dict[str, tuple[Path, int]]] = None, methods: Sequence[Method] = METHODS,
               iterations: Optional[int] = None, budget_minutes: Optional[float] = None,
               budget_step_cap: Optional[int] = None, train: Optional[dict] = None, command: str = "",
-              on_outcome: Optional[Callable[[Any], None]] = None) -> dict:
+              priors: str = "ndn", on_outcome: Optional[Callable[[Any], None]] = None) -> dict:
     """Make (or reuse) the suite's scenes, run every method on each, write benchmarks.md/.json.
+
+    ``priors``: the prior source of the prior-based rows (ndn, sfm or gt); ndn and sfm priors
+    are computed for every scene that lacks them (:func:`ensure_priors`).
 
     ``scenes`` (name -> (folder, seed)) replaces the suite's generated scenes (tests,
     existing folders). ``iterations``, ``budget_minutes`` (0 = no equal-budget comparison)
@@ -250,8 +330,24 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
     if scenes is None:
         scenes = {f"{preset}_s{seed}": (make_scene(preset, seed, suite, out / "scenes"), seed)
                   for preset in suite.presets for seed in suite.seeds}
+    if priors not in PRIOR_SOURCES:
+        raise ConfigError(f"unknown prior source {priors!r}", hint=f"use one of {', '.join(PRIOR_SOURCES)}")
+    if priors in COMPUTED_PRIOR_SOURCES and any(m.priors and not m.prior_source for m in methods):
+        for folder, _ in scenes.values():
+            ensure_priors(folder, priors)
     tasks, notes = plan_bench(scenes, out, iterations=iterations, methods=methods, train=train,
-                              budget_minutes=budget_minutes, budget_step_cap=step_cap)
+                              budget_minutes=budget_minutes, budget_step_cap=step_cap, priors=priors)
+    # runs made with other settings are kept aside and trained again (RunTask.stale_settings)
+    retrained = {}
+    for task in tasks:
+        stale = task.stale_settings()
+        if stale and task.set_aside_if_stale() is not None:
+            retrained[task.name] = stale
+    if retrained:
+        first, settings = next(iter(retrained.items()))
+        notes.append(f"{len(retrained)} run(s) trained again because their saved settings differed from this bench's "
+                     f"(e.g. {first}: {', '.join(settings[:4])}{' ...' if len(settings) > 4 else ''}); the old "
+                     "folders are kept as *.stale-<time>")
     own_executor = executor is None
     executor = executor or LocalExecutor(1)
     try:
@@ -276,6 +372,7 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
                   "budget_step_cap": suite.step_cap},
         "iterations": iterations, "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M"),
         "machine": machine_description(), "executor": type(executor).__name__, "command": command or "run_bench(...)",
+        "priors": _prior_description(priors, scenes),
         **_comparison(step_runs, list(scenes), keys), "budget": budget, "notes": notes, "failed": failed,
     }
     atomic_write_json(out / "benchmarks.json", report)

@@ -1,7 +1,10 @@
 """One experiment run: train a TrainConfig in its own folder, then measure it.
 
 A finished run leaves ``RUN/summary.json`` (written last, atomically); a task whose summary
-exists is not trained again, and an interrupted one resumes from its newest checkpoint.
+exists is not trained again, and an interrupted one resumes from its newest checkpoint, as
+long as the run folder's ``config.json`` holds the settings the task asks for now. A run
+made with other settings (a changed default, another prior source) is stale: it is moved
+aside to ``RUN.stale-<time>`` (kept, never deleted) and trained again.
 """
 from __future__ import annotations
 
@@ -14,6 +17,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 SUMMARY_NAME = "summary.json"
+CONFIG_NAME = "config.json"
 
 
 @dataclass
@@ -40,7 +44,42 @@ class RunTask:
         return Path(self.out) / SUMMARY_NAME
 
     def finished(self) -> bool:
-        return self.summary_path.is_file()
+        """True when the run's summary exists and its saved settings are the task's."""
+        return self.summary_path.is_file() and not self.stale_settings()
+
+    def stale_settings(self) -> list[str]:
+        """Names of the settings (those that change what is computed) whose value in the run
+        folder's ``config.json`` differs from what the task asks for now; [] when they agree
+        or the folder has no config yet."""
+        from ..config import config_from_dict, config_to_dict
+        from ..train.config import TrainConfig
+        from ..train.trainer import RESUMABLE_SETTINGS
+
+        saved_path = Path(self.out) / CONFIG_NAME
+        if not saved_path.is_file():
+            return []
+        try:
+            saved = json.loads(saved_path.read_text())
+        except (OSError, ValueError):
+            return [CONFIG_NAME]  # unreadable: treat as made with other settings
+        wanted = config_to_dict(config_from_dict(TrainConfig, {**self.config, "scene": str(self.scene),
+                                                               "out": str(self.out), "resume": True}))
+        return sorted(name for name, value in wanted.items()
+                      if name not in RESUMABLE_SETTINGS and json.loads(json.dumps(value)) != saved.get(name))
+
+    def set_aside_if_stale(self) -> Optional[Path]:
+        """Move a stale run folder (see :meth:`stale_settings`) to ``OUT.stale-<UTC time>`` so the
+        task trains afresh; returns the new place, or None when the folder is current or absent."""
+        if not self.stale_settings():
+            return None
+        stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
+        target = Path(self.out).with_name(f"{Path(self.out).name}.stale-{stamp}")
+        counter = 1
+        while target.exists():
+            target = Path(self.out).with_name(f"{Path(self.out).name}.stale-{stamp}-{counter}")
+            counter += 1
+        Path(self.out).rename(target)
+        return target
 
     def load_summary(self) -> dict:
         return json.loads(self.summary_path.read_text())
@@ -99,6 +138,7 @@ def run_task(task: RunTask) -> dict[str, Any]:
     from ..train import train
     from ..train.config import TrainConfig
 
+    task.set_aside_if_stale()
     if task.finished():
         return {**task.load_summary(), "skipped": True}
     values = {**task.config, "scene": str(task.scene), "out": str(task.out), "resume": True}

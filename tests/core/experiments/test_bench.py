@@ -7,8 +7,9 @@ from pathlib import Path
 import pytest
 
 from esgs.core.errors import ConfigError
-from esgs.core.experiments.bench import METHODS, SUITES, plan_bench, run_bench
+from esgs.core.experiments.bench import METHODS, SUITES, UPPER_BOUND_KEY, ensure_priors, plan_bench, run_bench
 from esgs.core.experiments.executor import LocalExecutor, make_executor, run_tasks
+from esgs.core.experiments.runs import RunTask
 
 from .helpers import make_experiment_scene
 
@@ -53,16 +54,70 @@ def test_suites_name_their_presets_and_the_plan_skips_methods_without_priors(tmp
     assert SUITES["quick"].presets == ("cratered_plain",) and SUITES["full"].seeds == (0, 1, 2)
     bare = tmp_path / "bare"
     (bare / "sparse").mkdir(parents=True)
-    tasks, notes = plan_bench({"tiny": (scene, 0), "bare": (bare, 1)}, tmp_path / "out", iterations=5)
+    tasks, notes = plan_bench({"tiny": (scene, 0), "bare": (bare, 1)}, tmp_path / "out", iterations=5, priors="gt")
     assert len([t for t in tasks if t.scene_name == "tiny"]) == len(METHODS)
     assert {t.variant for t in tasks if t.scene_name == "bare"} == {"3DGS", "Mip-Splatting", "DropoutGS"}
-    assert len(notes) == 4 and all("bare" in note for note in notes)
+    assert len(notes) == 5 and all("bare" in note for note in notes)
     full = next(t for t in tasks if t.name == "tiny/esgs_full")
     assert full.config["esgs"]["priors"] == "gt" and full.config["esgs"]["gpdfn"] is True
 
 
+def test_prior_rows_use_the_chosen_source_and_only_the_labelled_upper_bound_row_uses_gt(tmp_path, scene):
+    # the tiny scene has gt priors only: with the default (ndn) the ESGS rows have nothing to read
+    tasks, notes = plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=5)
+    planned = {t.name.split("/")[1]: t for t in tasks}
+    assert set(planned) == {"3dgs", "mip_splatting", "dropout_gs", UPPER_BOUND_KEY}
+    assert planned[UPPER_BOUND_KEY].config["esgs"]["priors"] == "gt" and "upper bound" in planned[UPPER_BOUND_KEY].variant
+    assert len(notes) == 4 and all("no ndn" in note for note in notes)
+    with pytest.raises(ConfigError, match="labels"):
+        plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=5, priors="labels")
+
+
+def test_the_bench_computes_missing_sfm_priors_and_plans_its_rows_on_them(tmp_path, scene):
+    import shutil
+
+    copy = tmp_path / "scene"
+    shutil.copytree(scene, copy)
+    folder = ensure_priors(copy, "sfm")
+    assert folder == copy / "priors" / "sfm" and sorted(p.name for p in (folder / "depth").glob("*.exr"))
+    assert ensure_priors(copy, "sfm") == folder  # present: reused, not recomputed
+    tasks, notes = plan_bench({"tiny": (copy, 0)}, tmp_path / "out", iterations=5, priors="sfm")
+    sources = {t.name.split("/")[1]: t.config["esgs"].get("priors") for t in tasks}
+    # sfm priors are depth only: the normal rows are left out with a note, the depth row uses sfm
+    assert sources["esgs_depth"] == "sfm" and sources[UPPER_BOUND_KEY] == "gt" and "esgs_full" not in sources
+    assert len(notes) == 3 and all("normal" in note and "no sfm" in note for note in notes)
+    bare = tmp_path / "bare"
+    (bare / "sparse").mkdir(parents=True)
+    with pytest.raises(ConfigError, match="gt priors"):
+        ensure_priors(bare, "gt")
+
+
+def test_a_run_saved_with_other_settings_is_stale_and_set_aside_whole(tmp_path, scene):
+    from esgs.core.config import config_from_dict, config_to_dict
+    from esgs.core.train.config import TrainConfig
+
+    out = tmp_path / "run"
+    task = RunTask(name="tiny/3dgs", scene=scene, out=out, config={**TRAIN, "iterations": 5, "seed": 0,
+                                                                    "esgs": {}, "baselines": {}})
+    assert task.stale_settings() == [] and not task.finished()  # nothing saved yet
+    saved = config_to_dict(config_from_dict(TrainConfig, {**task.config, "scene": str(scene), "out": str(out)}))
+    out.mkdir()
+    (out / "config.json").write_text(json.dumps({**saved, "threads": 7}))  # a resumable setting may differ
+    (out / "summary.json").write_text("{}")
+    assert task.stale_settings() == [] and task.finished()
+    # a changed default inside the ESGS settings, and a setting the old run did not have
+    saved["esgs"]["depth_weight"] = 0.1
+    del saved["spatial_order"]
+    (out / "config.json").write_text(json.dumps(saved))
+    assert task.stale_settings() == ["esgs", "spatial_order"] and not task.finished()
+    moved = task.set_aside_if_stale()
+    assert moved is not None and moved.name.startswith("run.stale-") and not out.exists()
+    assert json.loads((moved / "config.json").read_text())["esgs"]["depth_weight"] == 0.1
+    assert (moved / "summary.json").is_file() and task.set_aside_if_stale() is None
+
+
 def test_budget_plan_gives_every_method_the_same_minutes_and_step_cap_in_its_own_folder(tmp_path, scene):
-    tasks, _ = plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=300, budget_minutes=1.5)
+    tasks, _ = plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=300, budget_minutes=1.5, priors="gt")
     steps = {t.variant: t for t in tasks if "max_minutes" not in t.config}
     budget = {t.variant: t for t in tasks if "max_minutes" in t.config}
     assert set(steps) == set(budget) == {m.label for m in METHODS}
@@ -106,6 +161,14 @@ def test_tiny_bench_runs_two_methods_writes_markdown_and_restarts_without_retrai
                           methods=methods, iterations=4, train=TRAIN, on_outcome=lambda o: seen.append(o.status))
     assert seen == ["skipped", "skipped"]
     assert again["overall"] == json.loads(json.dumps(report["overall"]))
+    # other settings: the old runs are stale, kept aside, and trained again
+    seen.clear()
+    with LocalExecutor(1) as executor:
+        third = run_bench(tmp_path / "bench", "quick", executor=executor, scenes={"tiny": (scene, 0)},
+                          budget_minutes=0, methods=methods, iterations=4, train={**TRAIN, "lambda_dssim": 0.3},
+                          on_outcome=lambda o: seen.append(o.status))
+    assert seen == ["done", "done"] and any("2 run(s) trained again" in note for note in third["notes"])
+    assert len(list((tmp_path / "bench" / "runs" / "tiny").glob("*.stale-*"))) == 2
 
 
 def test_a_run_that_keeps_failing_is_reported_in_the_markdown(tmp_path, scene):
