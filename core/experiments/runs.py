@@ -52,7 +52,7 @@ class RunTask:
         folder's ``config.json`` differs from what the task asks for now; [] when they agree
         or the folder has no config yet."""
         from ..config import config_from_dict, config_to_dict
-        from ..train.config import TrainConfig
+        from ..train.config import PREDATING_VALUES, TrainConfig
         from ..train.trainer import RESUMABLE_SETTINGS
 
         saved_path = Path(self.out) / CONFIG_NAME
@@ -64,8 +64,9 @@ class RunTask:
             return [CONFIG_NAME]  # unreadable: treat as made with other settings
         wanted = config_to_dict(config_from_dict(TrainConfig, {**self.config, "scene": str(self.scene),
                                                                "out": str(self.out), "resume": True}))
-        return sorted(name for name, value in wanted.items()
-                      if name not in RESUMABLE_SETTINGS and json.loads(json.dumps(value)) != saved.get(name))
+        # a setting newer than the saved run counts with the value such runs had (PREDATING_VALUES)
+        return sorted(name for name, value in wanted.items() if name not in RESUMABLE_SETTINGS
+                      and json.loads(json.dumps(value)) != saved.get(name, PREDATING_VALUES.get(name)))
 
     def set_aside_if_stale(self) -> Optional[Path]:
         """Move a stale run folder (see :meth:`stale_settings`) to ``OUT.stale-<UTC time>`` so the
