@@ -18,6 +18,28 @@ from typing import Any, Optional
 
 SUMMARY_NAME = "summary.json"
 CONFIG_NAME = "config.json"
+#: Settings that change only the order of floating-point sums, like ``threads``: a run made
+#: with another value is not stale (its timings may differ; what it computes does not).
+ORDER_ONLY_SETTINGS = frozenset({"spatial_order"})
+#: The switches of the ESGS parts: when all are off, the other ESGS settings do nothing.
+_ESGS_SWITCHES = ("depth", "normal", "consistency", "gpdfn")
+#: Baseline switches and the settings that act only when theirs is on.
+_BASELINE_PARTS = {"mip_splatting": "mip_", "dropout_gs": "dropout_"}
+
+
+def effective_settings(config: dict[str, Any]) -> dict[str, Any]:
+    """``config`` (a TrainConfig dict) without the sub-settings of switched-off methods, which
+    cannot change the result (a 3DGS run does not depend on the ESGS depth weight)."""
+    settings = dict(config)
+    esgs = settings.get("esgs")
+    if isinstance(esgs, dict) and not any(esgs.get(name) for name in _ESGS_SWITCHES):
+        settings["esgs"] = "off"
+    baselines = settings.get("baselines")
+    if isinstance(baselines, dict):
+        settings["baselines"] = {name: value for name, value in baselines.items()
+                                 if not any(name.startswith(prefix) and name != switch and not baselines.get(switch)
+                                            for switch, prefix in _BASELINE_PARTS.items())}
+    return settings
 
 
 @dataclass
@@ -48,9 +70,9 @@ class RunTask:
         return self.summary_path.is_file() and not self.stale_settings()
 
     def stale_settings(self) -> list[str]:
-        """Names of the settings (those that change what is computed) whose value in the run
-        folder's ``config.json`` differs from what the task asks for now; [] when they agree
-        or the folder has no config yet."""
+        """Names of the settings (those that change what is computed, see
+        :func:`effective_settings`) whose value in the run folder's ``config.json`` differs from
+        what the task asks for now; [] when they agree or the folder has no config yet."""
         from ..config import config_from_dict, config_to_dict
         from ..train.config import PREDATING_VALUES, TrainConfig
         from ..train.trainer import RESUMABLE_SETTINGS
@@ -65,8 +87,10 @@ class RunTask:
         wanted = config_to_dict(config_from_dict(TrainConfig, {**self.config, "scene": str(self.scene),
                                                                "out": str(self.out), "resume": True}))
         # a setting newer than the saved run counts with the value such runs had (PREDATING_VALUES)
-        return sorted(name for name, value in wanted.items() if name not in RESUMABLE_SETTINGS
-                      and json.loads(json.dumps(value)) != saved.get(name, PREDATING_VALUES.get(name)))
+        saved = effective_settings({**{name: PREDATING_VALUES.get(name) for name in wanted}, **saved})
+        wanted = effective_settings(json.loads(json.dumps(wanted)))
+        ignored = RESUMABLE_SETTINGS | ORDER_ONLY_SETTINGS
+        return sorted(name for name, value in wanted.items() if name not in ignored and value != saved.get(name))
 
     def set_aside_if_stale(self) -> Optional[Path]:
         """Move a stale run folder (see :meth:`stale_settings`) to ``OUT.stale-<UTC time>`` so the

@@ -96,24 +96,42 @@ def test_a_run_saved_with_other_settings_is_stale_and_set_aside_whole(tmp_path, 
     from esgs.core.config import config_from_dict, config_to_dict
     from esgs.core.train.config import TrainConfig
 
+    def saved_config(task):
+        values = {**task.config, "scene": str(scene), "out": str(task.out)}
+        return json.loads(json.dumps(config_to_dict(config_from_dict(TrainConfig, values))))
+
     out = tmp_path / "run"
-    task = RunTask(name="tiny/3dgs", scene=scene, out=out, config={**TRAIN, "iterations": 5, "seed": 0,
-                                                                    "esgs": {}, "baselines": {}})
+    esgs = {"priors": "gt", "depth": True}
+    task = RunTask(name="tiny/esgs_depth", scene=scene, out=out, config={**TRAIN, "iterations": 5, "seed": 0,
+                                                                          "esgs": esgs, "baselines": {}})
     assert task.stale_settings() == [] and not task.finished()  # nothing saved yet
-    saved = config_to_dict(config_from_dict(TrainConfig, {**task.config, "scene": str(scene), "out": str(out)}))
+    saved = saved_config(task)
     out.mkdir()
-    (out / "config.json").write_text(json.dumps({**saved, "threads": 7}))  # a resumable setting may differ
+    # settings that change only how it runs (threads) or the order of sums (spatial order) may differ
+    (out / "config.json").write_text(json.dumps({**saved, "threads": 7, "spatial_order": False}))
     (out / "summary.json").write_text("{}")
     assert task.stale_settings() == [] and task.finished()
-    # a changed default inside the ESGS settings, and a setting the old run did not have
+    # a changed default inside the ESGS settings, and a step count
     saved["esgs"]["depth_weight"] = 0.1
-    del saved["spatial_order"]
+    saved["iterations"] = 6
     (out / "config.json").write_text(json.dumps(saved))
-    assert task.stale_settings() == ["esgs", "spatial_order"] and not task.finished()
+    assert task.stale_settings() == ["esgs", "iterations"] and not task.finished()
     moved = task.set_aside_if_stale()
     assert moved is not None and moved.name.startswith("run.stale-") and not out.exists()
     assert json.loads((moved / "config.json").read_text())["esgs"]["depth_weight"] == 0.1
     assert (moved / "summary.json").is_file() and task.set_aside_if_stale() is None
+    # a 3DGS run does not depend on the settings of switched-off methods
+    plain = RunTask(name="tiny/3dgs", scene=scene, out=tmp_path / "plain",
+                    config={**TRAIN, "iterations": 5, "seed": 0, "esgs": {}, "baselines": {}})
+    saved = saved_config(plain)
+    saved["esgs"]["depth_weight"], saved["baselines"]["dropout_rate"] = 0.1, 0.5
+    del saved["esgs"]["relative_alignment"]  # an ESGS setting newer than the run
+    plain.out.mkdir()
+    (plain.out / "config.json").write_text(json.dumps(saved))
+    assert plain.stale_settings() == []
+    saved["baselines"]["dropout_gs"] = True
+    (plain.out / "config.json").write_text(json.dumps(saved))
+    assert plain.stale_settings() == ["baselines"]
 
 
 def test_budget_plan_gives_every_method_the_same_minutes_and_step_cap_in_its_own_folder(tmp_path, scene):
