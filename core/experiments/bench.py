@@ -225,7 +225,8 @@ def _comparison_markdown(part: dict, title: str) -> list[str]:
 
 
 def _priors_sentence(priors: Optional[dict]) -> str:
-    source = (priors or {}).get("source", "gt")
+    priors = priors or {}
+    source = priors.get("source", "gt")
     made_by = {"ndn": "NDN's relative depth and normals (`esgs priors --method ndn`, weights "
                       f"{', '.join(priors.get('weights') or ['shipped'])}), pinned to each view's SfM points",
                "sfm": "the sparse SfM depth (`esgs priors --method sfm`)",

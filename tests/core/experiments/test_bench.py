@@ -62,6 +62,15 @@ def test_suites_name_their_presets_and_the_plan_skips_methods_without_priors(tmp
     assert full.config["esgs"]["priors"] == "gt" and full.config["esgs"]["gpdfn"] is True
 
 
+def test_the_report_names_the_prior_source_and_labels_the_upper_bound():
+    from esgs.core.experiments.bench import _priors_sentence
+
+    assert "exact depth and normals." in _priors_sentence(None) and "upper bound" not in _priors_sentence(None)
+    ndn = _priors_sentence({"source": "ndn", "weights": ["ndn_mars.pt"]})
+    assert "NDN" in ndn and "ndn_mars.pt" in ndn and "upper bound" in ndn
+    assert "sparse SfM depth" in _priors_sentence({"source": "sfm"})
+
+
 def test_prior_rows_use_the_chosen_source_and_only_the_labelled_upper_bound_row_uses_gt(tmp_path, scene):
     # the tiny scene has gt priors only: with the default (ndn) the ESGS rows have nothing to read
     tasks, notes = plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=5)
@@ -172,6 +181,7 @@ def test_tiny_bench_runs_two_methods_writes_markdown_and_restarts_without_retrai
         assert run["render_s_per_frame"] > 0 and run["distance_mean"] > 0
     markdown = (tmp_path / "bench" / "benchmarks.md").read_text()
     assert "| DropoutGS |" in markdown and "Machine:" in markdown and "render (ms/frame)" in markdown
+    assert "Priors: the ESGS rows use NDN" in markdown and "(upper bound)" in markdown
     assert json.loads((tmp_path / "bench" / "benchmarks.json").read_text())["iterations"] == 4
     seen.clear()
     with LocalExecutor(1) as executor:
