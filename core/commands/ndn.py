@@ -2,7 +2,8 @@
 
 - ``esgs ndn build-data --out DIR --scenes N``: render synthetic scenes (``esgs scene`` in
   child processes) into npz shards of view triples (resumable);
-- ``esgs ndn train DATA --out MODEL_DIR [--steps N] [--resume]``: train, with checkpoints;
+- ``esgs ndn train DATA --out MODEL_DIR [--steps N] [--resume] [--depth-state affine|log]``:
+  train, with checkpoints;
 - ``esgs ndn eval MODEL_DIR DATA``: AbsRel / delta1 (after scale-shift alignment) and normal
   angular errors on the held-out split;
 - ``esgs ndn shard SCENE... --data DATA``: add any scene folder with ``priors/gt`` (e.g. one
@@ -106,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
 def _train(args: argparse.Namespace, bar) -> int:
     from ..config import dataclass_from_args
     from ..ndn.config import NDNConfig, NDNDiffusionConfig, NDNModelConfig, NDNTrainConfig
-    from ..ndn.train import train_ndn
+    from ..ndn.train import checkpoint_config, resume_source, train_ndn
     from ..progress import JsonLinesProgress, combine
 
     model_config = dataclass_from_args(NDNModelConfig, args)
@@ -117,6 +118,17 @@ def _train(args: argparse.Namespace, bar) -> int:
         model_config.validate()
     config = NDNConfig(model=model_config, diffusion=dataclass_from_args(NDNDiffusionConfig, args))
     train_config = dataclass_from_args(NDNTrainConfig, args)
+    # resuming or fine-tuning keeps the checkpoint's depth state unless --depth-state /
+    # --log-depth-range ask for another one, which train_ndn then refuses
+    source = resume_source(args.out) if args.resume else None
+    if source is None and train_config.init and Path(train_config.init).exists():
+        source = Path(train_config.init)
+    if source is not None:
+        saved = checkpoint_config(source).diffusion
+        if args.depth_state is None:
+            config.diffusion.depth_state = saved.depth_state
+        if args.log_depth_range is None:
+            config.diffusion.log_depth_range = saved.log_depth_range
     args.out.mkdir(parents=True, exist_ok=True)
     events = JsonLinesProgress(args.out / "events.jsonl")
     try:

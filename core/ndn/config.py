@@ -5,6 +5,10 @@ from dataclasses import dataclass, field
 
 from ..errors import ConfigError
 
+# the depth diffusion state: "affine" per view (the shipped weights) or scale-normalised "log"
+# depth (see core/ndn/data.py, depth_to_state)
+DEPTH_STATES = ("affine", "log")
+
 
 @dataclass
 class NDNModelConfig:
@@ -44,6 +48,14 @@ class NDNDiffusionConfig:
     coarse_fraction: float = field(default=0.5, metadata={
         "help": "normal branch: the noisiest fraction of the T steps (N/T) is denoised coarsely, without "
                 "full-resolution image features; the remaining T-N steps fuse them"})
+    depth_state: str = field(default="affine", metadata={
+        "choices": DEPTH_STATES,
+        "help": "what the depth state is: affine (nearest surface -1, farthest +1; what the shipped weights use) "
+                "or log (ln(depth / reference) / log_depth_range, clipped to [-1, 1]: precision spread by range); "
+                "saved with the weights, inference follows it; checkpoints without it are affine"})
+    log_depth_range: float = field(default=2.5, metadata={
+        "help": "log state only: the fixed constant c of state = ln(depth / reference) / c; the state covers "
+                "reference x e^-c .. reference x e^+c (2.5: a 148x depth ratio around the view's reference)"})
 
     def validate(self) -> None:
         if self.timesteps < 2:
@@ -60,6 +72,10 @@ class NDNDiffusionConfig:
             raise ConfigError(f"sample_reduce must be median or mean, got {self.sample_reduce!r}")
         if not 0.0 <= self.coarse_fraction < 1.0:
             raise ConfigError(f"coarse_fraction must be in [0, 1), got {self.coarse_fraction}")
+        if self.depth_state not in DEPTH_STATES:
+            raise ConfigError(f"depth_state must be affine or log, got {self.depth_state!r}")
+        if not 0.0 < self.log_depth_range <= 10.0:
+            raise ConfigError(f"log_depth_range must be in (0, 10], got {self.log_depth_range}")
 
     @property
     def refine_below(self) -> int:

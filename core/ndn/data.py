@@ -10,13 +10,19 @@ scene as one npz shard:
 - ``normal`` [N, 3, h, w] float32: unit normals in the camera frame (OpenCV axes), 0 = none;
 - ``mask`` [N, h, w] bool: valid surface.
 
-The diffusion targets are derived on the fly: :func:`depth_to_state` maps depth affinely to
-[-1, 1] per view (near = -1, far and sky = +1), so the state is *relative* depth, known up
-to scale and shift, which the trainer's prior losses recover with ``fit_scale_shift``.
+The diffusion targets are derived on the fly from the stored metric depth (so one data
+folder serves every kind of state): :func:`depth_to_state` maps depth to [-1, 1] per view
+(no surface = +1, far). The ``affine`` state maps it affinely (nearest surface -1, farthest
++1); the ``log`` state is ``ln(depth / reference) / c`` with a per-view reference depth and
+a fixed ``c`` (the model's ``log_depth_range``). Either way :func:`state_to_relative_depth`
+inverts it to a *relative* depth that is affine in true depth (the log state's is true
+depth times one unknown scale), which the trainer's prior losses recover with
+``fit_scale_shift``.
 """
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -27,7 +33,7 @@ import numpy as np
 from ..errors import ConfigError, DatasetError
 from ..io_utils import atomic_path, atomic_write_json
 from ..progress import ProgressCallback, ProgressEvent, no_progress
-from .config import NDNDataConfig
+from .config import DEPTH_STATES, NDNDataConfig
 
 SHARD_FORMAT = "esgs-ndn-shard-1"
 TRAIN_PRESETS = NDNDataConfig().presets  # every preset without sky
@@ -66,23 +72,62 @@ def neighbour_indices(centres: np.ndarray, directions: np.ndarray) -> np.ndarray
     return result
 
 
-def depth_to_state(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
+LOG_DEPTH_RANGE = 2.5  # default c of the log state (NDNDiffusionConfig.log_depth_range)
+# the log state's per-view reference depth is the geometric mean of these percentiles of the
+# valid depths: the middle of the view's log-depth range (so a fixed c clips least), and a few
+# stray pixels at either end cannot move it
+LOG_REFERENCE_PERCENTILES = (2.0, 98.0)
+
+
+def _check_kind(kind: str) -> None:
+    if kind not in DEPTH_STATES:
+        raise ConfigError(f"depth state must be one of {', '.join(DEPTH_STATES)}, got {kind!r}")
+
+
+def depth_to_state(depth: np.ndarray, mask: np.ndarray, kind: str = "affine",
+                   log_range: float = LOG_DEPTH_RANGE) -> np.ndarray:
     """Relative depth state in [-1, 1]: [H, W] depth, [H, W] bool mask -> [H, W] float32.
 
-    Affine per view (nearest surface -1, farthest +1); no-surface pixels are +1 (far).
+    ``kind`` "affine": affine per view (nearest surface -1, farthest +1). "log":
+    ``clip(ln(depth / reference) / log_range, -1, 1)`` with ``reference`` the geometric mean of
+    the 2nd and 98th percentiles of the view's valid depths, so a relative error of the depth
+    is ``log_range`` x the state's error at every range. No-surface pixels are +1 (far).
     """
+    _check_kind(kind)
     valid = mask & (depth > 0) & np.isfinite(depth)
     state = np.ones(depth.shape, np.float32)
     if valid.any():
-        low, high = float(depth[valid].min()), float(depth[valid].max())
-        span = max(high - low, 1e-6)
-        state[valid] = 2.0 * (depth[valid] - low) / span - 1.0
+        values = depth[valid].astype(np.float64)
+        if kind == "affine":
+            low, high = float(values.min()), float(values.max())
+            span = max(high - low, 1e-6)
+            state[valid] = 2.0 * (values - low) / span - 1.0
+        else:
+            low, high = np.percentile(values, LOG_REFERENCE_PERCENTILES)
+            reference = math.sqrt(float(low) * float(high))
+            state[valid] = np.clip(np.log(values / reference) / log_range, -1.0, 1.0)
     return state
 
 
-def state_to_relative_depth(state: np.ndarray) -> np.ndarray:
-    """Relative depth (positive, affine in true depth) from a state in [-1, 1]: values in [1, 2]."""
-    return (np.clip(state, -1.0, 1.0) + 1.0) * 0.5 + 1.0
+def relative_depth_bounds(kind: str = "affine", log_range: float = LOG_DEPTH_RANGE) -> tuple[float, float]:
+    """(lowest, highest) relative depth :func:`state_to_relative_depth` can return."""
+    _check_kind(kind)
+    return (1.0, 2.0) if kind == "affine" else (math.exp(-log_range), math.exp(log_range))
+
+
+def state_to_relative_depth(state: np.ndarray, kind: str = "affine",
+                            log_range: float = LOG_DEPTH_RANGE) -> np.ndarray:
+    """Relative depth (positive, affine in true depth) from a state in [-1, 1].
+
+    "affine": ``(state + 1) / 2 + 1``, values in [1, 2], true depth up to scale and shift.
+    "log": ``exp(log_range x state)``, values in [e^-c, e^c], true depth up to one scale
+    (a special case of the same format: the fitted shift comes out ~0).
+    """
+    _check_kind(kind)
+    state = np.clip(state, -1.0, 1.0)
+    if kind == "affine":
+        return (state + 1.0) * 0.5 + 1.0
+    return np.exp(log_range * state)
 
 
 def _resize_masked(values: np.ndarray, weight: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:

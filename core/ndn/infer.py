@@ -3,8 +3,9 @@
 The network works at <= 128 px on the long side. Its maps are brought back to the image
 size with an image-guided filter (OpenCV's ``ximgproc.guidedFilter``: bilinear upsampling,
 then edges snapped to the image's), and written to ``SCENE/priors/ndn/`` in the standard
-format: depth with ``depth_kind = relative`` (affine in true depth, values in [1, 2];
-training aligns it with ``fit_scale_shift``), unit normals in the camera frame (OpenCV
+format: depth with ``depth_kind = relative`` (affine in true depth: values in [1, 2] for the
+affine depth state, true depth times one unknown scale for the log state, as the weights'
+``depth_state`` says; training aligns either with ``fit_scale_shift``), unit normals in the camera frame (OpenCV
 axes), and a mask of the pixels the normal branch calls surface (it was trained to output
 a zero normal where there is no surface).
 """
@@ -16,7 +17,8 @@ import numpy as np
 import torch
 
 from ..progress import ProgressCallback, ProgressEvent, no_progress
-from .data import SceneTriples, load_shards, scene_triples, state_to_relative_depth
+from .data import (LOG_DEPTH_RANGE, SceneTriples, load_shards, relative_depth_bounds, scene_triples,
+                   state_to_relative_depth)
 from .diffusion import GaussianDiffusion
 from .model import NDNUNet
 from .train import load_checkpoint
@@ -58,20 +60,22 @@ def guided_upsample(values: np.ndarray, guide_rgb: np.ndarray, radius: int = 4, 
 
 
 def maps_from_states(depth_state: np.ndarray, normal_state: np.ndarray,
-                     guide_rgb: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     guide_rgb: np.ndarray | None = None, *, kind: str = "affine",
+                     log_range: float = LOG_DEPTH_RANGE) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One view's states -> (relative depth [H, W], unit normals [H, W, 3], mask [H, W] bool).
 
-    ``depth_state`` [h, w], ``normal_state`` [3, h, w]; with ``guide_rgb`` [H, W, 3] the maps
+    ``depth_state`` [h, w] of kind ``kind`` (the weights' ``depth_state``, with their
+    ``log_depth_range``), ``normal_state`` [3, h, w]; with ``guide_rgb`` [H, W, 3] the maps
     are upsampled to its size under its guidance, otherwise kept at the working size.
     """
     import cv2
 
-    relative = state_to_relative_depth(depth_state)
+    relative = state_to_relative_depth(depth_state, kind, log_range)
     normal = normal_state.transpose(1, 2, 0)
     surface = (np.linalg.norm(normal, axis=-1) > SURFACE_NORMAL_LENGTH).astype(np.uint8)
     if guide_rgb is not None:
         height, width = guide_rgb.shape[:2]
-        relative = np.clip(guided_upsample(relative, guide_rgb), 1.0, 2.0)
+        relative = np.clip(guided_upsample(relative, guide_rgb), *relative_depth_bounds(kind, log_range))
         normal = guided_upsample(normal, guide_rgb)
         surface = cv2.resize(surface, (width, height), interpolation=cv2.INTER_NEAREST)
     length = np.linalg.norm(normal, axis=-1, keepdims=True)
@@ -113,7 +117,9 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
         normal_states.append(normal.numpy())
     depth_states_all, normal_states_all = np.concatenate(depth_states), np.concatenate(normal_states)
     metadata = {"method": "ndn", "weights": str(weights), "ddim_steps": str(steps or config.diffusion.sample_steps),
-                "seed": str(seed)}
+                "seed": str(seed), "depth_state": config.diffusion.depth_state}
+    if config.diffusion.depth_state == "log":
+        metadata["log_depth_range"] = str(config.diffusion.log_depth_range)
     # all maps go to a staging folder that replaces priors/ndn only when complete: a failure
     # never leaves a mix of old and new views
     (scene_dir / "priors").mkdir(parents=True, exist_ok=True)
@@ -122,7 +128,9 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
         for index, name in enumerate(triples.names):
             image = read_image(scene_dir / "images" / name)
             image = np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
-            depth, normal, mask = maps_from_states(depth_states_all[index, 0], normal_states_all[index], image)
+            depth, normal, mask = maps_from_states(depth_states_all[index, 0], normal_states_all[index], image,
+                                                   kind=config.diffusion.depth_state,
+                                                   log_range=config.diffusion.log_depth_range)
             write_prior_maps(work, "ndn", name, depth=depth, normal=normal, mask=mask, relative_depth=True,
                              units="relative", metadata=metadata)
         with atomic_directory(prior_dir(scene_dir, "ndn"), overwrite=True) as staging:
@@ -178,7 +186,8 @@ def evaluate_arrays(model: NDNUNet, diffusion: GaussianDiffusion, arrays: dict[s
                     progress: ProgressCallback = no_progress) -> list[dict[str, float]]:
     """Scores of every triple in ``arrays`` (views, depth, normal, mask as in a shard); triple
     ``i`` is sampled alone from noise seeded with ``seed + i`` (``ensemble`` samples of it
-    when given, else the model's ``sample_ensemble``). Returns one dict per triple."""
+    when given, else the model's ``sample_ensemble``); states are read as the diffusion
+    config's ``depth_state``. Returns one dict per triple."""
     views = torch.from_numpy(arrays["views"].astype(np.float32) / 127.5 - 1.0)
     count = views.shape[0]
     per_view = []
@@ -186,7 +195,9 @@ def evaluate_arrays(model: NDNUNet, diffusion: GaussianDiffusion, arrays: dict[s
         progress(ProgressEvent(index, count, "ndn-eval"))
         depth_state, normal = diffusion.sample(model, views[index:index + 1], steps=steps, seed=seed + index,
                                                ensemble=ensemble)
-        per_view.append(score_view(state_to_relative_depth(depth_state[0, 0].numpy()), normal[0].numpy(),
+        relative = state_to_relative_depth(depth_state[0, 0].numpy(), diffusion.config.depth_state,
+                                           diffusion.config.log_depth_range)
+        per_view.append(score_view(relative, normal[0].numpy(),
                                    arrays["depth"][index], arrays["normal"][index], arrays["mask"][index]))
     progress(ProgressEvent(count, count, "ndn-eval", kind="done"))
     return per_view

@@ -25,11 +25,11 @@ import numpy as np
 import torch
 
 from ..config import config_from_dict
-from ..errors import CheckpointError
+from ..errors import CheckpointError, ConfigError
 from ..io_utils import atomic_path, atomic_write_json
 from ..progress import ProgressCallback, ProgressEvent, no_progress
 from .config import NDNConfig, NDNTrainConfig
-from .data import check_disjoint_splits, depth_to_state, load_shards
+from .data import LOG_DEPTH_RANGE, check_disjoint_splits, depth_to_state, load_shards
 from .diffusion import GaussianDiffusion
 from .model import NDNUNet
 
@@ -59,13 +59,8 @@ def save_checkpoint(path: str | Path, model: NDNUNet, config: NDNConfig, *, step
     return Path(path)
 
 
-def load_checkpoint(path: str | Path, *, ema: bool = True) -> tuple[NDNUNet, GaussianDiffusion, NDNConfig, dict]:
-    """Read a checkpoint or weights file: (model in eval mode, diffusion, config, raw payload).
-
-    With ``ema`` (the default, what evaluation and inference want) the model holds the
-    checkpoint's moving average of the weights when it has one, else its raw weights; the
-    trainer resumes with ``ema=False`` (raw weights; the average is in ``payload["ema"]``).
-    """
+def _read_checkpoint(path: str | Path) -> tuple[Path, dict, NDNConfig]:
+    """(file, raw payload, saved config) of a checkpoint, weights file or model folder."""
     path = Path(path)
     if path.is_dir():
         path = resolve_weights(path)
@@ -78,7 +73,18 @@ def load_checkpoint(path: str | Path, *, ema: bool = True) -> tuple[NDNUNet, Gau
         raise CheckpointError(f"cannot read NDN weights: {error}", path=path) from error
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError("not an NDN checkpoint (missing or unknown format tag)", path=path)
-    config = config_from_dict(NDNConfig, payload["config"])
+    # settings added later (e.g. depth_state) take their defaults in older files: affine
+    return path, payload, config_from_dict(NDNConfig, payload["config"])
+
+
+def load_checkpoint(path: str | Path, *, ema: bool = True) -> tuple[NDNUNet, GaussianDiffusion, NDNConfig, dict]:
+    """Read a checkpoint or weights file: (model in eval mode, diffusion, config, raw payload).
+
+    With ``ema`` (the default, what evaluation and inference want) the model holds the
+    checkpoint's moving average of the weights when it has one, else its raw weights; the
+    trainer resumes with ``ema=False`` (raw weights; the average is in ``payload["ema"]``).
+    """
+    path, payload, config = _read_checkpoint(path)
     model, diffusion = build_model(config)
     state = payload["ema"]["weights"] if ema and "ema" in payload else payload["model"]
     try:
@@ -198,17 +204,57 @@ def resolve_weights(model_dir: str | Path) -> Path:
     return latest
 
 
+def checkpoint_config(path: str | Path) -> NDNConfig:
+    """The model and diffusion settings saved in a checkpoint or weights file (no model built).
+    Files written before ``depth_state`` existed read as the affine state."""
+    return _read_checkpoint(path)[2]
+
+
+def depth_state_of(config: NDNConfig) -> tuple[str, float | None]:
+    """What a model's depth state means: (kind, c) for the log state, (kind, None) for affine."""
+    kind = config.diffusion.depth_state
+    return kind, (config.diffusion.log_depth_range if kind == "log" else None)
+
+
+def check_same_depth_state(requested: NDNConfig | None, loaded: NDNConfig, path: str | Path, action: str) -> None:
+    """Refuse to continue a checkpoint (``action``: "resume" or "fine-tune") with another depth
+    state: the network learned to denoise one mapping of depth to [-1, 1], and samples
+    inverted with another would be depth raised to a power, not depth up to scale and shift."""
+    if requested is not None and depth_state_of(requested) != depth_state_of(loaded):
+        raise ConfigError(f"cannot {action} a checkpoint trained with depth state {depth_state_of(loaded)[0]!r}"
+                          f"{_describe_range(loaded)} as depth state {depth_state_of(requested)[0]!r}"
+                          f"{_describe_range(requested)}", path=path,
+                          hint="train a new model folder from scratch (no --init, no --resume) for another "
+                               "depth state, or leave --depth-state/--log-depth-range out to keep the checkpoint's")
+
+
+def _describe_range(config: NDNConfig) -> str:
+    c = depth_state_of(config)[1]
+    return "" if c is None else f" (log_depth_range {c:g})"
+
+
+def resume_source(model_dir: str | Path) -> Path | None:
+    """What ``--resume`` continues in ``MODEL_DIR``: the latest checkpoint, else ``weights.pt``, else None."""
+    checkpoint = latest_checkpoint(model_dir)
+    if checkpoint is None and (Path(model_dir) / "weights.pt").exists():
+        checkpoint = Path(model_dir) / "weights.pt"
+    return checkpoint
+
+
 def latest_checkpoint(model_dir: str | Path) -> Path | None:
     """The checkpoint with the highest step in ``MODEL_DIR/checkpoints``, or None."""
     paths = sorted(Path(model_dir, "checkpoints").glob("step_*.pt"))
     return paths[-1] if paths else None
 
 
-def training_tensors(arrays: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+def training_tensors(arrays: dict[str, np.ndarray], depth_state: str = "affine",
+                     log_range: float = LOG_DEPTH_RANGE) -> dict[str, torch.Tensor]:
     """Shard arrays -> network inputs and targets in [-1, 1]: views [N, 9, h, w], depth state
-    [N, 1, h, w], normal state [N, 3, h, w] (0 where there is no surface), mask [N, 1, h, w]."""
+    [N, 1, h, w] (of kind ``depth_state``, see :func:`.data.depth_to_state`), normal state
+    [N, 3, h, w] (0 where there is no surface), mask [N, 1, h, w]."""
     views = torch.from_numpy(arrays["views"].astype(np.float32) / 127.5 - 1.0)
-    depth = np.stack([depth_to_state(d, m) for d, m in zip(arrays["depth"], arrays["mask"])])[:, None]
+    depth = np.stack([depth_to_state(d, m, depth_state, log_range)
+                      for d, m in zip(arrays["depth"], arrays["mask"])])[:, None]
     normal = arrays["normal"] * arrays["mask"][:, None]
     return {"views": views, "depth": torch.from_numpy(depth.astype(np.float32)),
             "normal": torch.from_numpy(normal.astype(np.float32)),
@@ -246,7 +292,9 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
     training continues to ``train_config.steps``. Without one, ``train_config.init`` names a
     checkpoint to fine-tune: its raw weights and optimiser moments, its step count (the step
     numbers continue from it, and the learning-rate schedule runs from there to
-    ``steps``); the weight average and the batch order start afresh (``seed``).
+    ``steps``); the weight average and the batch order start afresh (``seed``). Resuming or
+    fine-tuning keeps the checkpoint's model config; a ``config`` with another depth state
+    (``depth_state``/``log_depth_range``) is refused with :class:`ConfigError`.
 
     At every checkpoint the averaged weights are scored on ``DATA``'s validation split
     (``validation_triples`` of it; skipped when there is none) and the scores go into the
@@ -263,17 +311,19 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
         torch.set_num_threads(train_config.threads)
     generator = torch.Generator().manual_seed(train_config.seed)
     start_step = 0
-    checkpoint = latest_checkpoint(out_dir) if resume else None
-    if resume and checkpoint is None and (out_dir / "weights.pt").exists():
-        checkpoint = out_dir / "weights.pt"
+    checkpoint = resume_source(out_dir) if resume else None
     lineage: dict = {}
     if checkpoint is not None:
-        model, diffusion, config, payload = load_checkpoint(checkpoint, ema=False)
+        model, diffusion, loaded, payload = load_checkpoint(checkpoint, ema=False)
+        check_same_depth_state(config, loaded, checkpoint, "resume")
+        config = loaded
         start_step = int(payload["step"])
         schedule_start = int(payload.get("schedule_start", 0))
         lineage = dict(payload.get("lineage", {}))
     elif train_config.init:
-        model, diffusion, config, init_payload = load_checkpoint(train_config.init, ema=False)
+        model, diffusion, loaded, init_payload = load_checkpoint(train_config.init, ema=False)
+        check_same_depth_state(config, loaded, train_config.init, "fine-tune")
+        config = loaded
         start_step = schedule_start = int(init_payload["step"])
         payload = {"optimizer": init_payload["optimizer"]} if "optimizer" in init_payload else {}
         lineage = {"init_from": str(Path(train_config.init).resolve()), "init_step": start_step}
@@ -292,7 +342,7 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
     if has_validation:
         check_disjoint_splits(data_dir)  # a score on scenes seen in training would choose nothing
         validation = validation_subset(load_shards(data_dir, "validation"), train_config.validation_triples)
-    data = training_tensors(arrays)
+    data = training_tensors(arrays, config.diffusion.depth_state, config.diffusion.log_depth_range)
     optimizer = torch.optim.AdamW(model.parameters(), lr=train_config.learning_rate,
                                   weight_decay=train_config.weight_decay)
     if "optimizer" in payload:
