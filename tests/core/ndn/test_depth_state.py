@@ -175,3 +175,25 @@ def test_training_targets_resume_and_fine_tuning_keep_the_depth_state(scene, tmp
         train_ndn(data, tmp_path / "tuned", init, tiny_config())
     train_ndn(data, tmp_path / "tuned", init, _log_config())
     assert load_checkpoint(tmp_path / "tuned")[2].diffusion.depth_state == "log"
+
+
+def test_train_command_depth_state_flag_and_resume(scene, tmp_path, capsys):
+    data = tmp_path / "data"
+    write_shard(data / "shards" / "train_plane_1.npz", scene_triples(scene, 32, 2), {})
+    out = tmp_path / "model"
+    tiny = ["--base-channels", "8", "--levels", "2", "--time-dim", "16", "--working-size", "32", "--timesteps", "50",
+            "--sample-steps", "2", "--batch-size", "2", "--checkpoint-every", "1", "--threads", "1"]
+    assert main(["ndn", "train", str(data), "--out", str(out), "--steps", "1", "--depth-state", "log", *tiny]) == 0
+    assert checkpoint_config(out / "checkpoints/step_0000001.pt").diffusion.depth_state == "log"
+    # --resume without --depth-state keeps the checkpoint's state
+    assert main(["ndn", "train", str(data), "--out", str(out), "--steps", "2", "--resume", *tiny]) == 0
+    assert checkpoint_config(out / "checkpoints/step_0000002.pt").diffusion.depth_state == "log"
+    capsys.readouterr()
+    # asking for another state is a clear error, and nothing is written
+    assert main(["ndn", "train", str(data), "--out", str(out), "--steps", "3", "--resume", "--depth-state", "affine",
+                 *tiny]) == 2
+    assert "cannot resume a checkpoint trained with depth state 'log'" in capsys.readouterr().err
+    assert not (out / "checkpoints/step_0000003.pt").exists()
+    assert main(["ndn", "train", str(data), "--out", str(tmp_path / "tuned"), "--steps", "3", "--init",
+                 str(out / "checkpoints/step_0000002.pt"), "--log-depth-range", "3.0", *tiny]) == 2
+    assert "cannot fine-tune" in capsys.readouterr().err
