@@ -218,8 +218,9 @@ def depth_state_of(config: NDNConfig) -> tuple[str, float | None]:
 
 def check_same_depth_state(requested: NDNConfig | None, loaded: NDNConfig, path: str | Path, action: str) -> None:
     """Refuse to continue a checkpoint (``action``: "resume" or "fine-tune") with another depth
-    state: the network learned to denoise one mapping of depth to [-1, 1], and samples
-    inverted with another would be depth raised to a power, not depth up to scale and shift."""
+    state: the network learned to denoise one mapping of depth to [-1, 1], and its samples
+    read with another mapping are no longer depth up to scale and shift (affine read as log is
+    exponential in depth; log with another c is a power of depth)."""
     if requested is not None and depth_state_of(requested) != depth_state_of(loaded):
         raise ConfigError(f"cannot {action} a checkpoint trained with depth state {depth_state_of(loaded)[0]!r}"
                           f"{_describe_range(loaded)} as depth state {depth_state_of(requested)[0]!r}"
