@@ -61,7 +61,8 @@ def main() -> int:
             upsample_times, upsample_cpu = [], []
             for _ in range(args.repeats):
                 started, started_cpu = time.perf_counter(), time.process_time()
-                maps_from_states(depth[0, 0].numpy(), normal[0].numpy(), guide)
+                maps_from_states(depth[0, 0].numpy(), normal[0].numpy(), guide, kind=config.diffusion.depth_state,
+                                 log_range=config.diffusion.log_depth_range)
                 upsample_times.append(time.perf_counter() - started)
                 upsample_cpu.append(time.process_time() - started_cpu)
             upsample = min(upsample_times)

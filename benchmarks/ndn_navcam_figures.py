@@ -43,8 +43,12 @@ def navcam_figures(scene_dir: Path, out_dir: Path, weights=None, frames: int = 4
         image = read_image(scene_dir / "images" / name)
         rgb = np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
         small = cv2.resize(rgb, (PANEL, round(PANEL * rgb.shape[0] / rgb.shape[1])), interpolation=cv2.INTER_AREA)
-        relative, normal, mask = maps_from_states(depth_states[row, 0].numpy(), normal_states[row].numpy(), small)
-        depth_byte = np.clip((relative - 1.0) * 255.0, 0, 255).astype(np.uint8)
+        relative, normal, mask = maps_from_states(depth_states[row, 0].numpy(), normal_states[row].numpy(), small,
+                                                  kind=config.diffusion.depth_state,
+                                                  log_range=config.diffusion.log_depth_range)
+        # colour by the view's own depth range: affine states give [1, 2], log states exp(c * state)
+        low, high = np.percentile(relative[mask], (1, 99)) if mask.any() else (0.0, 1.0)
+        depth_byte = np.clip((relative - low) / max(high - low, 1e-6) * 255.0, 0, 255).astype(np.uint8)
         depth_rgb = cv2.applyColorMap(depth_byte, cv2.COLORMAP_TURBO)[..., ::-1]
         depth_rgb[~mask] = 0
         normal_rgb = np.clip((normal + 1.0) * 127.5, 0, 255).astype(np.uint8)
