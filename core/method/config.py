@@ -33,6 +33,10 @@ class ESGSConfig:
                 "observes, so the prior holds the surface's distance too (falls back to render per view when "
                 "too few points); render = refitted to the rendered depth every step (shape only)",
         "choices": ALIGNMENTS})
+    max_alignment_error: float = field(default=0.15, metadata={
+        "help": "with relative_alignment sfm: a view whose relative depth prior, once pinned to its SfM points, "
+                "still disagrees with them by more than this median relative error is taken as a failed "
+                "prediction and trains without priors (depth and normal); 0 = keep every view"})
     prior_start_step: int = field(default=500, metadata={"help": "first step of the prior losses (of 30,000)"})
     consistency_start_step: int = field(default=7000, metadata={"help": "first step of the consistency loss (of 30,000)"})
     edge_strength: float = field(default=10.0, metadata={"help": "edge-aware weighting exp(-s |grad I|); 0 = uniform"})
@@ -51,7 +55,8 @@ class ESGSConfig:
             raise ConfigError(f"depth_mode must be one of {DEPTH_MODES}, got {self.depth_mode!r}")
         if self.relative_alignment not in ALIGNMENTS:
             raise ConfigError(f"relative_alignment must be one of {ALIGNMENTS}, got {self.relative_alignment!r}")
-        for name in ("depth_weight", "normal_weight", "consistency_weight", "edge_strength", "max_prior_depth"):
+        for name in ("depth_weight", "normal_weight", "consistency_weight", "edge_strength", "max_prior_depth",
+                     "max_alignment_error"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
         self.gpdfn_config().validate()

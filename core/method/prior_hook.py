@@ -58,23 +58,28 @@ class PriorLossHook(TrainHook):
             depth = torch.from_numpy(maps.depth.copy()) if maps.depth is not None else None
             if view.mask is not None and self.config.use_masks:
                 mask = mask & view.mask[..., 0].bool()
+            normal = torch.from_numpy(maps.normal.copy()) if maps.normal is not None else None
             relative = bool(maps.relative_depth)
             if depth is not None and relative and self.config.relative_alignment == "sfm":
                 alignment = align_depth_to_points(depth, mask, view.K, view.viewmat, view.observed_xyz)
                 alignments.append((view.name, alignment))
                 if alignment.depth is not None:
                     depth, relative = alignment.depth, False
+                    if 0 < self.config.max_alignment_error < alignment.median_error:
+                        # the prediction contradicts the image's own triangulated points: its
+                        # normals come from the same failed prediction, so neither is used
+                        depth = normal = None
             # a depth limit is in scene units: it cannot apply to a prior still relative
             if depth is not None and not relative and self.config.max_prior_depth > 0:
                 mask = mask & (depth <= self.config.max_prior_depth)
             self.priors[view.name] = {
                 "depth": depth.to(device) if depth is not None else None,
-                "normal": torch.from_numpy(maps.normal.copy()).to(device) if maps.normal is not None else None,
+                "normal": normal.to(device) if normal is not None else None,
                 "mask": mask.to(device),
                 "relative": torch.tensor(relative),
             }
         if alignments:
-            trainer.message(_alignment_summary(alignments))
+            trainer.message(_alignment_summary(alignments, self.config.max_alignment_error))
         if self.config.depth and all(p["depth"] is None for p in self.priors.values()):
             trainer.message(f"warning: prior source {source!r} has no depth maps; the depth loss stays at zero")
         if self.config.normal and all(p["normal"] is None for p in self.priors.values()):
@@ -114,14 +119,22 @@ class PriorLossHook(TrainHook):
                                              mask=mask)
 
 
-def _alignment_summary(alignments: list) -> str:
-    """One line on how the relative depth priors were pinned to the SfM points."""
+def _alignment_summary(alignments: list, max_error: float = 0.0) -> str:
+    """One line on how the relative depth priors were pinned to the SfM points (and which were dropped)."""
     fitted = [a for _, a in alignments if a.depth is not None]
     line = f"relative depth priors aligned to SfM points in {len(fitted)}/{len(alignments)} views"
     if fitted:
         points = sorted(a.points for a in fitted)[len(fitted) // 2]
         error = sorted(a.median_error for a in fitted)[len(fitted) // 2]
         line += f" (median {points} points, median fit error {error:.1%})"
+    dropped = [(name, a.median_error) for name, a in alignments
+               if a.depth is not None and 0 < max_error < a.median_error]
+    if dropped:
+        line += (f"; {len(dropped)} view(s) train without priors, their fit error is above {max_error:.0%}: "
+                 + ", ".join(f"{name} ({error:.0%})" for name, error in dropped[:4])
+                 + (f" and {len(dropped) - 4} more" if len(dropped) > 4 else ""))
+        if len(dropped) == len(alignments):
+            line += " (every view: the prior failed on this scene)"
     refused = [(name, a.reason) for name, a in alignments if a.depth is None]
     if refused:
         line += "; aligned to the rendered depth instead: " + "; ".join(f"{n}: {r}" for n, r in refused[:3])
