@@ -65,10 +65,10 @@ class PriorLossHook(TrainHook):
                 alignments.append((view.name, alignment))
                 if alignment.depth is not None:
                     depth, relative = alignment.depth, False
-                    if 0 < self.config.max_alignment_error < alignment.median_error:
-                        # the prediction contradicts the image's own triangulated points: its
-                        # normals come from the same failed prediction, so neither is used
-                        depth = normal = None
+                if _failed_prediction(alignment, self.config.max_alignment_error):
+                    # the prediction contradicts the image's own triangulated points: its
+                    # normals come from the same failed prediction, so neither is used
+                    depth = normal = None
             # a depth limit is in scene units: it cannot apply to a prior still relative
             if depth is not None and not relative and self.config.max_prior_depth > 0:
                 mask = mask & (depth <= self.config.max_prior_depth)
@@ -119,6 +119,16 @@ class PriorLossHook(TrainHook):
                                              mask=mask)
 
 
+def _failed_prediction(alignment: Any, max_error: float) -> bool:
+    """True when the gate is on and the pinned prior contradicts the view's SfM points: its
+    fit error is above ``max_error``, or the fit was refused as inverted or far off."""
+    if max_error <= 0:
+        return False
+    if alignment.depth is None:
+        return bool(alignment.contradicts)
+    return alignment.median_error > max_error
+
+
 def _alignment_summary(alignments: list, max_error: float = 0.0) -> str:
     """One line on how the relative depth priors were pinned to the SfM points (and which were dropped)."""
     fitted = [a for _, a in alignments if a.depth is not None]
@@ -127,15 +137,16 @@ def _alignment_summary(alignments: list, max_error: float = 0.0) -> str:
         points = sorted(a.points for a in fitted)[len(fitted) // 2]
         error = sorted(a.median_error for a in fitted)[len(fitted) // 2]
         line += f" (median {points} points, median fit error {error:.1%})"
-    dropped = [(name, a.median_error) for name, a in alignments
-               if a.depth is not None and 0 < max_error < a.median_error]
+    dropped = [(name, a) for name, a in alignments if _failed_prediction(a, max_error)]
     if dropped:
-        line += (f"; {len(dropped)} view(s) train without priors, their fit error is above {max_error:.0%}: "
-                 + ", ".join(f"{name} ({error:.0%})" for name, error in dropped[:4])
+        line += (f"; {len(dropped)} view(s) train without priors, their prediction contradicts their SfM points "
+                 f"(fit error above {max_error:.0%}, or inverted): "
+                 + ", ".join(f"{name} ({'inverted' if a.scale <= 0 else f'{a.median_error:.0%}'})"
+                             for name, a in dropped[:4])
                  + (f" and {len(dropped) - 4} more" if len(dropped) > 4 else ""))
         if len(dropped) == len(alignments):
             line += " (every view: the prior failed on this scene)"
-    refused = [(name, a.reason) for name, a in alignments if a.depth is None]
+    refused = [(name, a.reason) for name, a in alignments if a.depth is None and not _failed_prediction(a, max_error)]
     if refused:
         line += "; aligned to the rendered depth instead: " + "; ".join(f"{n}: {r}" for n, r in refused[:3])
         if len(refused) > 3:

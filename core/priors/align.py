@@ -25,7 +25,9 @@ class DepthAlignment:
     """Result of :func:`align_depth_to_points`.
 
     ``depth`` [H, W] is the metric prior (None when the fit was refused, see ``reason``);
-    ``points`` the samples used; ``median_error`` the median |aligned - SfM| / SfM depth.
+    ``points`` the samples used; ``median_error`` the median |aligned - SfM| / SfM depth;
+    ``contradicts``: refused because the prior and the points disagree (inverted or far off),
+    not for want of points; such a prediction has failed.
     """
 
     depth: Optional[torch.Tensor]
@@ -34,6 +36,7 @@ class DepthAlignment:
     points: int
     median_error: float
     reason: str = ""
+    contradicts: bool = False
 
 
 def project_points(points_xyz: np.ndarray, K: torch.Tensor, viewmat: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
@@ -81,10 +84,11 @@ def align_depth_to_points(relative_depth: torch.Tensor, valid: torch.Tensor, K: 
     scale_f, shift_f = float(scale), float(shift)
     error = float(((scale * x + shift - y).abs() / y).median())
     if scale_f <= 0:
-        return DepthAlignment(None, scale_f, shift_f, count, error, "the fitted scale is not positive")
+        return DepthAlignment(None, scale_f, shift_f, count, error, "the fitted scale is not positive",
+                              contradicts=True)
     if error > 0.5:
         return DepthAlignment(None, scale_f, shift_f, count, error,
-                              f"the prior disagrees with the SfM points (median error {error:.0%})")
+                              f"the prior disagrees with the SfM points (median error {error:.0%})", contradicts=True)
     aligned = (scale_f * relative_depth.double() + shift_f).to(relative_depth.dtype)
     aligned = torch.where(valid & (relative_depth > 0) & (aligned > 0), aligned, torch.zeros_like(aligned))
     return DepthAlignment(aligned, scale_f, shift_f, count, error)

@@ -218,13 +218,15 @@ def test_a_view_whose_pinned_prior_contradicts_its_sfm_points_trains_without_pri
     _write_gt_priors(root)
     _add_observations(root)
     names = sorted(p.name for p in (root / "images").iterdir())
-    failed = set(names[:2])
+    failed = set(names[:3])
     rng = np.random.default_rng(0)
     for name in names:
         gt = load_prior_maps(root, "gt", name)
         relative = np.where(gt.mask, (gt.depth - 1.0) / 4.0, 0.0).astype(np.float32)
-        if name in failed:  # a failed prediction: the shape drowned in noise as large as the depth range
+        if name in names[:2]:  # a failed prediction: the shape drowned in noise as large as the depth range
             relative = np.where(gt.mask, relative + rng.uniform(-0.3, 0.3, relative.shape), 0.0).astype(np.float32)
+        if name == names[2]:  # a failed prediction the fit refuses: near and far swapped
+            relative = np.where(gt.mask, 1.0 - relative, 0.0).astype(np.float32)
         write_prior_maps(root, "rel", name, depth=relative, normal=gt.normal, mask=gt.mask, relative_depth=True)
     messages = []
     config = dict(priors="rel", depth=True, normal=True, prior_start_step=0)
@@ -233,10 +235,12 @@ def test_a_view_whose_pinned_prior_contradicts_its_sfm_points_trains_without_pri
     gated = _trainer(root, tmp_path / "a", ESGSConfig(max_alignment_error=0.05, **config),
                      progress=lambda event: messages.append(event.message))
     kept = _trainer(root, tmp_path / "b", ESGSConfig(max_alignment_error=0.0, **config))
-    assert any("2 view(s) train without priors" in str(m) for m in messages), messages
+    assert any("3 view(s) train without priors" in str(m) and "inverted" in str(m) for m in messages), messages
     for view in gated.data.train:
         prior, everything = gated.hooks[0].priors[view.name], kept.hooks[0].priors[view.name]
         assert everything["depth"] is not None and everything["normal"] is not None
+        # without the gate the inverted view falls back to the per-step fit (stays relative)
+        assert bool(everything["relative"]) == (view.name == names[2])
         if view.name in failed:
             assert prior["depth"] is None and prior["normal"] is None
         else:

@@ -64,12 +64,12 @@ def test_refuses_fits_it_cannot_trust():
     valid = torch.ones(HEIGHT, WIDTH, dtype=torch.bool)
     relative = torch.tensor(depth, dtype=torch.float32)
     few = align_depth_to_points(relative, valid, K, viewmat, _points_on(depth, rotation, translation, rng, 5))
-    assert few.depth is None and "need 20" in few.reason
+    assert few.depth is None and "need 20" in few.reason and not few.contradicts  # no evidence either way
     none = align_depth_to_points(relative, valid, K, viewmat, np.zeros((0, 3)))
-    assert none.depth is None and "no SfM points" in none.reason
+    assert none.depth is None and "no SfM points" in none.reason and not none.contradicts
     points = _points_on(depth, rotation, translation, rng, 100)
     inverted = align_depth_to_points(torch.tensor(10.0 - depth, dtype=torch.float32), valid, K, viewmat, points)
-    assert inverted.depth is None and "not positive" in inverted.reason
+    assert inverted.depth is None and "not positive" in inverted.reason and inverted.contradicts
     behind = points.copy()
     camera = behind @ rotation.T + translation
     behind = (camera * np.array([1, 1, -1]) - translation) @ rotation  # mirrored behind the camera
