@@ -18,9 +18,6 @@ from typing import Any, Optional
 
 SUMMARY_NAME = "summary.json"
 CONFIG_NAME = "config.json"
-#: Settings that change only the order of floating-point sums, like ``threads``: a run made
-#: with another value is not stale (its timings may differ; what it computes does not).
-ORDER_ONLY_SETTINGS = frozenset({"spatial_order"})
 #: The switches of the ESGS parts: when all are off, the other ESGS settings do nothing.
 _ESGS_SWITCHES = ("depth", "normal", "consistency", "gpdfn")
 #: Baseline switches and the settings that act only when theirs is on.
@@ -89,8 +86,8 @@ class RunTask:
         # a setting newer than the saved run counts with the value such runs had (PREDATING_VALUES)
         saved = effective_settings({**{name: PREDATING_VALUES.get(name) for name in wanted}, **saved})
         wanted = effective_settings(json.loads(json.dumps(wanted)))
-        ignored = RESUMABLE_SETTINGS | ORDER_ONLY_SETTINGS
-        return sorted(name for name, value in wanted.items() if name not in ignored and value != saved.get(name))
+        return sorted(name for name, value in wanted.items()
+                      if name not in RESUMABLE_SETTINGS and value != saved.get(name))
 
     def set_aside_if_stale(self) -> Optional[Path]:
         """Move a stale run folder (see :meth:`stale_settings`) to ``OUT.stale-<UTC time>`` so the

@@ -116,15 +116,17 @@ def test_a_run_saved_with_other_settings_is_stale_and_set_aside_whole(tmp_path, 
     assert task.stale_settings() == [] and not task.finished()  # nothing saved yet
     saved = saved_config(task)
     out.mkdir()
-    # settings that change only how it runs (threads) or the order of sums (spatial order) may differ
-    (out / "config.json").write_text(json.dumps({**saved, "threads": 7, "spatial_order": False}))
+    # settings that change only how it runs (threads) may differ
+    (out / "config.json").write_text(json.dumps({**saved, "threads": 7}))
     (out / "summary.json").write_text("{}")
     assert task.stale_settings() == [] and task.finished()
-    # a changed default inside the ESGS settings, and a step count
+    # a changed default inside the ESGS settings, a step count, and a run older than the
+    # Gaussians' spatial order (split offsets pair up with other Gaussians: another sample)
     saved["esgs"]["depth_weight"] = 0.1
     saved["iterations"] = 6
+    del saved["spatial_order"]
     (out / "config.json").write_text(json.dumps(saved))
-    assert task.stale_settings() == ["esgs", "iterations"] and not task.finished()
+    assert task.stale_settings() == ["esgs", "iterations", "spatial_order"] and not task.finished()
     moved = task.set_aside_if_stale()
     assert moved is not None and moved.name.startswith("run.stale-") and not out.exists()
     assert json.loads((moved / "config.json").read_text())["esgs"]["depth_weight"] == 0.1
