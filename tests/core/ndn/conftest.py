@@ -56,3 +56,17 @@ def make_scene(root: Path, views: int = 4, width: int = 48, height: int = 27, se
 @pytest.fixture
 def scene(tmp_path: Path) -> Path:
     return make_scene(tmp_path / "scene")
+
+
+def perturbed_weights(path, config, scale: float):
+    """A checkpoint at ``path`` of a freshly built model whose weights are nudged by seeded noise
+    (``scale`` x N(0, 1)), so its outputs are not the zero-initialised ones."""
+    import torch
+
+    from esgs.core.ndn.train import build_model, save_checkpoint
+
+    torch.manual_seed(0)
+    model, _ = build_model(config)
+    for parameter in model.parameters():
+        parameter.data.add_(scale * torch.randn_like(parameter))
+    return save_checkpoint(path, model, config)

@@ -25,7 +25,7 @@ from esgs.core.ndn.train import (build_model, checkpoint_config, load_checkpoint
 from esgs.core.priors import load_prior_maps
 from esgs.core.priors.losses import fit_scale_shift
 
-from .conftest import make_scene, tiny_config
+from .conftest import make_scene, perturbed_weights, tiny_config
 
 
 def _rover_depth(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -120,11 +120,8 @@ def test_shipped_weights_are_affine():
 
 
 def test_inference_and_evaluation_follow_the_checkpoints_depth_state(scene, tmp_path):
-    torch.manual_seed(0)
-    model, diffusion = build_model(_log_config())
-    for parameter in model.parameters():
-        parameter.data.add_(0.05 * torch.randn_like(parameter))
-    weights = save_checkpoint(tmp_path / "log.pt", model, _log_config())
+    weights = perturbed_weights(tmp_path / "log.pt", _log_config(), 0.05)
+    model, diffusion, _, _ = load_checkpoint(weights)
     assert main(["priors", str(scene), "--method", "ndn", "--weights", str(weights), "--steps", "2"]) == 0
     # what write_ndn_priors must have written: the same samples, read as log states
     triples = scene_triples(scene, 32, 2, with_targets=False)

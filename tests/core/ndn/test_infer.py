@@ -16,7 +16,7 @@ from esgs.core.ndn.train import build_model, load_checkpoint, save_checkpoint, t
 from esgs.core.priors import load_prior_maps
 from esgs.core.progress import ProgressEvent
 
-from .conftest import make_scene, tiny_config
+from .conftest import make_scene, perturbed_weights, tiny_config
 
 
 def _data(tmp_path, scene):
@@ -70,11 +70,7 @@ def test_guided_upsampling_follows_image_edges():
 
 
 def test_priors_command_writes_ndn_maps_in_the_standard_format(scene, tmp_path, capsys):
-    torch.manual_seed(0)
-    model, _ = build_model(tiny_config())
-    for parameter in model.parameters():
-        parameter.data.add_(0.02 * torch.randn_like(parameter))
-    weights = save_checkpoint(tmp_path / "weights.pt", model, tiny_config())
+    weights = perturbed_weights(tmp_path / "weights.pt", tiny_config(), 0.02)
     assert main(["priors", str(scene), "--method", "ndn", "--weights", str(weights), "--steps", "2"]) == 0
     assert "wrote ndn priors for 4 views" in capsys.readouterr().out
     for index in range(4):

@@ -26,3 +26,15 @@ def fast_config(tiny_scene, tmp_path):
         return TrainConfig(**values)
 
     return build
+
+
+def train_then_checkpoint(config, steps: int) -> None:
+    """Train ``config`` for ``steps`` steps by hand and save a checkpoint, as an interrupted run leaves it."""
+    from esgs.core.train.trainer import Trainer
+
+    trainer = Trainer(config)
+    trainer._start_run_dir(None)
+    trainer.setup()
+    for step in range(1, steps + 1):
+        trainer.train_step(step)
+    trainer.save_checkpoint()

@@ -15,6 +15,8 @@ from esgs.core.train.spatial_order import (is_spatially_ordered, morton_codes, r
                                            spatial_order)
 from esgs.core.train.trainer import Trainer
 
+from .conftest import train_then_checkpoint
+
 
 def _reference_morton(cell: tuple[int, int, int], bits: int) -> int:
     """Bit-by-bit interleave (x in bit 0, y in bit 1, z in bit 2), the definition the fast code implements."""
@@ -252,12 +254,7 @@ def test_same_seed_same_run_and_switch_off_keeps_the_old_order(fast_config, tmp_
 def test_resume_across_densification_equals_uninterrupted(fast_config, tmp_path):
     full = train(_densifying(fast_config, out=tmp_path / "full"))
     first = _densifying(fast_config, out=tmp_path / "split", checkpoint_every=8)
-    trainer = Trainer(first)
-    trainer._start_run_dir(None)
-    trainer.setup()
-    for step in range(1, 9):
-        trainer.train_step(step)
-    trainer.save_checkpoint()
+    train_then_checkpoint(first, 8)
     resumed = train(_densifying(fast_config, out=tmp_path / "split", checkpoint_every=8, resume=True))
     assert resumed.step == 16 and resumed.n_gaussians == full.n_gaussians
     a = load_checkpoint(list_checkpoints(tmp_path / "full" / "checkpoints")[-1][1])

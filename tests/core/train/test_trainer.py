@@ -12,6 +12,8 @@ from esgs.core.train import LossTerm, TrainHook, train
 from esgs.core.train.checkpoint import list_checkpoints, load_checkpoint
 from esgs.core.train.trainer import Trainer, TrainingDivergedError
 
+from .conftest import train_then_checkpoint
+
 
 def _train_psnr(trainer: Trainer) -> float:
     from esgs.core.train.evaluate import evaluate_model
@@ -96,12 +98,7 @@ def test_resume_equals_uninterrupted(fast_config, tmp_path):
     full = train(fast_config(out=tmp_path / "full", iterations=16, evaluate=False, densify_from=8000))
     # the same run, stopped after 8 steps (a checkpoint every 8 steps), then resumed
     first = fast_config(out=tmp_path / "split", iterations=16, evaluate=False, densify_from=8000, checkpoint_every=8)
-    trainer = Trainer(first)
-    trainer._start_run_dir(None)
-    trainer.setup()
-    for step in range(1, 9):
-        trainer.train_step(step)
-    trainer.save_checkpoint()
+    train_then_checkpoint(first, 8)
     resumed = train(fast_config(out=tmp_path / "split", iterations=16, evaluate=False, densify_from=8000,
                                 checkpoint_every=8, resume=True))
     assert resumed.step == 16 and resumed.n_gaussians == full.n_gaussians
