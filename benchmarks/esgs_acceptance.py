@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 from esgs.core.experiments.acceptance import SOURCES, plan_runs, scene_rows, verdict
+from esgs.core.experiments.bench import ensure_priors
 from esgs.core.experiments.runs import RunTask, run_task
 from esgs.core.experiments.sfm_scene import make_sfm_scene
 from esgs.core.experiments.sky import SKY_FILLED, sky_figures, write_sky_filled_priors
@@ -76,11 +77,10 @@ def sky_tasks(scene: Path, out: Path, iterations: int, seeds, train: dict, basel
 
 
 def ensure_ndn_priors(scene: Path) -> None:
-    """NDN priors (the shipped weights) for ``scene`` unless it has them."""
+    """NDN priors for ``scene`` unless it has them (the bench's rule: ``esgs priors --method ndn``
+    in a child process, with ``$ESGS_NDN_WEIGHTS`` or the shipped weights)."""
     if not (scene / "priors" / "ndn").is_dir():
-        from esgs.core.ndn.infer import write_ndn_priors
-
-        write_ndn_priors(scene)
+        ensure_priors(scene, "ndn")
         print(f"{scene.name}: wrote ndn priors", flush=True)
 
 
