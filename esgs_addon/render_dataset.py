@@ -391,11 +391,11 @@ def render_dataset(objects: dict[str, Any], out_dir: str | Path, *, progress: Ca
                 world_normals = _read_vector(pass_files["Normal"])
                 normals = camera_normals_from_pass(world_normals, world_to_camera, valid)
                 write_depth_exr(staging / "priors" / "gt" / "depth" / f"{stem}.exr", depth, units="m",
-                                frame="camera_opencv", metadata={**metadata, "invalid": "0"})
+                                frame="camera_opencv", metadata={**metadata, "invalid": "0", "mask_kind": "surface"})
                 write_normal_exr(staging / "priors" / "gt" / "normal" / f"{stem}.exr", normals,
                                  frame="camera_opencv",
                                  metadata={**metadata, "axes": "x right, y down, z forward (OpenCV)",
-                                           "invalid": "0 0 0"})
+                                           "invalid": "0 0 0", "mask_kind": "surface"})
                 write_png(staging / "priors" / "gt" / "mask" / f"{stem}.png", np.where(valid, 255, 0).astype(np.uint8))
                 for path in pass_files.values():
                     path.unlink()

@@ -29,7 +29,8 @@ def effective_settings(config: dict[str, Any]) -> dict[str, Any]:
     cannot change the result (a 3DGS run does not depend on the ESGS depth weight)."""
     settings = dict(config)
     esgs = settings.get("esgs")
-    if isinstance(esgs, dict) and not any(esgs.get(name) for name in _ESGS_SWITCHES):
+    sky_on = isinstance(esgs, dict) and bool(esgs.get("sky_weight") and esgs.get("priors") and esgs.get("use_masks", True))
+    if isinstance(esgs, dict) and not any(esgs.get(name) for name in _ESGS_SWITCHES) and not sky_on:
         settings["esgs"] = "off"
     baselines = settings.get("baselines")
     if isinstance(baselines, dict):
@@ -71,7 +72,7 @@ class RunTask:
         :func:`effective_settings`) whose value in the run folder's ``config.json`` differs from
         what the task asks for now; [] when they agree or the folder has no config yet."""
         from ..config import config_from_dict, config_to_dict
-        from ..train.config import PREDATING_VALUES, TrainConfig
+        from ..train.config import TrainConfig, with_predating_values
         from ..train.trainer import RESUMABLE_SETTINGS
 
         saved_path = Path(self.out) / CONFIG_NAME
@@ -84,7 +85,7 @@ class RunTask:
         wanted = config_to_dict(config_from_dict(TrainConfig, {**self.config, "scene": str(self.scene),
                                                                "out": str(self.out), "resume": True}))
         # a setting newer than the saved run counts with the value such runs had (PREDATING_VALUES)
-        saved = effective_settings({**{name: PREDATING_VALUES.get(name) for name in wanted}, **saved})
+        saved = effective_settings({**{name: None for name in wanted}, **with_predating_values(saved)})
         wanted = effective_settings(json.loads(json.dumps(wanted)))
         return sorted(name for name, value in wanted.items()
                       if name not in RESUMABLE_SETTINGS and value != saved.get(name))

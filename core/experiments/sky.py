@@ -44,7 +44,7 @@ def write_sky_filled_priors(scene: str | Path, source: str = SKY_FILLED) -> int:
         far = float(depth[mask].max()) if mask.any() else 1.0
         depth[~mask] = far
         normal[~mask] = (0.0, 0.0, -1.0)
-        write_prior_maps(scene, source, stem + ".png", depth=depth, normal=normal, mask=mask,
+        write_prior_maps(scene, source, stem + ".png", depth=depth, normal=normal, mask=mask, mask_kind="surface",
                          metadata={"note": "gt with the sky filled: depth = farthest surface, normal facing the camera"})
     return len(stems)
 

@@ -41,6 +41,10 @@ class ESGSConfig:
     consistency_start_step: int = field(default=7000, metadata={"help": "first step of the consistency loss (of 30,000)"})
     edge_strength: float = field(default=10.0, metadata={"help": "edge-aware weighting exp(-s |grad I|); 0 = uniform"})
     use_masks: bool = field(default=True, metadata={"help": "exclude sky/no-surface pixels from prior losses (the sky fix)"})
+    sky_weight: float = field(default=0.0, metadata={
+        "help": "weight of the sky loss: over pixels the prior marks as having no surface (sources whose "
+                "mask_kind is surface: gt, ndn), Gaussians drawn nearer than the view's farthest surface are "
+                "pushed beyond it or made transparent (docs/esgs.md, 'Sky'); needs use_masks; 0 = off"})
     max_prior_depth: float = field(default=0.0, metadata={"help": "ignore prior depths beyond this (scene units; 0 = no limit)"})
     gpdfn_lr: float = field(default=1e-3, metadata={"help": "learning rate of the GPDFN weights"})
     gpdfn_hidden: int = field(default=16, metadata={"help": "width of GPDFN's 1D convolutions (saved with the run)"})
@@ -56,7 +60,7 @@ class ESGSConfig:
         if self.relative_alignment not in ALIGNMENTS:
             raise ConfigError(f"relative_alignment must be one of {ALIGNMENTS}, got {self.relative_alignment!r}")
         for name in ("depth_weight", "normal_weight", "consistency_weight", "edge_strength", "max_prior_depth",
-                     "max_alignment_error"):
+                     "max_alignment_error", "sky_weight"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
         self.gpdfn_config().validate()
@@ -65,5 +69,10 @@ class ESGSConfig:
         return GPDFNConfig(fused_k=self.fused_k, lr=self.gpdfn_lr, hidden=self.gpdfn_hidden, every=self.gpdfn_every)
 
     @property
+    def sky_loss_on(self) -> bool:
+        """The sky loss acts only with a weight, a prior source to say where sky is, and masks honoured."""
+        return self.sky_weight > 0 and bool(self.priors) and self.use_masks
+
+    @property
     def enabled(self) -> bool:
-        return self.depth or self.normal or self.consistency or (self.gpdfn and self.fused_k > 1)
+        return self.depth or self.normal or self.consistency or (self.gpdfn and self.fused_k > 1) or self.sky_loss_on

@@ -12,7 +12,7 @@ def esgs_hooks(config: ESGSConfig) -> list[TrainHook]:
 
     config.validate()
     hooks: list[TrainHook] = []
-    if config.depth or config.normal or config.consistency:
+    if config.depth or config.normal or config.consistency or config.sky_loss_on:
         hooks.append(PriorLossHook(config))
     if config.gpdfn and config.fused_k > 1:
         hooks.append(GPDFNHook(config))

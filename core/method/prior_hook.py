@@ -7,7 +7,7 @@ import torch
 
 from ..priors import load_prior_maps
 from ..priors.align import align_depth_to_points
-from ..priors.losses import depth_loss, depth_normal_consistency_loss, edge_aware_weights, normal_loss
+from ..priors.losses import depth_loss, depth_normal_consistency_loss, edge_aware_weights, normal_loss, sky_loss
 from ..train.hooks import TrainHook
 from ..train.losses import LossContext, LossTerm
 from .config import ESGSConfig
@@ -31,7 +31,8 @@ class PriorLossHook(TrainHook):
     def setup(self, trainer: Any) -> None:
         config = self.config
         start = trainer.config.scaled_step(config.prior_start_step)
-        if config.depth or config.normal:
+        wants_sky = config.sky_loss_on
+        if config.depth or config.normal or wants_sky:
             self._load(trainer)
         if config.depth:
             trainer.add_loss_term(LossTerm("depth_prior", config.depth_weight, self._depth_term, start_step=start,
@@ -39,6 +40,12 @@ class PriorLossHook(TrainHook):
         if config.normal:
             trainer.add_loss_term(LossTerm("normal_prior", config.normal_weight, self._normal_term, start_step=start,
                                            needs=frozenset({"normals"})))
+        if wants_sky and any(p["sky"] is not None for p in self.priors.values()):
+            trainer.add_loss_term(LossTerm("sky", config.sky_weight, self._sky_term, start_step=start,
+                                           needs=frozenset({"depth"})))
+        elif wants_sky:
+            trainer.message(f"note: prior source {config.priors!r} marks no sky pixels (mask_kind coverage, or no "
+                            "sky in view); the sky loss is off")
         if config.consistency:
             trainer.add_loss_term(LossTerm("depth_normal", config.consistency_weight, self._consistency_term,
                                            start_step=trainer.config.scaled_step(config.consistency_start_step),
@@ -72,11 +79,14 @@ class PriorLossHook(TrainHook):
             # a depth limit is in scene units: it cannot apply to a prior still relative
             if depth is not None and not relative and self.config.max_prior_depth > 0:
                 mask = mask & (depth <= self.config.max_prior_depth)
+            sky = self._sky_pixels(maps.sky, view, failed=depth is None and normal is None)
             self.priors[view.name] = {
                 "depth": depth.to(device) if depth is not None else None,
                 "normal": normal.to(device) if normal is not None else None,
                 "mask": mask.to(device),
                 "relative": torch.tensor(relative),
+                "sky": sky.to(device) if sky is not None else None,
+                "far": _far_depth(depth, mask) if depth is not None and not relative else None,
             }
         if alignments:
             trainer.message(_alignment_summary(alignments, self.config.max_alignment_error))
@@ -84,6 +94,16 @@ class PriorLossHook(TrainHook):
             trainer.message(f"warning: prior source {source!r} has no depth maps; the depth loss stays at zero")
         if self.config.normal and all(p["normal"] is None for p in self.priors.values()):
             trainer.message(f"warning: prior source {source!r} has no normal maps; the normal loss stays at zero")
+
+    def _sky_pixels(self, sky: Any, view: Any, *, failed: bool) -> Optional[torch.Tensor]:
+        """[H,W] bool sky pixels of a view, or None: unknown, masks off, or the view's prediction
+        was dropped by the confidence gate (its sky comes from the same failed prediction)."""
+        if sky is None or failed or not self.config.use_masks or self.config.sky_weight <= 0:
+            return None
+        sky = torch.from_numpy(sky.copy())
+        if view.mask is not None:
+            sky = sky & view.mask[..., 0].bool()  # masked-out pixels (rover hardware) are no sky
+        return sky if bool(sky.any()) else None
 
     def _edge_weights(self, context: LossContext) -> torch.Tensor:
         name = context.view.name
@@ -109,6 +129,22 @@ class PriorLossHook(TrainHook):
         return normal_loss(context.normals, prior["normal"], prior["mask"], self._edge_weights(context),
                            alpha=context.alpha[..., 0])
 
+    def _sky_term(self, context: LossContext) -> torch.Tensor:
+        prior = self.priors.get(context.view.name)
+        if prior is None or prior["sky"] is None or context.depth is None:
+            return context.image.sum() * 0.0
+        depth, alpha = context.depth[..., 0], context.alpha[..., 0]
+        far = prior["far"]
+        if far is None:
+            # relative prior left unpinned: the farthest surface the Gaussians draw now
+            surface = prior["mask"] & (alpha.detach() > 0.5) & (depth.detach() > 0)
+            if not bool(surface.any()):
+                return context.image.sum() * 0.0
+            far = _far_depth(depth.detach(), surface)
+        if far is None:
+            return context.image.sum() * 0.0
+        return sky_loss(depth, alpha, prior["sky"], far)
+
     def _consistency_term(self, context: LossContext) -> torch.Tensor:
         if context.depth is None or context.normals is None:
             return context.image.sum() * 0.0
@@ -117,6 +153,15 @@ class PriorLossHook(TrainHook):
             mask = mask & context.mask[..., 0]
         return depth_normal_consistency_loss(context.depth[..., 0], context.normals, context.view.K.to(context.depth),
                                              mask=mask)
+
+
+def _far_depth(depth: torch.Tensor, mask: torch.Tensor, quantile: float = 0.99) -> Optional[torch.Tensor]:
+    """The view's far surface distance: a high quantile of its valid depths (robust to a few
+    outliers), or None without any."""
+    values = depth[mask & (depth > 0)]
+    if values.numel() == 0:
+        return None
+    return torch.quantile(values.float(), quantile).to(depth.dtype)
 
 
 def _failed_prediction(alignment: Any, max_error: float) -> bool:

@@ -132,7 +132,7 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
                                                    kind=config.diffusion.depth_state,
                                                    log_range=config.diffusion.log_depth_range)
             write_prior_maps(work, "ndn", name, depth=depth, normal=normal, mask=mask, relative_depth=True,
-                             units="relative", metadata=metadata)
+                             units="relative", metadata=metadata, mask_kind="surface")
         with atomic_directory(prior_dir(scene_dir, "ndn"), overwrite=True) as staging:
             os.replace(prior_dir(work, "ndn"), staging)
     finally:

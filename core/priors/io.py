@@ -8,7 +8,10 @@ One format for every source (``gt`` synthetic ground truth, ``labels`` rendered 
   ``metric`` or ``relative`` (known up to scale and shift; aligned during training).
 - normal EXR, channels ``X, Y, Z``: unit normals; header ``frame`` is ``camera_opencv``
   (x right, y down, z forward; what we write) or ``world`` (converted on load with the pose).
-- mask PNG: 255 = valid surface, 0 = sky / no surface / no prior.
+- mask PNG: 255 = valid surface, 0 = sky / no surface / no prior. Header ``mask_kind`` of the
+  depth and normal EXRs says what 0 means: ``surface`` (the source knows where there is no
+  surface at all: 0 is sky; gt and ndn) or ``coverage`` (0 only means "no value here": sparse
+  SfM points, stereo holes). Files without the header follow their source (:data:`SURFACE_MASK_SOURCES`).
 
 ``<stem>`` is the image name without its extension (sub-folders kept).
 """
@@ -24,6 +27,9 @@ from ..imageio import read_depth_exr, read_image, read_normal_exr, write_depth_e
 
 PRIOR_SOURCES = ("gt", "labels", "ndn", "sfm")
 CAMERA_FRAME = "camera_opencv"
+MASK_KINDS = ("surface", "coverage")
+# sources whose mask marks where there is no surface (sky) when a file predates ``mask_kind``
+SURFACE_MASK_SOURCES = ("gt", "ndn", "gt_skyfilled")
 
 
 @dataclass
@@ -35,6 +41,8 @@ class PriorMaps:
     mask: np.ndarray  # [H, W] bool, True = valid surface
     relative_depth: bool = False
     source: str = ""
+    sky: np.ndarray | None = None  # [H, W] bool, True = no surface along the ray; None = unknown
+
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -62,11 +70,18 @@ def available_prior_sources(scene_dir: str | Path) -> list[str]:
 
 def write_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, depth: np.ndarray | None = None,
                      normal: np.ndarray | None = None, mask: np.ndarray | None = None, relative_depth: bool = False,
-                     units: str = "m", metadata: dict[str, str] | None = None) -> None:
-    """Write one view's prior maps atomically in the standard layout."""
+                     units: str = "m", metadata: dict[str, str] | None = None,
+                     mask_kind: str = "coverage") -> None:
+    """Write one view's prior maps atomically in the standard layout.
+
+    ``mask_kind`` "surface" when the mask's zeros are pixels with no surface at all (sky), so
+    training may push them far away; "coverage" when they only lack a value.
+    """
+    if mask_kind not in MASK_KINDS:
+        raise ValueError(f"mask_kind must be one of {MASK_KINDS}, got {mask_kind!r}")
     root = prior_dir(scene_dir, source)
     stem = image_stem(image_name)
-    extra = {"source": source, **(metadata or {})}
+    extra = {"source": source, "mask_kind": mask_kind, **(metadata or {})}
     if depth is not None:
         write_depth_exr(root / "depth" / f"{stem}.exr", np.asarray(depth, np.float32), units=units,
                         metadata={**extra, "depth_kind": "relative" if relative_depth else "metric"})
@@ -121,8 +136,10 @@ def load_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, size
                                 f"make one with `esgs priors SCENE --method {source}`")
     depth = normal = None
     relative = False
+    mask_kind = ""
     if depth_path.exists():
         depth, header = read_depth_exr(depth_path)
+        mask_kind = header.get("mask_kind", "")
         kind = header.get("depth_kind", "metric")
         if kind not in ("metric", "relative"):
             raise DatasetError(f"unknown depth_kind {kind!r} (expected metric or relative)", path=depth_path)
@@ -130,6 +147,7 @@ def load_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, size
         depth = np.nan_to_num(depth.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
     if normal_path.exists():
         normal, header = read_normal_exr(normal_path)
+        mask_kind = mask_kind or header.get("mask_kind", "")
         frame = header.get("frame", CAMERA_FRAME)
         if frame == "world":
             if world_to_camera_rotation is None:
@@ -172,4 +190,9 @@ def load_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, size
     if normal is not None:
         length = np.linalg.norm(normal, axis=-1, keepdims=True)
         normal = np.where(length > 1e-6, normal / np.maximum(length, 1e-6), 0.0).astype(np.float32)
-    return PriorMaps(depth=depth, normal=normal, mask=mask, relative_depth=relative, source=source)
+    mask_kind = mask_kind or ("surface" if source in SURFACE_MASK_SOURCES else "coverage")
+    if mask_kind not in MASK_KINDS:
+        raise DatasetError(f"unknown mask_kind {mask_kind!r} (expected {' or '.join(MASK_KINDS)})",
+                           path=depth_path if depth is not None else normal_path)
+    sky = ~mask if mask_kind == "surface" and mask_path.exists() else None
+    return PriorMaps(depth=depth, normal=normal, mask=mask, relative_depth=relative, source=source, sky=sky)

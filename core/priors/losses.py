@@ -142,6 +142,26 @@ def normal_loss(rendered_normal: torch.Tensor, prior_normal: torch.Tensor, mask:
     return _masked_mean(error, weights * valid)
 
 
+def sky_loss(rendered_depth: torch.Tensor, alpha: torch.Tensor, sky: torch.Tensor,
+             far_depth: torch.Tensor | float) -> torch.Tensor:
+    """Push what the Gaussians draw over sky pixels beyond the scene's far surface.
+
+    ``rendered_depth`` [H,W] expected depth, ``alpha`` [H,W] coverage, ``sky`` [H,W] bool
+    (pixels with no surface along the ray), ``far_depth`` the view's farthest surface distance.
+    The loss is the mean over sky pixels of ``alpha * relu(log far - log depth)``: zero where the
+    sky is empty (alpha 0) or drawn at least as far as the far surface, so it never fights a
+    sky painted by distant Gaussians; elsewhere its gradient makes the near ones farther or
+    transparent. One-sided on purpose: sky has no true depth to match, only a lower bound.
+    """
+    count = sky.sum()
+    if int(count) == 0:
+        return rendered_depth.sum() * 0.0
+    far = torch.as_tensor(far_depth, dtype=rendered_depth.dtype, device=rendered_depth.device)
+    log_depth = torch.log(rendered_depth.clamp_min(_EPS))
+    shortfall = torch.relu(torch.log(far.clamp_min(_EPS)) - log_depth)
+    return torch.where(sky, alpha * shortfall, torch.zeros_like(shortfall)).sum() / count
+
+
 def normals_from_depth(depth: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Camera-frame unit normals [H,W,3] from a depth map [H,W] and intrinsics K [3,3].
 

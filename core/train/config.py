@@ -165,13 +165,26 @@ class TrainConfig:
 #: Settings added after runs had been saved, with the value those older runs were trained
 #: with: a run folder or checkpoint whose config lacks one is read with this value, so an
 #: older run resumes as it was going (Gaussians in their old order) instead of changing.
-PREDATING_VALUES: dict = {"spatial_order": False}
+#: A dotted name ("esgs.sky_weight") is a setting of a section.
+PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0}
+
+
+def with_predating_values(data: dict) -> dict:
+    """``data`` (a saved TrainConfig dict) with every setting of :data:`PREDATING_VALUES` it
+    lacks filled in with the value older runs had; sections it lacks stay absent."""
+    filled = dict(data)
+    for name, value in PREDATING_VALUES.items():
+        section, _, key = name.rpartition(".")
+        if not section:
+            filled.setdefault(key, value)
+        elif isinstance(filled.get(section), dict) and key not in filled[section]:
+            filled[section] = {**filled[section], key: value}
+    return filled
 
 
 def run_config_from_dict(data: dict, *, source: str | Path | None = None) -> TrainConfig:
     """The TrainConfig a run was saved with (config.json or a checkpoint's ``config``), older runs included."""
-    missing = {name: value for name, value in PREDATING_VALUES.items() if name not in data}
-    return config_from_dict(TrainConfig, {**data, **missing}, source=source)
+    return config_from_dict(TrainConfig, with_predating_values(data), source=source)
 
 
 def load_run_config(path: str | Path) -> TrainConfig:

@@ -247,3 +247,57 @@ def test_a_view_whose_pinned_prior_contradicts_its_sfm_points_trains_without_pri
             assert prior["depth"] is not None and torch.equal(prior["normal"], everything["normal"])
     with pytest.raises(ConfigError, match="max_alignment_error"):
         ESGSConfig(max_alignment_error=-1.0, **config).validate()
+
+
+def _sky_shortfall(trainer, priors) -> float:
+    """Mean over training views of the sky loss: how much the Gaussians draw over sky pixels nearer than the far surface."""
+    from esgs.core.priors.losses import sky_loss
+
+    values = []
+    with torch.no_grad():
+        params = trainer.gaussians.render_params(1)
+        for view in trainer.data.train:
+            output = trainer.render(params, view, render_depth=True)
+            prior = priors[view.name]
+            values.append(sky_loss(output.depth[..., 0], output.alpha[..., 0], prior["sky"], prior["far"]))
+    return float(torch.stack(values).mean())
+
+
+def test_the_sky_loss_pushes_what_covers_sky_pixels_beyond_the_far_surface(scene, tmp_path):
+    """Sky pixels of a source whose mask marks no-surface pixels (mask_kind surface) get the sky
+    term; a coverage-only source gets none; a run with it draws far less in front of the sky."""
+    from esgs.core.priors import load_prior_maps
+
+    for view in sorted(p.name for p in (scene / "images").iterdir()):
+        gt = load_prior_maps(scene, "gt", view)
+        write_prior_maps(scene, "surface", view, depth=np.where(gt.mask, gt.depth, 0.0), normal=gt.normal,
+                         mask=gt.mask, mask_kind="surface")
+    messages = []
+    esgs = ESGSConfig(priors="surface", sky_weight=10.0, prior_start_step=0)
+    trainer = _trainer(scene, tmp_path / "sky", esgs, progress=lambda event: messages.append(event.message))
+    baseline = _trainer(scene, tmp_path / "base", ESGSConfig())
+    assert "sky" in {term.name for term in trainer.loss_terms}
+    priors = trainer.hooks[0].priors
+    for view in trainer.data.train:
+        prior = priors[view.name]
+        # the fixture's sky rows, and wherever the known Gaussians leave the view uncovered
+        assert prior["sky"][:4].all() and torch.equal(prior["sky"], ~prior["mask"])
+        valid = prior["depth"][prior["mask"]]
+        assert float(prior["far"]) == pytest.approx(float(torch.quantile(valid, 0.99)), rel=1e-6)
+    start = _sky_shortfall(trainer, priors)
+    assert start > 0.003  # the scene's Gaussians do cover the rows called sky, at surface depth
+    for step in range(1, 41):
+        trainer.train_step(step)
+        baseline.train_step(step)
+    with_sky, without_sky = _sky_shortfall(trainer, priors), _sky_shortfall(baseline, priors)
+    assert with_sky < 0.5 * without_sky, (start, with_sky, without_sky)
+    # a coverage mask (this fixture's gt) says nothing about sky: no term, and the log says so
+    coverage = _trainer(scene, tmp_path / "cov", ESGSConfig(priors="gt", depth=True, sky_weight=1.0),
+                        progress=lambda event: messages.append(event.message))
+    assert "sky" not in {term.name for term in coverage.loss_terms}
+    assert any("sky loss is off" in str(m) for m in messages), messages
+    # masks off: nothing is known to be sky either
+    unmasked = _trainer(scene, tmp_path / "nomask", ESGSConfig(priors="surface", sky_weight=1.0, use_masks=False))
+    assert "sky" not in {term.name for term in unmasked.loss_terms}
+    with pytest.raises(ConfigError, match="sky_weight"):
+        ESGSConfig(sky_weight=-1.0).validate()

@@ -119,3 +119,25 @@ def test_edge_aware_weights_are_low_on_edges_and_one_on_flat_regions():
 def test_unknown_mode_is_rejected():
     with pytest.raises(ValueError, match="unknown depth loss mode"):
         losses.depth_loss(torch.ones(2, 2), torch.ones(2, 2), torch.ones(2, 2, dtype=torch.bool), mode="abs")
+
+
+def test_sky_loss_gradient_matches_finite_differences_in_depth_and_alpha():
+    generator = torch.Generator().manual_seed(3)
+    depth = (torch.rand(6, 7, generator=generator, dtype=torch.float64) * 8 + 1).requires_grad_()
+    alpha = torch.rand(6, 7, generator=generator, dtype=torch.float64).requires_grad_()
+    sky = torch.rand(6, 7, generator=generator) > 0.4
+    # far = 6: about half the sky pixels are nearer (penalised), half beyond (free); none sits
+    # on the hinge's kink, where finite differences would be ill-defined
+    assert ((depth - 6).abs() > 1e-3).all()
+    assert torch.autograd.gradcheck(lambda d, a: losses.sky_loss(d, a, sky, 6.0), (depth, alpha), eps=1e-6, atol=1e-6)
+
+
+def test_sky_loss_counts_only_near_covered_sky_pixels():
+    depth = torch.tensor([[2.0, 8.0], [2.0, 2.0]], dtype=torch.float64)
+    alpha = torch.tensor([[0.5, 1.0], [0.0, 1.0]], dtype=torch.float64)
+    sky = torch.tensor([[True, True], [True, False]])
+    # pixel (0,0): 0.5 * log(4 / 2); (0,1) beyond the far surface; (1,0) empty; (1,1) is no sky
+    expected = 0.5 * math.log(2.0) / 3
+    assert losses.sky_loss(depth, alpha, sky, 4.0).item() == pytest.approx(expected, rel=1e-12)
+    assert losses.sky_loss(depth, alpha, torch.zeros_like(sky), 4.0).item() == 0.0
+    assert losses.sky_loss(depth * 10, alpha, sky, 4.0).item() == 0.0

@@ -111,3 +111,30 @@ def test_priors_command_writes_sfm_maps(tmp_path):
     missing = subprocess.run([sys.executable, "-m", "esgs.core", "priors", str(tmp_path / "nope")],
                              capture_output=True, text=True)
     assert missing.returncode == 2 and "Traceback" not in missing.stderr
+
+
+def test_mask_kind_says_whether_unmasked_pixels_are_sky(tmp_path):
+    depth, normal, mask = _maps()
+    write_prior_maps(tmp_path, "ndn", "a.png", depth=depth, normal=normal, mask=mask, mask_kind="surface")
+    write_prior_maps(tmp_path, "labels", "a.png", depth=depth, normal=normal, mask=mask)
+    sky = load_prior_maps(tmp_path, "ndn", "a.png", size=(6, 4)).sky
+    assert sky is not None and sky.shape == (4, 6)
+    np.testing.assert_array_equal(sky, ~load_prior_maps(tmp_path, "ndn", "a.png", size=(6, 4)).mask)
+    assert load_prior_maps(tmp_path, "labels", "a.png").sky is None  # holes in coverage are not sky
+    with pytest.raises(ValueError, match="mask_kind"):
+        write_prior_maps(tmp_path, "ndn", "b.png", depth=depth, mask=mask, mask_kind="sky")
+
+
+def test_files_without_mask_kind_follow_their_source(tmp_path):
+    from esgs.core.imageio import write_depth_exr, write_png
+
+    depth, _, mask = _maps()
+    for source in ("gt", "sfm"):
+        write_depth_exr(tmp_path / "priors" / source / "depth" / "a.exr", depth)
+        write_png(tmp_path / "priors" / source / "mask" / "a.png", np.where(mask, 255, 0).astype(np.uint8))
+    np.testing.assert_array_equal(load_prior_maps(tmp_path, "gt", "a.png").sky, ~mask)
+    assert load_prior_maps(tmp_path, "sfm", "a.png").sky is None
+    write_depth_exr(tmp_path / "priors" / "gt" / "depth" / "b.exr", depth, metadata={"mask_kind": "maybe"})
+    with pytest.raises(DatasetError, match="mask_kind") as error:
+        load_prior_maps(tmp_path, "gt", "b.png")
+    assert "b.exr" in str(error.value)
