@@ -52,21 +52,27 @@ def sfm_variant(scene: Path, root: Path, name: str) -> Path:
     return out
 
 
-def sky_arms(prior: str) -> list[tuple[str, str, dict]]:
-    """ESGS on the sky scene with ``prior``, masks honoured (the fix) and ignored."""
+def sky_arms(prior: str, sky_weights: tuple[float, ...] = (), ignore_masks: bool = True) -> list[tuple[str, str, dict]]:
+    """ESGS on the sky scene with ``prior``: masks honoured (the fix), masks honoured plus the
+    sky loss at each weight of ``sky_weights`` (sky pushed beyond the far surface), masks ignored."""
     name, key = ("gt, sky filled", "skyfilled") if prior == SKY_FILLED else (prior, prior)
     esgs = {"priors": prior, "depth": True, "normal": True, "gpdfn": True, "fused_k": 3}
-    return [(f"ESGS ({name}), masks honoured", f"esgs-{key}-masks", {**esgs, "use_masks": True}),
-            (f"ESGS ({name}), masks ignored", f"esgs-{key}-nomasks", {**esgs, "use_masks": False})]
+    arms = [(f"ESGS ({name}), masks honoured", f"esgs-{key}-masks", {**esgs, "use_masks": True})]
+    arms += [(f"ESGS ({name}), masks + sky loss {weight:g}", f"esgs-{key}-masks-sky{weight:g}",
+              {**esgs, "use_masks": True, "sky_weight": weight}) for weight in sky_weights if weight > 0]
+    if ignore_masks:
+        arms.append((f"ESGS ({name}), masks ignored", f"esgs-{key}-nomasks", {**esgs, "use_masks": False}))
+    return arms
 
 
 def sky_tasks(scene: Path, out: Path, iterations: int, seeds, train: dict, baseline: bool = True,
-              priors: tuple[str, ...] = (SKY_FILLED,)) -> list[RunTask]:
+              priors: tuple[str, ...] = (SKY_FILLED,), sky_weights: tuple[float, ...] = (),
+              ignore_masks: bool = True) -> list[RunTask]:
     tasks = []
     mesh = scene / "mesh" / "ground_truth.ply"
     arms = [("3DGS", "3dgs", {})] if baseline else []
     for prior in priors:
-        arms += sky_arms(prior)
+        arms += sky_arms(prior, sky_weights, ignore_masks)
     for seed in seeds:
         for label, key, esgs in arms:
             config = {**train, "iterations": iterations, "seed": seed, "esgs": esgs}
@@ -178,6 +184,10 @@ def main() -> int:
     parser.add_argument("--sky-preset", default="", help="preset with sky for the sky-fix study (empty = skip)")
     parser.add_argument("--sky-priors", nargs="+", default=[SKY_FILLED],
                         help="prior sources of the sky study's ESGS arms (gt_skyfilled emulates a dense predictor; ndn is one)")
+    parser.add_argument("--sky-loss-weights", type=float, nargs="*", default=[],
+                        help="sky study: also train masks + the sky loss (--sky-weight) at each of these weights")
+    parser.add_argument("--sky-ignore-masks", action=argparse.BooleanOptionalAction, default=True,
+                        help="sky study: also train with the masks ignored")
     parser.add_argument("--sky-baseline", action=argparse.BooleanOptionalAction, default=True,
                         help="also train 3DGS on the sky scene")
     parser.add_argument("--sources", nargs="+", default=list(SOURCES), help="prior sources of the ESGS rows")
@@ -216,7 +226,8 @@ def main() -> int:
         if "ndn" in args.sky_priors:
             ensure_ndn_priors(sky_scene)
         sky = sky_tasks(sky_scene, args.out, args.iterations, args.sky_seeds or args.seeds, train,
-                        baseline=args.sky_baseline, priors=tuple(args.sky_priors))
+                        baseline=args.sky_baseline, priors=tuple(args.sky_priors),
+                        sky_weights=tuple(args.sky_loss_weights), ignore_masks=args.sky_ignore_masks)
     # the sky runs of the first sky seed come after the main runs of the first seed, the
     # other sky seeds after every main run (the main study matters most if time runs out)
     first_sky = sky[0].seed if sky else 0
