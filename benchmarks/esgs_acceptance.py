@@ -57,11 +57,13 @@ def sky_arms(prior: str, sky_weights: tuple[float, ...] = (), ignore_masks: bool
     sky loss at each weight of ``sky_weights`` (sky pushed beyond the far surface), masks ignored."""
     name, key = ("gt, sky filled", "skyfilled") if prior == SKY_FILLED else (prior, prior)
     esgs = {"priors": prior, "depth": True, "normal": True, "gpdfn": True, "fused_k": 3}
-    arms = [(f"ESGS ({name}), masks honoured", f"esgs-{key}-masks", {**esgs, "use_masks": True})]
+    # the mask arms without the sky loss, whatever its default: they measure the masks alone
+    arms = [(f"ESGS ({name}), masks honoured", f"esgs-{key}-masks", {**esgs, "use_masks": True, "sky_weight": 0.0})]
     arms += [(f"ESGS ({name}), masks + sky loss {weight:g}", f"esgs-{key}-masks-sky{weight:g}",
               {**esgs, "use_masks": True, "sky_weight": weight}) for weight in sky_weights if weight > 0]
     if ignore_masks:
-        arms.append((f"ESGS ({name}), masks ignored", f"esgs-{key}-nomasks", {**esgs, "use_masks": False}))
+        arms.append((f"ESGS ({name}), masks ignored", f"esgs-{key}-nomasks",
+                     {**esgs, "use_masks": False, "sky_weight": 0.0}))
     return arms
 
 

@@ -41,10 +41,10 @@ class ESGSConfig:
     consistency_start_step: int = field(default=7000, metadata={"help": "first step of the consistency loss (of 30,000)"})
     edge_strength: float = field(default=10.0, metadata={"help": "edge-aware weighting exp(-s |grad I|); 0 = uniform"})
     use_masks: bool = field(default=True, metadata={"help": "exclude sky/no-surface pixels from prior losses (the sky fix)"})
-    sky_weight: float = field(default=0.0, metadata={
+    sky_weight: float = field(default=0.3, metadata={
         "help": "weight of the sky loss: over pixels the prior marks as having no surface (sources whose "
                 "mask_kind is surface: gt, ndn), Gaussians drawn nearer than the view's farthest surface are "
-                "pushed beyond it or made transparent (docs/esgs.md, 'Sky'); needs use_masks; 0 = off"})
+                "pushed beyond it (docs/esgs.md, 'The sky loss'); needs use_masks; 0 = off"})
     max_prior_depth: float = field(default=0.0, metadata={"help": "ignore prior depths beyond this (scene units; 0 = no limit)"})
     gpdfn_lr: float = field(default=1e-3, metadata={"help": "learning rate of the GPDFN weights"})
     gpdfn_hidden: int = field(default=16, metadata={"help": "width of GPDFN's 1D convolutions (saved with the run)"})

@@ -121,7 +121,7 @@ def test_unknown_mode_is_rejected():
         losses.depth_loss(torch.ones(2, 2), torch.ones(2, 2), torch.ones(2, 2, dtype=torch.bool), mode="abs")
 
 
-def test_sky_loss_gradient_matches_finite_differences_in_depth_and_alpha():
+def test_sky_loss_gradient_matches_finite_differences_in_depth_and_leaves_alpha_alone():
     generator = torch.Generator().manual_seed(3)
     depth = (torch.rand(6, 7, generator=generator, dtype=torch.float64) * 8 + 1).requires_grad_()
     alpha = torch.rand(6, 7, generator=generator, dtype=torch.float64).requires_grad_()
@@ -129,7 +129,13 @@ def test_sky_loss_gradient_matches_finite_differences_in_depth_and_alpha():
     # far = 6: about half the sky pixels are nearer (penalised), half beyond (free); none sits
     # on the hinge's kink, where finite differences would be ill-defined
     assert ((depth - 6).abs() > 1e-3).all()
-    assert torch.autograd.gradcheck(lambda d, a: losses.sky_loss(d, a, sky, 6.0), (depth, alpha), eps=1e-6, atol=1e-6)
+    assert torch.autograd.gradcheck(lambda d: losses.sky_loss(d, alpha.detach(), sky, 6.0), (depth,), eps=1e-6, atol=1e-6)
+    # alpha only weights the push: the loss moves sky painters back, it never makes them transparent
+    losses.sky_loss(depth, alpha, sky, 6.0).backward()
+    assert alpha.grad is None or torch.count_nonzero(alpha.grad) == 0
+    penalised = sky & (depth.detach() < 6.0)
+    assert penalised.any() and (depth.grad[penalised] < 0).all()  # descent moves them farther
+    assert (depth.grad[~penalised] == 0).all()
 
 
 def test_sky_loss_counts_only_near_covered_sky_pixels():
