@@ -35,9 +35,9 @@ CARD = REPO / "docs" / "ndn_model_card.md"
 # new seed, and a rover-height view
 SLICE_PICKS = (("heldout_layered_outcrop_100005", 2), ("heldout_dune_field_100002", 5),
                ("heldout_rocky_slope_100003", 1))
-# the 2026-11-22 run: started while the data was still being rendered, resumed once it was complete
-DEFAULT_NOTE = ("The run's first 300 steps saw the 44 training scenes (352 triples) rendered when it started; it "
-                "was then resumed (`--resume`) on all 75 (600 triples).")
+# how a run used its data, when that is not the plain story (e.g. the 2026-11-22 affine run was
+# started on 44 scenes and resumed on 75); empty by default
+DEFAULT_NOTE = ""
 METRICS = ("abs_rel", "delta1", "normal_mean_deg", "normal_within_11_25")
 LABELS = {"abs_rel": "AbsRel", "delta1": "delta1", "normal_mean_deg": "normal mean error (deg)",
           "normal_within_11_25": "< 11.25 deg"}
@@ -54,6 +54,40 @@ def fmt(key: str, value: float) -> str:
 
 def sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def data_plan(data_dir: Path) -> dict:
+    """What ``esgs ndn build-data`` made in ``data_dir``, read from its manifest: training and
+    held-out-only presets, scene counts per split, views, resolution and samples."""
+    manifest = json.loads((data_dir / "manifest.json").read_text())
+    scenes = manifest.get("scenes", [])
+    presets = list(dict.fromkeys(s["preset"] for s in scenes if s["split"] == "train"))
+    heldout_only = [p for p in dict.fromkeys(s["preset"] for s in scenes if s["split"] == "heldout") if p not in presets]
+    count = {split: sum(1 for s in scenes if s["split"] == split) for split in ("train", "validation", "heldout")}
+    width, height = manifest.get("resolution", [160, 90])
+    return {"presets": presets, "heldout_presets": heldout_only, "count": count, "views": manifest.get("views", 8),
+            "width": width, "height": height, "samples": manifest.get("samples", 8),
+            "working_size": manifest.get("working_size", 128)}
+
+
+def build_data_command(data_dir: Path, plan: dict) -> str:
+    count = plan["count"]
+    command = (f"esgs ndn build-data --out {data_dir} --scenes {count['train']} --heldout {count['heldout']} "
+               f"--validation {count['validation']} --presets {' '.join(plan['presets'])}")
+    if plan["heldout_presets"]:
+        command += f" --heldout-presets {' '.join(plan['heldout_presets'])}"
+    return command + (f" --views {plan['views']} --resolution {plan['width']}x{plan['height']} "
+                      f"--samples {plan['samples']} --working-size {plan['working_size']}")
+
+
+def output_line(diffusion: dict) -> str:
+    """How to read the shipped depth output, by the weights' depth state."""
+    if diffusion.get("depth_state", "affine") == "log":
+        return (f"- Output: relative depth in the log depth state (`exp({diffusion.get('log_depth_range', 2.5)} x state)`: "
+                "true z depth up to one scale; `fit_scale_shift` recovers it with a shift of ~0) and unit "
+                "camera-frame normals (OpenCV axes) at 128 px on the long side, guided-upsampled to the image size.")
+    return ("- Output: relative depth (affine in true z depth; align with `fit_scale_shift`) and unit "
+            "camera-frame normals (OpenCV axes) at 128 px on the long side, guided-upsampled to the image size.")
 
 
 def shard_arrays(data_dir: Path, split: str) -> list[tuple[str, dict]]:
@@ -176,12 +210,14 @@ def stage_lines(facts: dict) -> list[str]:
 
 def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | None, slice_scores: dict,
          baselines: dict, data_dir: Path, landform_dir: Path, seconds: float, note: str,
-         validation: dict | None = None) -> str:
+         validation: dict | None = None, extra: dict | None = None) -> str:
     config = facts.get("config", {})
     train = config.get("train", {})
     ndn = config.get("ndn", {})
     hours = facts.get("train_seconds")
     shipped_diffusion = torch_config(weights)
+    plan = data_plan(data_dir)
+    training_presets = ", ".join(plan["presets"][:-1]) + (" and " if len(plan["presets"]) > 1 else "") + plan["presets"][-1]
     last_model = "MODEL" if len(facts["stages"]) == 1 else f"MODEL_FT{len(facts['stages']) - 1}"  # as in the commands
     sampling_text = (f"DDIM {shipped_diffusion['sample_steps']} steps"
                      + (f", median of {shipped_diffusion['sample_ensemble']} samples"
@@ -201,16 +237,15 @@ def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | 
         f"{shipped_diffusion}.",
         f"- Weights: {weights.stat().st_size / 1e6:.1f} MB, float16 (loaded as float32), sha256 `{sha256(weights)[:16]}`, "
         f"training step **{step}**.",
-        "- Output: relative depth (affine in true z depth; align with `fit_scale_shift`) and unit "
-        "camera-frame normals (OpenCV axes) at 128 px on the long side, guided-upsampled to the image size.",
+        output_line(shipped_diffusion),
         "",
         "## Training",
         f"- Data: `{data_dir}` from `esgs ndn build-data` (command below): synthetic Mars scenes of the presets "
-        "cratered_plain, crater_survey_nadir, dune_field, rocky_slope and navcam_panorama, 8 views each at "
-        "160x90 (Cycles, 8 samples), one triple per view at 128x72; held-out scenes use seeds >= 100000 and "
-        "add layered_outcrop, a preset training never saw."
-        + f" Training scenes in the data folder now: {len(list((data_dir / 'shards').glob('train_*.npz')))}"
-        f" ({8 * len(list((data_dir / 'shards').glob('train_*.npz')))} triples)." + (f" {note}" if note else ""),
+        f"{training_presets}, {plan['views']} views each at {plan['width']}x{plan['height']} (Cycles, "
+        f"{plan['samples']} samples), one triple per view at the working size; held-out scenes use seeds >= 100000"
+        + (f" and add {', '.join(plan['heldout_presets'])}, which training never saw" if plan["heldout_presets"] else "")
+        + "." + f" Training scenes in the data folder now: {len(list((data_dir / 'shards').glob('train_*.npz')))}"
+        f" ({plan['views'] * len(list((data_dir / 'shards').glob('train_*.npz')))} triples)." + (f" {note}" if note else ""),
         *stage_lines(facts),
         f"- Steps: {step}" + (f"; wall time to this step {hours / 3600:.2f} h" if hours else "")
         + (f" (first run started {facts['started']})" if facts.get("started") else "")
@@ -243,6 +278,9 @@ def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | 
     if landform:
         lines += ["", f"Real-mesh views (`{landform_dir}`, mars_landform rendered, never used in training):", "",
                   *header, row("NDN (shipped)", landform)]
+    for name, (folder, scores) in (extra or {}).items():
+        lines += ["", f"{name} (`{folder}`, held-out shards, never used in training):", "",
+                  *header, row("NDN (shipped)", scores)]
     if baselines:
         lines += ["", "## Baselines (from `benchmarks/ndn_baselines.py`, measured separately; see docs/ndn.md)", ""]
         for key, methods in baselines.items():
@@ -262,10 +300,7 @@ def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | 
         "## Reproduce",
         "",
         "```",
-        f"esgs ndn build-data --out {data_dir} --scenes {len(list((data_dir / 'shards').glob('train_*.npz')))} --heldout 6 "
-        f"--validation {len(list((data_dir / 'shards').glob('validation_*.npz')))} --presets cratered_plain crater_survey_nadir "
-        "dune_field rocky_slope navcam_panorama --heldout-presets layered_outcrop --views 8 --resolution 160x90 "
-        "--samples 8 --working-size 128 --keep-scenes",
+        build_data_command(data_dir, plan),
         *reproduce_train_lines(facts, data_dir),
         f".venv/bin/python benchmarks/ship_ndn.py {last_model}/checkpoints/step_{step:07d}.pt --data {data_dir}"
         + (f" --sample-steps {shipped_diffusion['sample_steps']}" if shipped_diffusion["sample_steps"] != 15 else "")
@@ -315,6 +350,9 @@ def reproduce_train_lines(facts: dict, data_dir: Path) -> list[str]:
                     command += f" --{key.replace('_', '-')} {train[key]}"
         else:
             command += " --lr-schedule constant --ema-decay 0  # (run before schedules and EMA existed)"
+        depth_state = stage.get("config", {}).get("ndn", {}).get("diffusion", {}).get("depth_state", "affine")
+        if previous is None and depth_state != "affine":
+            command += f" --depth-state {depth_state}"  # a fine-tune keeps its checkpoint's state
         if previous is not None:
             command += f" --init {previous}/checkpoints/step_{stage.get('lineage', {}).get('init_step', 0):07d}.pt"
         lines.append(command)
@@ -328,6 +366,8 @@ def main() -> int:
     parser.add_argument("--data", type=Path, default=Path("/work/runs/ndn_data"), help="data folder (held-out shards)")
     parser.add_argument("--landform", type=Path, default=Path("/work/runs/ndn_landform"),
                         help="held-out landform data folder (skipped when absent)")
+    parser.add_argument("--extra", action="append", default=[], metavar="NAME=DIR",
+                        help="another held-out data folder to score and report (repeat), e.g. rover-like views")
     parser.add_argument("--baselines", type=Path, default=REPO / "benchmarks" / "results" / "ndn_baselines.json")
     parser.add_argument("--navcam", type=Path, default=Path("/work/runs/ndn_navcam/station"),
                         help="the registered Navcam station for docs/images (skipped when absent)")
@@ -374,6 +414,12 @@ def main() -> int:
     if (args.landform / "shards").exists():
         landform = evaluate_split(model, diffusion, shard_arrays(args.landform, "heldout"))
         print("landform:", json.dumps({k: landform[k] for k in ("triples", *METRICS)}), flush=True)
+    extra = {}
+    for item in args.extra:
+        name, _, folder = item.partition("=")
+        scores = evaluate_split(model, diffusion, shard_arrays(Path(folder), "heldout"))
+        extra[name] = (folder, scores)
+        print(f"{name}:", json.dumps({k: scores[k] for k in ("triples", *METRICS)}), flush=True)
 
     if not SLICE.exists():
         cut_slice(args.data)
@@ -394,9 +440,10 @@ def main() -> int:
             print(f"wrote {path}", flush=True)
     baselines = json.loads(args.baselines.read_text()) if args.baselines.exists() else {}
     atomic_write_text(CARD, card(step, facts, SHIPPED_WEIGHTS, heldout, landform, slice_scores, baselines,
-                                 args.data, args.landform, time.time() - started, args.note, validation))
+                                 args.data, args.landform, time.time() - started, args.note, validation, extra))
     atomic_write_json(REPO / "benchmarks" / "results" / "ndn_shipped_scores.json",
                       {"step": step, "heldout": heldout, "landform": landform, "validation": validation,
+                       "extra": {name: {"folder": folder, "scores": scores} for name, (folder, scores) in extra.items()},
                        "seconds": round(time.time() - started, 1)})
     print(f"wrote {CARD} and {SLICE_SCORES} in {time.time() - started:.0f} s")
     return 0
@@ -413,7 +460,8 @@ def rewrite_card(args: argparse.Namespace, step: int, facts: dict, started: floa
     baselines = json.loads(args.baselines.read_text()) if args.baselines.exists() else {}
     atomic_write_text(CARD, card(step, facts, SHIPPED_WEIGHTS, saved["heldout"], saved["landform"], slice_scores,
                                  baselines, args.data, args.landform, saved.get("seconds", 0.0), args.note,
-                                 saved.get("validation")))
+                                 saved.get("validation"),
+                                 {name: (item["folder"], item["scores"]) for name, item in saved.get("extra", {}).items()}))
     print(f"rewrote {CARD}")
     return 0
 

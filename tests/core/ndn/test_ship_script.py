@@ -1,0 +1,79 @@
+"""benchmarks/ship_ndn.py's card helpers: the data description, the reproduce command and the
+output line follow the data folder's manifest and the weights' depth state, not a fixed text."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from esgs.core.ndn.data import plan_scenes
+
+SCRIPT = Path(__file__).resolve().parents[3] / "benchmarks" / "ship_ndn.py"
+
+
+@pytest.fixture(scope="module")
+def ship():
+    spec = importlib.util.spec_from_file_location("ship_ndn", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    try:
+        spec.loader.exec_module(module)
+        yield module
+    finally:
+        sys.modules.pop(spec.name, None)
+
+
+def _data_folder(tmp_path: Path, presets: tuple[str, ...], heldout_presets: tuple[str, ...]) -> Path:
+    plan = plan_scenes(12, 4, presets, heldout_presets, validation=2)
+    manifest = {"format": "esgs-ndn-shard-1", "working_size": 128, "multiple": 4, "views": 6,
+                "resolution": [192, 108], "samples": 4,
+                "scenes": [{"split": s, "preset": p, "seed": seed, "shard": f"shards/{s}_{p}_{seed}.npz"}
+                           for s, p, seed in plan]}
+    (tmp_path / "shards").mkdir(parents=True)
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    return tmp_path
+
+
+def test_data_plan_and_command_come_from_the_manifest(ship, tmp_path):
+    data = _data_folder(tmp_path, ("cratered_plain", "rover_horizon", "dune_field"), ("layered_outcrop",))
+    plan = ship.data_plan(data)
+    assert plan["presets"] == ["cratered_plain", "rover_horizon", "dune_field"]
+    assert plan["heldout_presets"] == ["layered_outcrop"]
+    assert plan["count"] == {"train": 12, "validation": 2, "heldout": 4}
+    assert (plan["views"], plan["width"], plan["height"], plan["samples"]) == (6, 192, 108, 4)
+
+    command = ship.build_data_command(data, plan)
+    assert f"--out {data} --scenes 12 --heldout 4 --validation 2" in command
+    assert "--presets cratered_plain rover_horizon dune_field --heldout-presets layered_outcrop" in command
+    assert "--views 6 --resolution 192x108 --samples 4 --working-size 128" in command
+    # the command is one the CLI accepts: it re-plans the same scenes
+    assert plan_scenes(12, 4, tuple(plan["presets"]), tuple(plan["heldout_presets"]), 2) == [
+        (s["split"], s["preset"], s["seed"]) for s in json.loads((data / "manifest.json").read_text())["scenes"]]
+
+
+def test_no_heldout_only_presets_means_no_flag(ship, tmp_path):
+    data = _data_folder(tmp_path, ("cratered_plain", "dune_field"), ())
+    plan = ship.data_plan(data)
+    assert plan["heldout_presets"] == []
+    assert "--heldout-presets" not in ship.build_data_command(data, plan)
+
+
+def test_output_line_follows_the_depth_state(ship):
+    assert "affine in true z depth" in ship.output_line({"depth_state": "affine"})
+    assert "affine in true z depth" in ship.output_line({})  # weights from before the field: affine
+    log_line = ship.output_line({"depth_state": "log", "log_depth_range": 2.5})
+    assert "exp(2.5 x state)" in log_line and "affine" not in log_line
+
+
+def test_train_command_names_a_log_state_only_on_the_first_run(ship):
+    def stage(state, init=None):
+        config = {"ndn": {"diffusion": {"depth_state": state}}, "train": {"steps": 100, "seed": 0}}
+        return {"config": config, "to_step": 100, **({"lineage": {"init_from": init, "init_step": 50}} if init else {})}
+
+    lines = ship.reproduce_train_lines({"stages": [stage("log"), stage("log", init="x")]}, Path("DATA"))
+    assert "--depth-state log" in lines[0]
+    assert "--depth-state" not in lines[1] and "--init MODEL/checkpoints/step_0000050.pt" in lines[1]
+    assert "--depth-state" not in ship.reproduce_train_lines({"stages": [stage("affine")]}, Path("DATA"))[0]
