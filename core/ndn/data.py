@@ -223,8 +223,9 @@ def write_shard(path: str | Path, triples: SceneTriples, metadata: dict) -> None
                                 metadata=np.array(json.dumps(metadata)))
 
 
-def load_shards(data_dir: str | Path, split: str = "train") -> dict[str, np.ndarray]:
-    """Concatenate the shards of one split: views, depth, normal, mask (see the module docstring).
+def load_shards(data_dir: str | Path, split: str = "train", *, with_scenes: bool = False) -> dict[str, np.ndarray]:
+    """Concatenate the shards of one split: views, depth, normal, mask (see the module docstring);
+    with ``with_scenes`` also ``scene`` [N] (str), the shard each triple came from (its file stem).
 
     Shards with different working resolutions cannot be batched together: a mix raises
     :class:`DatasetError`.
@@ -235,17 +236,22 @@ def load_shards(data_dir: str | Path, split: str = "train") -> dict[str, np.ndar
         raise DatasetError(f"no {split!r} shards", path=data_dir / "shards",
                            hint="build them with `esgs ndn build-data --out DIR`")
     arrays: dict[str, list[np.ndarray]] = {"views": [], "depth": [], "normal": [], "mask": []}
+    scenes: list[np.ndarray] = []
     for path in paths:
         with np.load(path, allow_pickle=False) as shard:
             if "format" not in shard or str(shard["format"]) != SHARD_FORMAT:
                 raise DatasetError("not an NDN shard (missing or unknown format tag)", path=path)
             for key in arrays:
                 arrays[key].append(shard[key])
+            scenes.append(np.full(len(shard["views"]), path.stem))
     shapes = {array.shape[-2:] for array in arrays["views"]}
     if len(shapes) != 1:
         raise DatasetError(f"shards have different working resolutions {sorted(shapes)}", path=data_dir / "shards",
                            hint="rebuild the data set with one --working-size")
-    return {key: np.concatenate(values) for key, values in arrays.items()}
+    loaded = {key: np.concatenate(values) for key, values in arrays.items()}
+    if with_scenes:
+        loaded["scene"] = np.concatenate(scenes)
+    return loaded
 
 
 def plan_scenes(count: int, heldout: int, presets: tuple[str, ...] = TRAIN_PRESETS,

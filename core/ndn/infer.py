@@ -207,16 +207,22 @@ def evaluate_ndn(weights: str | Path, data_dir: str | Path, *, split: str = "hel
                  seed: int = 0, limit: int = 0, ensemble: int | None = None, reduce: str | None = None,
                  progress: ProgressCallback = no_progress) -> dict:
     """Scores on a data split: mean AbsRel and delta1 (depth after scale/shift alignment),
-    normal mean angular error and the fraction within 11.25 deg, over surface pixels.
+    normal mean angular error and the fraction within 11.25 deg, over surface pixels, and the
+    same means per scene (``per_scene``: shard stem -> scores, with its ``views`` count).
     ``steps``, ``ensemble`` and ``reduce`` override the model's sampling settings."""
     model, diffusion, _, _ = load_checkpoint(weights)
     if reduce:
         diffusion.config.sample_reduce = reduce
         diffusion.config.validate()
-    arrays = load_shards(data_dir, split)
+    arrays = load_shards(data_dir, split, with_scenes=True)
     if limit:
         arrays = {key: value[:limit] for key, value in arrays.items()}
+    scenes = arrays.pop("scene")
     per_view = evaluate_arrays(model, diffusion, arrays, steps=steps, seed=seed, ensemble=ensemble, progress=progress)
+    per_scene = {}
+    for scene in dict.fromkeys(scenes.tolist()):
+        members = [scores for scores, name in zip(per_view, scenes) if name == scene]
+        per_scene[scene] = {"views": len(members), **mean_scores(members)}
     return {"split": split, "views": len(per_view), "ddim_steps": steps or diffusion.config.sample_steps,
             "ensemble": ensemble or diffusion.config.sample_ensemble, "reduce": diffusion.config.sample_reduce,
-            **mean_scores(per_view)}
+            **mean_scores(per_view), "per_scene": per_scene}
