@@ -113,6 +113,10 @@ class NDNTrainConfig:
         "help": "samples per view of the validation scoring (0 = the model's --sample-ensemble)"})
     validation_reduce: str = field(default="", metadata={
         "help": "how the validation ensemble is combined: median or mean ('' = the model's --sample-reduce)"})
+    augment: float = field(default=0.0, metadata={
+        "help": "probability that a batch's views are changed photometrically (grey, gamma, contrast, brightness, "
+                "blur; the same for a triple's three views, depth and normals untouched): robustness to cameras and "
+                "terrain textures unlike the generator's; 0 = off (the runs before it existed)"})
     init: str = field(default="", metadata={
         "help": "fine-tune: start from this checkpoint's weights and optimiser moments (steps continue from "
                 "its step; the schedule spans from there to --steps); ignored when --resume finds a checkpoint"})
@@ -131,6 +135,8 @@ class NDNTrainConfig:
             raise ConfigError(f"validation_reduce must be median, mean or empty, got {self.validation_reduce!r}")
         if not 0.0 <= self.min_lr_ratio <= 1.0:
             raise ConfigError(f"min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
+        if not 0.0 <= self.augment <= 1.0:
+            raise ConfigError(f"augment must be a probability in [0, 1], got {self.augment}")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ConfigError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
 

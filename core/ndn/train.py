@@ -269,6 +269,49 @@ def flip_horizontally(views: torch.Tensor, depth: torch.Tensor, normal: torch.Te
     return views.flip(-1), depth.flip(-1), normal
 
 
+def augment_photometric(views: torch.Tensor, generator: torch.Generator, *, gray_probability: float = 0.3,
+                        max_blur_sigma: float = 1.5) -> torch.Tensor:
+    """Change how a batch of triples looks, not what it shows: views [B, 9, h, w] in [-1, 1].
+
+    Per triple, the same change for its three views (one camera, one exposure): grey with
+    ``gray_probability`` (Navcam-like frames), a gamma in [0.7, 1.4], contrast in [0.7, 1.3] and
+    a brightness shift of at most 0.1 (in [0, 1] units), then a Gaussian blur of sigma up to
+    ``max_blur_sigma`` px at the working size (a coarse texture seen up close, as on a low-resolution
+    terrain model). Depth and normals stay as they are: none of this moves a surface.
+    """
+    batch = views.shape[0]
+    uniform = torch.rand((batch, 5), generator=generator)
+    images = ((views.reshape(batch, 3, 3, *views.shape[-2:]) + 1.0) / 2.0).clamp(0.0, 1.0)
+    gray = (images * images.new_tensor([0.299, 0.587, 0.114]).view(1, 1, 3, 1, 1)).sum(2, keepdim=True)
+    to_gray = (uniform[:, 0] < gray_probability).view(batch, 1, 1, 1, 1)
+    images = torch.where(to_gray, gray.expand_as(images), images)
+    gamma = (0.7 + 0.7 * uniform[:, 1]).view(batch, 1, 1, 1, 1)
+    contrast = (0.7 + 0.6 * uniform[:, 2]).view(batch, 1, 1, 1, 1)
+    brightness = (0.2 * uniform[:, 3] - 0.1).view(batch, 1, 1, 1, 1)
+    mean = images.mean(dim=(-2, -1), keepdim=True)
+    images = images.clamp_min(1e-6) ** gamma
+    images = ((images - mean) * contrast + mean + brightness).clamp(0.0, 1.0)
+    images = images.reshape(batch, 9, *views.shape[-2:])
+    sigmas = max_blur_sigma * uniform[:, 4]
+    blurred = [_gaussian_blur(image, float(sigma)) for image, sigma in zip(images, sigmas)]
+    return torch.stack(blurred) * 2.0 - 1.0
+
+
+def _gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Separable Gaussian blur of [C, h, w] with reflected borders; sigma below 0.3 px is a no-op."""
+    if sigma < 0.3:
+        return image
+    radius = max(1, int(math.ceil(3.0 * sigma)))
+    offsets = torch.arange(-radius, radius + 1, dtype=image.dtype)
+    kernel = torch.exp(-0.5 * (offsets / sigma) ** 2)
+    kernel = kernel / kernel.sum()
+    channels = image.shape[0]
+    padded = torch.nn.functional.pad(image[None], (radius, radius, 0, 0), mode="reflect")
+    image = torch.nn.functional.conv2d(padded, kernel.view(1, 1, 1, -1).expand(channels, 1, 1, -1), groups=channels)
+    padded = torch.nn.functional.pad(image, (0, 0, radius, radius), mode="reflect")
+    return torch.nn.functional.conv2d(padded, kernel.view(1, 1, -1, 1).expand(channels, 1, -1, 1), groups=channels)[0]
+
+
 def _record_validation(out_dir: Path, entry: dict) -> dict:
     """Add one checkpoint's validation scores to ``OUT/validation.json`` (a resumed run replaces
     entries of the steps it repeats) and keep the best one; returns the file's content."""
@@ -377,6 +420,8 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
         views, depth, normal = data["views"][index], data["depth"][index], data["normal"][index]
         if bool(torch.rand((), generator=generator) < 0.5):
             views, depth, normal = flip_horizontally(views, depth, normal)
+        if train_config.augment > 0 and bool(torch.rand((), generator=generator) < train_config.augment):
+            views = augment_photometric(views, generator)
         loss, parts = diffusion.training_loss(model, views, depth, normal, generator=generator,
                                               normal_weight=train_config.normal_weight)
         optimizer.zero_grad(set_to_none=True)
