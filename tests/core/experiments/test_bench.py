@@ -143,14 +143,17 @@ def test_a_run_saved_with_other_settings_is_stale_and_set_aside_whole(tmp_path, 
     saved["baselines"]["dropout_gs"] = True
     (plain.out / "config.json").write_text(json.dumps(saved))
     assert plain.stale_settings() == ["baselines"]
-    # a nested setting newer than the run (the sky loss) counts with its old value: off
+    # a nested setting newer than the run (the sky loss) counts with its old value, off: such a
+    # run is what a request with the loss off asks for, and stale for today's default (0.3, on)
     sky = RunTask(name="tiny/esgs_sky", scene=scene, out=tmp_path / "sky",
-                  config={**TRAIN, "iterations": 5, "seed": 0, "esgs": esgs, "baselines": {}})
+                  config={**TRAIN, "iterations": 5, "seed": 0, "esgs": {**esgs, "sky_weight": 0.0}, "baselines": {}})
     saved = saved_config(sky)
     del saved["esgs"]["sky_weight"]
     sky.out.mkdir()
     (sky.out / "config.json").write_text(json.dumps(saved))
     assert sky.stale_settings() == []
+    sky.config["esgs"] = dict(esgs)  # the default weight
+    assert sky.stale_settings() == ["esgs"]
     sky.config["esgs"] = {**esgs, "sky_weight": 0.5}
     assert sky.stale_settings() == ["esgs"]
     # with no prior source the sky loss cannot act, so a 3DGS run with a weight set is still 3DGS
