@@ -90,24 +90,16 @@ def output_line(diffusion: dict) -> str:
             "camera-frame normals (OpenCV axes) at 128 px on the long side, guided-upsampled to the image size.")
 
 
-def shard_arrays(data_dir: Path, split: str) -> list[tuple[str, dict]]:
-    shards = []
-    for path in sorted((data_dir / "shards").glob(f"{split}_*.npz")):
-        with np.load(path, allow_pickle=False) as shard:
-            shards.append((path.stem, {key: shard[key] for key in ("views", "depth", "normal", "mask", "names")}))
-    return shards
+def evaluate_split(model, diffusion, data_dir: Path, split: str) -> dict:
+    """Every triple of a split scored as ``esgs ndn eval`` scores it (triple i from seed i), with
+    the means overall and per scene (shard)."""
+    from esgs.core.ndn.data import load_shards
+    from esgs.core.ndn.infer import evaluate_arrays, mean_scores, scores_by_scene
 
-
-def evaluate_split(model, diffusion, shards) -> dict:
-    from esgs.core.ndn.infer import evaluate_arrays, mean_scores
-
-    per_scene, every, offset = {}, [], 0
-    for scene, arrays in shards:
-        scores = evaluate_arrays(model, diffusion, arrays, seed=offset)
-        offset += len(scores)
-        per_scene[scene] = mean_scores(scores)
-        every += scores
-    return {"triples": len(every), **mean_scores(every), "per_scene": per_scene}
+    arrays = load_shards(data_dir, split, with_scenes=True)
+    scenes = arrays.pop("scene")
+    per_view = evaluate_arrays(model, diffusion, arrays, seed=0)
+    return {"triples": len(per_view), **mean_scores(per_view), "per_scene": scores_by_scene(per_view, scenes)}
 
 
 def cut_slice(data_dir: Path) -> None:
@@ -217,6 +209,7 @@ def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | 
     hours = facts.get("train_seconds")
     shipped_diffusion = torch_config(weights)
     plan = data_plan(data_dir)
+    trained_scenes = len(list((data_dir / "shards").glob("train_*.npz")))
     training_presets = ", ".join(plan["presets"][:-1]) + (" and " if len(plan["presets"]) > 1 else "") + plan["presets"][-1]
     last_model = "MODEL" if len(facts["stages"]) == 1 else f"MODEL_FT{len(facts['stages']) - 1}"  # as in the commands
     sampling_text = (f"DDIM {shipped_diffusion['sample_steps']} steps"
@@ -244,8 +237,8 @@ def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | 
         f"{training_presets}, {plan['views']} views each at {plan['width']}x{plan['height']} (Cycles, "
         f"{plan['samples']} samples), one triple per view at the working size; held-out scenes use seeds >= 100000"
         + (f" and add {', '.join(plan['heldout_presets'])}, which training never saw" if plan["heldout_presets"] else "")
-        + "." + f" Training scenes in the data folder now: {len(list((data_dir / 'shards').glob('train_*.npz')))}"
-        f" ({plan['views'] * len(list((data_dir / 'shards').glob('train_*.npz')))} triples)." + (f" {note}" if note else ""),
+        + "." + f" Training scenes in the data folder now: {trained_scenes} ({plan['views'] * trained_scenes} triples)."
+        + (f" {note}" if note else ""),
         *stage_lines(facts),
         f"- Steps: {step}" + (f"; wall time to this step {hours / 3600:.2f} h" if hours else "")
         + (f" (first run started {facts['started']})" if facts.get("started") else "")
@@ -404,20 +397,20 @@ def main() -> int:
     model, diffusion, _, _ = load_checkpoint(SHIPPED_WEIGHTS)  # score what ships (float16 -> float32)
     print(f"wrote {SHIPPED_WEIGHTS} ({SHIPPED_WEIGHTS.stat().st_size / 1e6:.1f} MB, step {step})", flush=True)
 
-    heldout = evaluate_split(model, diffusion, shard_arrays(args.data, "heldout"))
+    heldout = evaluate_split(model, diffusion, args.data, "heldout")
     print("held-out:", json.dumps({k: heldout[k] for k in ("triples", *METRICS)}), flush=True)
     validation = None
     if any((args.data / "shards").glob("validation_*.npz")):
-        validation = evaluate_split(model, diffusion, shard_arrays(args.data, "validation"))
+        validation = evaluate_split(model, diffusion, args.data, "validation")
         print("validation:", json.dumps({k: validation[k] for k in ("triples", *METRICS)}), flush=True)
     landform = None
     if (args.landform / "shards").exists():
-        landform = evaluate_split(model, diffusion, shard_arrays(args.landform, "heldout"))
+        landform = evaluate_split(model, diffusion, args.landform, "heldout")
         print("landform:", json.dumps({k: landform[k] for k in ("triples", *METRICS)}), flush=True)
     extra = {}
     for item in args.extra:
         name, _, folder = item.partition("=")
-        scores = evaluate_split(model, diffusion, shard_arrays(Path(folder), "heldout"))
+        scores = evaluate_split(model, diffusion, Path(folder), "heldout")
         extra[name] = (folder, scores)
         print(f"{name}:", json.dumps({k: scores[k] for k in ("triples", *METRICS)}), flush=True)
 

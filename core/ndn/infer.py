@@ -181,6 +181,15 @@ def mean_scores(per_view: list[dict[str, float]]) -> dict[str, float]:
     return {key: float(np.mean([scores[key] for scores in per_view])) for key in per_view[0]} if per_view else {}
 
 
+def scores_by_scene(per_view: list[dict[str, float]], scenes) -> dict[str, dict[str, float]]:
+    """Per scene (in order of first appearance), its ``views`` count and the means of its views'
+    scores: ``per_view`` as :func:`evaluate_arrays` returns it, ``scenes`` [N] the scene of each."""
+    grouped: dict[str, list[dict[str, float]]] = {}
+    for scores, scene in zip(per_view, scenes):
+        grouped.setdefault(str(scene), []).append(scores)
+    return {scene: {"views": len(members), **mean_scores(members)} for scene, members in grouped.items()}
+
+
 def evaluate_arrays(model: NDNUNet, diffusion: GaussianDiffusion, arrays: dict[str, np.ndarray], *,
                     steps: int | None = None, seed: int = 0, ensemble: int | None = None,
                     progress: ProgressCallback = no_progress) -> list[dict[str, float]]:
@@ -219,10 +228,6 @@ def evaluate_ndn(weights: str | Path, data_dir: str | Path, *, split: str = "hel
         arrays = {key: value[:limit] for key, value in arrays.items()}
     scenes = arrays.pop("scene")
     per_view = evaluate_arrays(model, diffusion, arrays, steps=steps, seed=seed, ensemble=ensemble, progress=progress)
-    per_scene = {}
-    for scene in dict.fromkeys(scenes.tolist()):
-        members = [scores for scores, name in zip(per_view, scenes) if name == scene]
-        per_scene[scene] = {"views": len(members), **mean_scores(members)}
     return {"split": split, "views": len(per_view), "ddim_steps": steps or diffusion.config.sample_steps,
             "ensemble": ensemble or diffusion.config.sample_ensemble, "reduce": diffusion.config.sample_reduce,
-            **mean_scores(per_view), "per_scene": per_scene}
+            **mean_scores(per_view), "per_scene": scores_by_scene(per_view, scenes)}
