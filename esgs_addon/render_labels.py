@@ -63,18 +63,21 @@ def _mesh_object(vertices: np.ndarray, triangles: np.ndarray, scene: bpy.types.S
 
 def render_labels(scene_dir: str | Path, mesh_path: str | Path, *, method: str = "mesh",
                   fill: FillOptions | None = None, smooth: bool = True, samples: int = 0,
-                  metadata: dict[str, Any] | None = None,
+                  metadata: dict[str, Any] | None = None, gaps_path: str | Path | None = None,
                   progress: Callable[[ProgressEvent], None] | None = None) -> dict[str, Any]:
     """Render depth/normal labels of every image of ``scene_dir`` from ``mesh_path``.
 
     method: how the mesh was obtained, recorded in the metadata (``mesh`` = given by the
     user, ``reconstruct`` = :func:`esgs.core.labels.reconstruct_mesh`). smooth: shade with
     interpolated vertex normals (terrain) or flat faces. samples: Cycles samples (0 =
-    :data:`DEFAULT_SAMPLES`). Returns the ``labels.json`` report (a dict).
+    :data:`DEFAULT_SAMPLES`). gaps_path: the gap mesh of a reconstructed mesh
+    (:mod:`esgs.core.labels.gaps`); labels seen through one of its triangles are dropped.
+    Returns the ``labels.json`` report (a dict).
     Raises :class:`DatasetError` / :class:`ConfigError` before rendering for a missing
     mesh, a scene without a COLMAP model or without images; nothing is written then.
     """
     from ..core.colmap.io import read_model
+    from ..core.labels.gaps import through_gap, zbuffer_depth
     from ..core.labels.mesh_io import load_mesh
     from ..core.labels.pipeline import check_pinhole
     from ..core.labels.writer import REPORT_NAME, LabelWriter
@@ -93,9 +96,13 @@ def render_labels(scene_dir: str | Path, mesh_path: str | Path, *, method: str =
                            hint="run SfM first (esgs dataset from-images) so every image has a pose")
     check_pinhole(model, scene_dir)
     vertices, triangles = load_mesh(mesh_path)
+    gap_vertices, gap_triangles = load_mesh(gaps_path) if gaps_path is not None else (None, None)
     samples = samples or DEFAULT_SAMPLES
     metadata = {"method": method, "mesh": str(Path(mesh_path).resolve()), "renderer": "Cycles CPU, Depth and Normal passes",
                 "samples": samples, "shading": "smooth" if smooth else "flat", **(metadata or {})}
+    if gaps_path is not None:
+        metadata["gap_mesh"] = str(Path(gaps_path).resolve())
+        metadata["gap_rule"] = "labels behind a gap triangle on their ray (beyond 1 %) are dropped"
 
     before = {name: {block.session_uid for block in getattr(bpy.data, name)}
               for name in ("scenes", "objects", "meshes", "cameras", "collections", "node_groups", "images")}
@@ -116,7 +123,7 @@ def render_labels(scene_dir: str | Path, mesh_path: str | Path, *, method: str =
                     view_start = time.perf_counter()
                     name = str(camera[PROP_IMAGE_NAME])
                     use_camera(label_scene, camera)
-                    _, world_to_camera, _, _ = opencv_from_camera_object(camera, label_scene)
+                    K, world_to_camera, _, _ = opencv_from_camera_object(camera, label_scene)
                     pass_files = passes.set_prefix(f"view{index:05d}_")
                     label_scene.render.filepath = str(Path(scratch) / f"view{index:05d}.png")
                     bpy.ops.render.render(write_still=False, scene=label_scene.name)
@@ -127,7 +134,11 @@ def render_labels(scene_dir: str | Path, mesh_path: str | Path, *, method: str =
                     normal = camera_normals_from_pass(_read_vector(pass_files["Normal"]), world_to_camera, depth > 0)
                     for path in pass_files.values():
                         path.unlink()
-                    stats = writer.add(name, depth, normal)
+                    exclude = None
+                    if gap_triangles is not None:
+                        gap_depth = zbuffer_depth(gap_vertices, gap_triangles, K, world_to_camera, depth.shape[1], depth.shape[0])
+                        exclude = through_gap(depth, gap_depth)
+                    stats = writer.add(name, depth, normal, exclude)
                     report(ProgressEvent(index + 1, total, "labels", message=f"labels of {name}", metrics={
                         "view_s": time.perf_counter() - view_start, "rendered": stats["rendered_fraction"],
                         "filled": stats["filled_fraction"]}))
@@ -152,6 +163,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("scene", type=Path)
     parser.add_argument("--mesh", type=Path, required=True)
     parser.add_argument("--method", default="mesh")
+    parser.add_argument("--gaps", type=Path, default=None, help="gap mesh of a reconstructed mesh")
     parser.add_argument("--samples", type=int, default=0, help="Cycles samples (0 = 1)")
     parser.add_argument("--flat", action="store_true")
     parser.add_argument("--max-hole-fraction", type=float, default=FillOptions.max_hole_fraction)
@@ -179,7 +191,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         bpy.ops.wm.read_factory_settings(use_empty=True)
         render_labels(args.scene, args.mesh, method=args.method, samples=args.samples, smooth=not args.flat,
                       fill=FillOptions(max_hole_fraction=args.max_hole_fraction, edge_radius_px=args.edge_radius_px),
-                      metadata=json.loads(args.metadata), progress=emit)
+                      metadata=json.loads(args.metadata), gaps_path=args.gaps, progress=emit)
     except ESGSError as error:
         return report_error(error, program="render_labels", events_stdout=args.events_stdout)
     finally:

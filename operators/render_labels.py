@@ -36,10 +36,14 @@ class ESGS_OT_render_labels(BlockingJobOperator, bpy.types.Operator):
         if reconstruct:
             from ..core.labels.reconstruct import reconstruct_mesh
 
-            mesh_path = reconstruct_mesh(Path(scene_dir), progress=progress)["mesh"]
+            reconstruction = reconstruct_mesh(Path(scene_dir), progress=progress)
+            mesh_path, gaps_path = reconstruction["mesh"], reconstruction["gaps"]
         elif not mesh_path:
             raise ConfigError("choose a mesh file, or tick 'Reconstruct mesh'")
-        result = render_labels(scene_dir, mesh_path, method="reconstruct" if reconstruct else "mesh", progress=progress)
+        else:
+            gaps_path = None
+        result = render_labels(scene_dir, mesh_path, method="reconstruct" if reconstruct else "mesh",
+                               gaps_path=gaps_path, progress=progress)
         return f"Wrote labels of {len(result['views'])} views to {Path(scene_dir) / 'priors' / 'labels'}"
 
 

@@ -87,6 +87,7 @@ def run_label_job(job: LabelJob, progress: ProgressCallback = no_progress, *, ve
         raise ConfigError("rendering labels needs Blender's bpy module, which this Python does not have",
                           hint="pip install bpy==5.0.1")
     reconstruction = None
+    gaps = None
     metadata: dict[str, str] = {}
     if job.reconstruct:
         from .reconstruct import reconstruct_mesh
@@ -94,6 +95,7 @@ def run_label_job(job: LabelJob, progress: ProgressCallback = no_progress, *, ve
         mesh = job.scene / "mesh" / MESH_NAME
         reconstruction = reconstruct_mesh(job.scene, job.reconstruct_options, out_path=mesh, progress=progress)
         atomic_write_json(mesh.with_suffix(".json"), reconstruction)
+        gaps = reconstruction["gaps"]
         metadata = {"reconstruction": "plane-sweep ZNCC stereo, cross-view check, 2.5D Delaunay "
                                       "(esgs.core.labels.reconstruct)",
                     "reconstruction_report": str(mesh.with_suffix(".json").resolve())}
@@ -107,6 +109,8 @@ def run_label_job(job: LabelJob, progress: ProgressCallback = no_progress, *, ve
                "--metadata", json.dumps(metadata), "--events-stdout"]
     if not job.smooth:
         command.append("--flat")
+    if gaps is not None:
+        command += ["--gaps", str(gaps)]
     run_child(command, progress, verbose=verbose, task="label rendering")
     labels = json.loads((prior_dir(job.scene, "labels") / "labels.json").read_text())
     accuracy = None

@@ -29,12 +29,13 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ..progress import ProgressCallback, ProgressEvent, no_progress
+from .gaps import gap_mesh_path
 from .stereo import StereoOptions, View, consistent_depths, depth_maps
 
 MESH_NAME = "reconstructed.ply"
@@ -142,17 +143,36 @@ def load_views(scene_dir: str | Path, margin: float, ground_normal: np.ndarray |
     return views, model
 
 
+class HeightfieldMesh(NamedTuple):
+    """What :func:`mesh_from_points` builds: the kept surface and the gap triangles it removed."""
+
+    vertices: np.ndarray  # [V, 3]
+    triangles: np.ndarray  # [F, 3] int64
+    stats: dict[str, Any]
+    gap_vertices: np.ndarray  # [G, 3]: the long triangles that would have bridged a gap
+    gap_triangles: np.ndarray  # [E, 3] int64
+
+
+def _compact(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Only the vertices the triangles use, and the triangles renumbered."""
+    used = np.unique(triangles)
+    remap = -np.ones(len(vertices), np.int64)
+    remap[used] = np.arange(len(used))
+    return vertices[used], remap[triangles]
+
+
 def mesh_from_points(points: np.ndarray, normal: np.ndarray, cell: float, max_edge_cells: float,
-                     spike_threshold: float, footprints: np.ndarray | None = None
-                     ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+                     spike_threshold: float, footprints: np.ndarray | None = None) -> HeightfieldMesh:
     """2.5D mesh of ``points`` [N, 3] over the plane with unit ``normal`` [3].
 
     cell: grid cell side (scene units). footprints: [N] optional spacing of each point's
     neighbours on the ground (a pixel's footprint seen at its grazing angle); a triangle is
     kept when its longest edge is at most ``max_edge_cells`` times the larger of ``cell`` and
     its vertices' footprints, so the far range (sparser samples) still meshes while real
-    gaps stay open. Returns (vertices [V, 3], triangles [F, 3] int64 counter-clockwise seen
-    from the normal's side, statistics). See the module docstring for the steps.
+    gaps stay open. Returns a :class:`HeightfieldMesh`: the kept triangles counter-clockwise
+    seen from the normal's side, statistics, and the removed long triangles as a separate
+    gap mesh (:mod:`.gaps` finds the labels that look through them). See the module
+    docstring for the steps.
     """
     from scipy.spatial import Delaunay, cKDTree
 
@@ -193,18 +213,18 @@ def mesh_from_points(points: np.ndarray, normal: np.ndarray, cell: float, max_ed
                       np.linalg.norm(corners[:, 2] - corners[:, 1], axis=1),
                       np.linalg.norm(corners[:, 0] - corners[:, 2], axis=1)], axis=1)
     short = edges.max(axis=1) <= max_edge_cells * vertex_spacing[triangles].max(axis=1)
-    triangles = triangles[short]
     # orient counter-clockwise seen from the normal's side (face normals towards the cameras)
     corners = vertices[triangles]
     face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     flip = face_normals @ normal < 0
     triangles[flip] = triangles[flip][:, [0, 2, 1]]
-    used = np.unique(triangles)
-    remap = -np.ones(len(vertices), np.int64)
-    remap[used] = np.arange(len(used))
+    gaps = triangles[~short]
+    triangles = triangles[short]
     stats = {"cells": int(len(starts)), "spikes_removed": int(spike.sum()), "triangles": int(len(triangles)),
-             "long_triangles_removed": int((~short).sum()), "cell_size": float(cell)}
-    return vertices[used], remap[triangles], stats
+             "long_triangles_removed": int(len(gaps)), "cell_size": float(cell)}
+    kept_vertices, kept_triangles = _compact(vertices, triangles)
+    gap_vertices, gap_triangles = _compact(vertices, gaps) if len(gaps) else (np.zeros((0, 3)), np.zeros((0, 3), np.int64))
+    return HeightfieldMesh(kept_vertices, kept_triangles, stats, gap_vertices, gap_triangles)
 
 
 def reconstruct_mesh(scene_dir: str | Path, options: ReconstructOptions | None = None, *,
@@ -260,14 +280,21 @@ def reconstruct_mesh(scene_dir: str | Path, options: ReconstructOptions | None =
     grazing = np.abs(np.concatenate([directions for _, directions in footprints]) @ normal)
     ground_footprints = options.cell_factor * across / np.maximum(grazing, 0.05)
     cell = options.cell_factor * float(np.median(across))
-    vertices, triangles, stats = mesh_from_points(points_all, normal, cell, options.max_edge_cells,
-                                                  options.spike_threshold, ground_footprints)
+    built = mesh_from_points(points_all, normal, cell, options.max_edge_cells, options.spike_threshold,
+                             ground_footprints)
     mesh_path = Path(out_path) if out_path is not None else scene_dir / "mesh" / MESH_NAME
-    write_mesh(mesh_path, vertices, triangles)
+    gaps_path = gap_mesh_path(mesh_path)
+    # the gap mesh first: a mesh file never sits beside a gap mesh of another run
+    if len(built.gap_triangles):
+        write_mesh(gaps_path, built.gap_vertices, built.gap_triangles)
+    else:
+        gaps_path.unlink(missing_ok=True)
+    write_mesh(mesh_path, built.vertices, built.triangles)
     progress(ProgressEvent(total, total, "mesh", kind="done", message=f"mesh written: {mesh_path}",
-                           metrics={"triangles": float(len(triangles))}))
-    return {"mesh": str(mesh_path), "views": len(views), "stereo_fraction": raw_fraction,
+                           metrics={"triangles": float(len(built.triangles))}))
+    return {"mesh": str(mesh_path), "gaps": str(gaps_path) if len(built.gap_triangles) else None,
+            "views": len(views), "stereo_fraction": raw_fraction,
             "consistent_fraction": float(np.mean([np.mean(d > 0) for d in depths])),
-            "fused_points": int(len(points_all)), **stats, "seconds": round(time.perf_counter() - start, 2),
+            "fused_points": int(len(points_all)), **built.stats, "seconds": round(time.perf_counter() - start, 2),
             "neighbours": {view.name: [views[j].name for j in nbrs] for view, nbrs in zip(views, neighbours)},
             "options": asdict(options)}

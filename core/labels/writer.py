@@ -52,9 +52,12 @@ class LabelWriter:
         self._staging = Path(tempfile.mkdtemp(prefix=".labels.partial.", dir=self.scene_dir))
         return self
 
-    def add(self, image_name: str, depth: np.ndarray, normal: np.ndarray) -> dict[str, Any]:
+    def add(self, image_name: str, depth: np.ndarray, normal: np.ndarray,
+            exclude: np.ndarray | None = None) -> dict[str, Any]:
         """Fill and write one view. depth: [H, W] float32 along the camera z axis, 0 = no
-        surface; normal: [H, W, 3] unit normals, camera frame (OpenCV axes). Returns the
+        surface; normal: [H, W, 3] unit normals, camera frame (OpenCV axes); exclude: [H, W]
+        bool, rendered pixels not to trust (seen through a gap of a reconstructed mesh,
+        :mod:`.gaps`): they count as not rendered, so hole filling may fill them. Returns the
         view's statistics (also saved in ``labels.json``)."""
         if self._staging is None:
             raise RuntimeError("LabelWriter.add outside its with-block")
@@ -64,11 +67,20 @@ class LabelWriter:
             raise DatasetError(f"view {image_name!r}: depth {depth.shape} and normal {normal.shape} do not match",
                                path=self.scene_dir)
         rendered = depth > 0
+        excluded = np.zeros_like(rendered)
+        if exclude is not None:
+            if np.shape(exclude) != depth.shape:
+                raise DatasetError(f"view {image_name!r}: exclusion mask {np.shape(exclude)} does not match depth "
+                                   f"{depth.shape}", path=self.scene_dir)
+            excluded = rendered & np.asarray(exclude, bool)
+            rendered = rendered & ~excluded
+            depth = np.where(rendered, depth, 0.0).astype(np.float32)
         filled_depth, filled_normal, mask = fill_missing(depth, normal, rendered, self.fill)
         total = mask.size
         stats = {"image": image_name, "rendered_fraction": float((mask == RENDERED).sum() / total),
                  "filled_fraction": float((mask == FILLED).sum() / total),
-                 "empty_fraction": float((mask == EMPTY).sum() / total)}
+                 "empty_fraction": float((mask == EMPTY).sum() / total),
+                 "through_gap_fraction": float(excluded.sum() / total)}
         write_prior_maps(self._staging, SOURCE, image_name, depth=filled_depth, normal=filled_normal, mask=None,
                          metadata={**self.metadata, "mask_values": MASK_VALUES,
                                    "filled_pixels": str(int((mask == FILLED).sum()))})

@@ -202,3 +202,60 @@ def test_labels_command_runs_blender_in_a_child_and_reports(scene, capsys):
     assert "AbsRel" in table
     accuracy = json.loads((scene / "priors" / "labels" / "accuracy.json").read_text())
     assert accuracy["overall"]["abs_rel"] < 1e-3 and accuracy["overall"]["delta1"] == 1.0
+
+
+def test_labels_seen_through_a_gap_are_dropped(scene, tmp_path):
+    """A hole cut in the true terrain, a floor 6 m below it: without the gap mesh the hole's
+    pixels are labelled with the floor (far too deep); with it they are dropped and every
+    label left matches the truth."""
+    from esgs.core.labels.fill import FillOptions
+    from esgs.core.labels.gaps import zbuffer_depth
+    from esgs.core.labels.mesh_io import load_mesh, write_mesh
+    from esgs.core.colmap.io import read_model
+    from esgs.esgs_addon.render_labels import render_labels
+
+    vertices, triangles = load_mesh(scene / "mesh" / "ground_truth.ply")
+    centroids = vertices[triangles].mean(axis=1)
+    hole = np.hypot(centroids[:, 0], centroids[:, 1]) < 4.0  # the orbit's centre: seen by every view
+    low = vertices[:, 2].min() - 6.0
+    floor = np.array([[-60, -60, low], [60, -60, low], [60, 60, low], [-60, 60, low]], np.float64)
+    holed_vertices = np.concatenate([vertices, floor])
+    holed_triangles = np.concatenate([triangles[~hole], len(vertices) + np.array([[0, 1, 2], [0, 2, 3]])])
+    write_mesh(tmp_path / "holed.ply", holed_vertices, holed_triangles)
+    write_mesh(tmp_path / "gaps.ply", vertices, triangles[hole])
+    no_fill = FillOptions(max_hole_fraction=0.0)
+    model = read_model(scene)
+    errors = {}
+    for name, gaps in (("without", None), ("with", tmp_path / "gaps.ply")):
+        report = render_labels(scene, tmp_path / "holed.ply", fill=no_fill, gaps_path=gaps)
+        worst, flagged = [], 0.0
+        for image, view in zip(model.sorted_images(), report["views"]):
+            stem = Path(image.name).stem
+            label, _, mask, _ = _maps(scene, "labels", stem)
+            truth, _, truth_mask, _ = _maps(scene, "gt", stem)
+            both = (mask == RENDERED) & (truth > 0)
+            worst.append(np.max(np.abs(label[both] - truth[both]) / truth[both]))
+            flagged += view["through_gap_fraction"]
+            if gaps is not None:  # nothing rendered is left behind a gap triangle
+                gap_depth = zbuffer_depth(*load_mesh(gaps), model.cameras[image.camera_id].K(), image.world_to_camera(),
+                                          label.shape[1], label.shape[0])
+                assert not np.any((mask == RENDERED) & (gap_depth < label * 0.99))
+        errors[name] = (max(worst), flagged)
+        assert ("gap_mesh" in report) == (gaps is not None)
+    assert errors["without"][0] > 0.5 and errors["without"][1] == 0.0  # the floor seen through the hole
+    assert errors["with"][0] < 0.02 and errors["with"][1] > 0.0
+
+
+def test_the_label_job_drops_labels_seen_through_gaps_of_its_reconstruction(scene):
+    from esgs.core.labels.pipeline import LabelJob, run_label_job
+    from esgs.core.labels.reconstruct import ReconstructOptions
+    from esgs.core.labels.stereo import StereoOptions
+
+    job = LabelJob(scene=scene, reconstruct=True, report=True,
+                   reconstruct_options=ReconstructOptions(stereo=StereoOptions(planes=64, neighbours=3)))
+    result = run_label_job(job)
+    gaps = result["reconstruction"]["gaps"]
+    assert gaps is not None and Path(gaps).is_file()
+    assert result["labels"]["gap_mesh"] == str(Path(gaps).resolve())
+    assert all("through_gap_fraction" in view for view in result["labels"]["views"])
+    assert result["accuracy"]["overall"]["delta1"] > 0.95

@@ -49,13 +49,29 @@ def test_mesh_from_points_follows_the_surface_and_keeps_gaps_open():
     points[::97, 2] += 2.0  # scattered stereo outliers (1 %): outvoted by the cell medians
     cluster = np.array([[1.01, 5.01, 1.5]] * 12)  # a cluster of outliers wins its cell's median
     points = np.concatenate([points, cluster])
-    vertices, triangles, stats = mesh_from_points(points, np.array([0, 0, 1.0]), 0.05, 4.0, 3.0)
+    vertices, triangles, stats, gap_vertices, gap_triangles = mesh_from_points(points, np.array([0, 0, 1.0]), 0.05,
+                                                                               4.0, 3.0)
     assert stats["spikes_removed"] >= 1 and vertices[:, 2].max() < 0.45
     error = np.abs(vertices[:, 2] - height_at(vertices[:, 0], vertices[:, 1]))
     assert np.median(error) < 0.005 and np.percentile(error, 99) < 0.05
     centroids = vertices[triangles].mean(axis=1)
     in_hole = ((centroids[:, 0] + 1.0) ** 2 + (centroids[:, 1] - 4.0) ** 2) < 0.35 ** 2
     assert not in_hole.any()  # long triangles across the hole were removed
+    # ... and kept apart as the gap mesh: it spans the hole (its centre lies in a gap triangle);
+    # the other removed triangles are slivers along the border of the sampled square
+    assert len(gap_triangles) == stats["long_triangles_removed"] > 0
+    a, b, c = (gap_vertices[gap_triangles][:, k, :2] for k in range(3))
+    p = np.array([-1.0, 4.0])
+
+    def side(u, v, w):
+        return (v[:, 0] - u[:, 0]) * (w[:, 1] - u[:, 1]) - (v[:, 1] - u[:, 1]) * (w[:, 0] - u[:, 0])
+
+    signs = np.stack([side(a, b, p[None]), side(b, c, p[None]), side(c, a, p[None])], 1)
+    assert (np.all(signs >= 0, axis=1) | np.all(signs <= 0, axis=1)).any()
+    centroids = gap_vertices[gap_triangles].mean(axis=1)
+    near_hole = np.hypot(centroids[:, 0] + 1.0, centroids[:, 1] - 4.0) < 0.6
+    near_border = (np.abs(np.abs(centroids[:, 0]) - 2.0) < 0.3) | (centroids[:, 1] < 0.3) | (centroids[:, 1] > 5.7)
+    assert np.all(near_hole | near_border)
     corners = vertices[triangles]
     normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     assert np.all(normals[:, 2] > 0)  # oriented towards the cameras (up)
@@ -69,6 +85,11 @@ def test_reconstruct_mesh_of_a_scene_folder(tmp_path):
 
     mesh = trimesh.load(tmp_path / "mesh" / "reconstructed.ply", process=False)
     assert report["mesh"] == str(tmp_path / "mesh" / "reconstructed.ply") and len(mesh.faces) > 500
+    if report["gaps"] is not None:  # the gap mesh sits beside it, with the removed triangles
+        gaps = trimesh.load(report["gaps"], process=False)
+        assert len(gaps.faces) == report["long_triangles_removed"]
+    else:
+        assert report["long_triangles_removed"] == 0
     error = np.abs(mesh.vertices[:, 2] - height_at(mesh.vertices[:, 0], mesh.vertices[:, 1]))
     footprint = 4.0 / 80.0  # one pixel at the typical 4 m range of these 96x64 views
     assert np.median(error) < 0.5 * footprint and report["fused_points"] > 5000
