@@ -84,12 +84,13 @@ def sky_tasks(scene: Path, out: Path, iterations: int, seeds, train: dict, basel
     return tasks
 
 
-def ensure_ndn_priors(scene: Path) -> None:
-    """NDN priors for ``scene`` unless it has them (the bench's rule: ``esgs priors --method ndn``
-    in a child process, with ``$ESGS_NDN_WEIGHTS`` or the shipped weights)."""
-    if not (scene / "priors" / "ndn").is_dir():
-        ensure_priors(scene, "ndn")
-        print(f"{scene.name}: wrote ndn priors", flush=True)
+def ensure_computed_priors(scene: Path, source: str) -> None:
+    """``source`` priors for ``scene`` unless it has them (the bench's rule, in a child process:
+    ``esgs priors --method ndn`` with ``$ESGS_NDN_WEIGHTS`` or the shipped weights; ``esgs
+    labels --reconstruct`` for labels, from the images and the triangulated poses only)."""
+    if not (scene / "priors" / source).is_dir():
+        ensure_priors(scene, source)
+        print(f"{scene.name}: wrote {source} priors", flush=True)
 
 
 def with_sky_figures(task: RunTask, summary: dict) -> dict:
@@ -212,9 +213,10 @@ def main() -> int:
         name, _, path = item.partition("=")
         sources[name] = Path(path)
     scenes = {name: sfm_variant(path, root, name) for name, path in sources.items()}
-    if "ndn" in args.sources:
-        for scene in scenes.values():
-            ensure_ndn_priors(scene)
+    for source in ("ndn", "labels"):
+        if source in args.sources:
+            for scene in scenes.values():
+                ensure_computed_priors(scene, source)
     train = {"width": args.width, "threads": args.threads, "backend": "auto", "lpips": True, "mask_source": "none",
              "save_renders": False}
     tasks = plan_runs(scenes, args.out, iterations=args.iterations, seeds=args.seeds, train=train,
@@ -226,7 +228,7 @@ def main() -> int:
         if SKY_FILLED in args.sky_priors and not (sky_scene / "priors" / SKY_FILLED).is_dir():
             write_sky_filled_priors(sky_scene)
         if "ndn" in args.sky_priors:
-            ensure_ndn_priors(sky_scene)
+            ensure_computed_priors(sky_scene, "ndn")
         sky = sky_tasks(sky_scene, args.out, args.iterations, args.sky_seeds or args.seeds, train,
                         baseline=args.sky_baseline, priors=tuple(args.sky_priors),
                         sky_weights=tuple(args.sky_loss_weights), ignore_masks=args.sky_ignore_masks)

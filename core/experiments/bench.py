@@ -101,6 +101,8 @@ def _method(key: str, label: str, *, esgs: Optional[dict] = None, baselines: Opt
 PRIOR_SOURCES = ("ndn", "sfm", "gt")
 #: The sources ``esgs priors`` can compute for a scene that lacks them.
 COMPUTED_PRIOR_SOURCES = ("ndn", "sfm")
+#: ... and those :func:`ensure_priors` can (``labels``: ``esgs labels --reconstruct``, needs bpy).
+ENSURED_PRIOR_SOURCES = (*COMPUTED_PRIOR_SOURCES, "labels")
 UPPER_BOUND_KEY = "esgs_full_gt"
 _FULL_ESGS = {"depth": True, "normal": True, "gpdfn": True, "fused_k": 3}
 
@@ -119,23 +121,29 @@ METHODS = (
 
 
 def ensure_priors(scene: Path, source: str) -> Path:
-    """``SCENE/priors/<source>``, computed with ``esgs priors --method <source>`` in a child
-    process when the scene has none (ndn, sfm); ``gt`` priors come only from the generator.
+    """``SCENE/priors/<source>``, computed in a child process when the scene has none:
+    ``esgs priors --method <source>`` (ndn, sfm) or ``esgs labels --reconstruct`` (labels: a
+    mesh rebuilt from the images and poses, never the true mesh); ``gt`` priors come only
+    from the generator.
 
-    ``esgs priors`` writes the folder atomically, so an interrupted bench leaves either the
+    Both commands write the folder atomically, so an interrupted bench leaves either the
     whole folder or none, and a restart reuses it.
     """
     scene = Path(scene)
     folder = scene / "priors" / source
     if source in available_priors(scene):
         return folder
-    if source not in COMPUTED_PRIOR_SOURCES:
+    if source not in ENSURED_PRIOR_SOURCES:
         raise ConfigError(f"the scene has no {source} priors and the bench cannot compute them", path=scene,
                           hint=f"use --priors {' or '.join(COMPUTED_PRIOR_SOURCES)}, or a scene made by esgs scene")
-    command = [sys.executable, "-m", "esgs.core.cli", "priors", str(scene), "--method", source]
+    if source == "labels":
+        command = [sys.executable, "-m", "esgs.core.cli", "labels", str(scene), "--reconstruct"]
+    else:
+        command = [sys.executable, "-m", "esgs.core.cli", "priors", str(scene), "--method", source]
     completed = subprocess.run(command, capture_output=True, text=True)
     if completed.returncode != 0:
-        raise ESGSError(f"esgs priors --method {source} failed: {completed.stdout[-500:]}{completed.stderr[-1500:]}",
+        raise ESGSError(f"esgs {command[3]} {' '.join(command[5:])} failed: "
+                        f"{completed.stdout[-500:]}{completed.stderr[-1500:]}",
                         path=scene, hint="run the command by hand: esgs " + " ".join(command[3:]))
     return folder
 

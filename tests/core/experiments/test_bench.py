@@ -101,6 +101,30 @@ def test_the_bench_computes_missing_sfm_priors_and_plans_its_rows_on_them(tmp_pa
         ensure_priors(bare, "gt")
 
 
+def test_missing_labels_are_reconstructed_from_the_images_never_the_mesh(tmp_path, monkeypatch):
+    import subprocess
+
+    from esgs.core.errors import ESGSError
+    from esgs.core.experiments import bench
+
+    calls = []
+
+    def fake_run(command, **kwargs):
+        calls.append(command)
+        if len(calls) == 1:  # the first try fails: its output is in the error
+            return subprocess.CompletedProcess(command, 1, stdout="", stderr="stereo found no consistent depth")
+        (tmp_path / "priors" / "labels" / "depth").mkdir(parents=True)
+        (tmp_path / "priors" / "labels" / "depth" / "v.exr").write_bytes(b"")
+        return subprocess.CompletedProcess(command, 0, stdout="", stderr="")
+
+    monkeypatch.setattr(bench.subprocess, "run", fake_run)
+    with pytest.raises(ESGSError, match="esgs labels --reconstruct failed: stereo found no consistent depth"):
+        ensure_priors(tmp_path, "labels")
+    assert ensure_priors(tmp_path, "labels") == tmp_path / "priors" / "labels"
+    assert calls[-1][3:] == ["labels", str(tmp_path), "--reconstruct"] and "--mesh" not in calls[-1]
+    assert ensure_priors(tmp_path, "labels") == tmp_path / "priors" / "labels" and len(calls) == 2  # reused
+
+
 def test_a_run_saved_with_other_settings_is_stale_and_set_aside_whole(tmp_path, scene):
     from esgs.core.config import config_from_dict, config_to_dict
     from esgs.core.train.config import TrainConfig
