@@ -84,6 +84,25 @@ def sky_tasks(scene: Path, out: Path, iterations: int, seeds, train: dict, basel
     return tasks
 
 
+def esgs_options(items: list[str]) -> dict:
+    """``["depth_weight=3", ...]`` -> ``{"depth_weight": 3.0}``, checked against ESGSConfig's fields."""
+    import dataclasses
+
+    from esgs.core.errors import ConfigError
+    from esgs.core.method.config import ESGSConfig
+
+    fields = {field.name: field for field in dataclasses.fields(ESGSConfig)}
+    defaults = ESGSConfig()
+    options = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or key not in fields:
+            raise ConfigError(f"--esgs-option {item!r}: expected KEY=VALUE with KEY one of {', '.join(fields)}")
+        kind = type(getattr(defaults, key))
+        options[key] = text.lower() in ("1", "true", "yes") if kind is bool else kind(text)
+    return options
+
+
 def ensure_computed_priors(scene: Path, source: str) -> None:
     """``source`` priors for ``scene`` unless it has them (the bench's rule, in a child process:
     ``esgs priors --method ndn`` with ``$ESGS_NDN_WEIGHTS`` or the shipped weights; ``esgs
@@ -139,6 +158,7 @@ def markdown(args, scenes, rows, verdicts, sky_rows, failed, started) -> str:
              f"- Training: {args.iterations} steps for every run, at width {args.width or 'full'} px, seeds "
              f"{', '.join(map(str, args.seeds))}, `--threads {args.threads}`, photometric loss on whole images "
              "(`mask_source none`), the trainer's defaults otherwise.",
+             *([f"- ESGS rows with {', '.join(args.esgs_option)} (`--esgs-option`)."] if args.esgs_option else []),
              "- 3DGS: the trainer's baseline. ESGS: depth + normal prior losses (the ones the source has: `sfm` has "
              "depth only) + GPDFN with K = 3.",
              "- Metrics on the held-out views: SSIM, PSNR, LPIPS (AlexNet, v0.1); distances: Gaussian centres with opacity "
@@ -201,6 +221,8 @@ def main() -> int:
     parser.add_argument("--iterations", type=int, default=400)
     parser.add_argument("--width", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--esgs-option", action="append", default=[], metavar="KEY=VALUE",
+                        help="set an ESGSConfig field on every ESGS row, e.g. depth_weight=3 (repeat; use its own --out)")
     parser.add_argument("--doc", type=Path, default=None)
     parser.add_argument("--report-only", action="store_true", help="rewrite the report from finished runs")
     args = parser.parse_args()
@@ -220,7 +242,7 @@ def main() -> int:
     train = {"width": args.width, "threads": args.threads, "backend": "auto", "lpips": True, "mask_source": "none",
              "save_renders": False}
     tasks = plan_runs(scenes, args.out, iterations=args.iterations, seeds=args.seeds, train=train,
-                      sources=args.sources)
+                      sources=args.sources, esgs_options=esgs_options(args.esgs_option))
     sky = []
     if args.sky_preset:
         sky_scene = sfm_variant(make_scene(args.sky_preset, root / f"{args.sky_preset}_{args.views}v_{args.resolution}",

@@ -40,20 +40,23 @@ class Method:
     source: str = ""
 
 
-def scene_methods(scene: Path, sources: Sequence[str] = SOURCES) -> list[Method]:
-    """3DGS, then full ESGS with each of ``sources`` found under ``scene/priors`` (depth and/or normal)."""
+def scene_methods(scene: Path, sources: Sequence[str] = SOURCES, esgs_options: Optional[dict] = None) -> list[Method]:
+    """3DGS, then full ESGS with each of ``sources`` found under ``scene/priors`` (depth and/or normal);
+    ``esgs_options`` (ESGSConfig fields, e.g. ``{"depth_weight": 3.0}``) are set on every ESGS row."""
     methods = [Method("3DGS", "3dgs")]
     for source in sources:
         kinds = {kind for kind in ("depth", "normal") if (Path(scene) / "priors" / source / kind).is_dir()}
         if not kinds:
             continue
-        esgs = {"priors": source, "depth": "depth" in kinds, "normal": "normal" in kinds, "gpdfn": True, "fused_k": 3}
+        esgs = {"priors": source, "depth": "depth" in kinds, "normal": "normal" in kinds, "gpdfn": True, "fused_k": 3,
+                **(esgs_options or {})}
         methods.append(Method(f"ESGS ({source})", f"esgs-{source}", tuple(sorted(esgs.items())), source))
     return methods
 
 
 def plan_runs(scenes: dict[str, Path], out: Path, *, iterations: int, seeds: Sequence[int],
-              train: Optional[dict] = None, sources: Sequence[str] = SOURCES) -> list[RunTask]:
+              train: Optional[dict] = None, sources: Sequence[str] = SOURCES,
+              esgs_options: Optional[dict] = None) -> list[RunTask]:
     """Run tasks ordered seed first, so a study stopped early has every method for its first seeds.
 
     ``scenes``: table name -> scene folder; runs go to ``out/runs/<scene>/<method>/seed<k>``.
@@ -62,7 +65,7 @@ def plan_runs(scenes: dict[str, Path], out: Path, *, iterations: int, seeds: Seq
     for seed in seeds:
         for name, scene in scenes.items():
             mesh = Path(scene) / "mesh" / "ground_truth.ply"
-            for method in scene_methods(scene, sources):
+            for method in scene_methods(scene, sources, esgs_options):
                 config = {**(train or {}), "iterations": iterations, "seed": seed, "esgs": dict(method.esgs)}
                 tasks.append(RunTask(name=f"{name}/{method.key}/seed{seed}", scene=Path(scene),
                                      out=Path(out) / "runs" / name / method.key / f"seed{seed}", config=config,

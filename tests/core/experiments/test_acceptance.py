@@ -125,6 +125,10 @@ def test_plan_runs_is_seed_first_with_every_source_and_rows_group_by_scene(tmp_p
     summaries = [{"scene": "a", "variant": "3DGS", "seed": s, "psnr": 20.0 + s} for s in (0, 1)]
     rows = scene_rows(summaries)
     assert rows["a"][0]["psnr"] == {"mean": 20.5, "std": 0.5, "n": 2} and rows["a"][0]["seeds"] == [0, 1]
+    # an ESGS option reaches every ESGS row and never the baseline
+    tuned = plan_runs({"a": scene}, tmp_path / "tuned", iterations=7, seeds=[0], esgs_options={"depth_weight": 3.0})
+    assert tuned[0].config["esgs"] == {} and tuned[1].config["esgs"]["depth_weight"] == 3.0
+    assert tuned[1].config["esgs"]["priors"] == "gt"
 
 
 def test_sky_filled_priors_keep_the_surface_and_fill_the_sky(tmp_path):
