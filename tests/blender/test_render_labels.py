@@ -189,9 +189,14 @@ def test_operator_renders_labels_headless(scene):
     assert bpy.ops.esgs.render_labels() == {"FINISHED"}
     assert len(list((scene / "priors" / "labels" / "depth").glob("*.exr"))) == 6
     info = json.loads((scene / "priors" / "labels" / "labels.json").read_text())
-    assert info["method"] == "mesh"
+    assert info["method"] == "mesh" and "gap_mesh" not in info
     with pytest.raises(RuntimeError, match="mesh file not found"):
         bpy.ops.esgs.render_labels(scene_dir=str(scene), mesh_path=str(scene / "nothing.ply"))
+    # rebuilt from the images: the gap mesh written beside the mesh is used too
+    assert bpy.ops.esgs.render_labels(scene_dir=str(scene), reconstruct=True) == {"FINISHED"}
+    info = json.loads((scene / "priors" / "labels" / "labels.json").read_text())
+    gaps = scene / "mesh" / "reconstructed_gaps.ply"
+    assert info["method"] == "reconstruct" and gaps.is_file() and info["gap_mesh"] == str(gaps.resolve())
 
 
 def test_labels_command_runs_blender_in_a_child_and_reports(scene, capsys):
