@@ -65,8 +65,11 @@ def run(args: argparse.Namespace) -> int:
     views = result["labels"]["views"]
     filled = sum(view["filled_fraction"] for view in views) / len(views)
     empty = sum(view["empty_fraction"] for view in views) / len(views)
+    # labels.json of runs before the gap rule have no through_gap_fraction
+    through_gap = sum(view.get("through_gap_fraction", 0.0) for view in views) / len(views)
+    gaps = f"; {100 * through_gap:.2f} % dropped, seen through gaps of the rebuilt mesh" if through_gap > 0 else ""
     print(f"esgs labels: {len(views)} views -> {args.scene / 'priors' / 'labels'} "
-          f"(filled {100 * filled:.2f} % of pixels, no label {100 * empty:.2f} %)", file=sys.stderr)
+          f"(filled {100 * filled:.2f} % of pixels, no label {100 * empty:.2f} %{gaps})", file=sys.stderr)
     if result["accuracy"] is not None:
         print(format_accuracy_table(result["accuracy"]))
     return 0

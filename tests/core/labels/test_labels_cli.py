@@ -64,3 +64,22 @@ def test_bad_stereo_settings_are_config_errors(tmp_path):
     status = main(["labels", str(tmp_path), "--reconstruct", "--stereo-window-px", "4"])
     assert status != 0
     assert not (tmp_path / "mesh").exists()
+
+
+@pytest.mark.parametrize("through_gap, expected", [(0.03, "3.00 % dropped, seen through gaps"), (None, None)])
+def test_the_summary_line_counts_labels_dropped_as_seen_through_gaps(tmp_path, capsys, monkeypatch, through_gap,
+                                                                      expected):
+    from esgs.core.labels import pipeline
+
+    view = {"image": "a.png", "rendered_fraction": 0.9, "filled_fraction": 0.01, "empty_fraction": 0.09}
+    if through_gap is not None:
+        view["through_gap_fraction"] = through_gap  # labels.json before the gap rule has no such key
+
+    def fake_job(job, progress, verbose=False):
+        return {"labels": {"views": [view]}, "reconstruction": None, "accuracy": None}
+
+    monkeypatch.setattr(pipeline, "run_label_job", fake_job)
+    assert main(["labels", str(tmp_path), "--reconstruct"]) == 0
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "filled 1.00 % of pixels, no label 9.00 %" in line
+    assert (expected in line) if expected else ("gaps" not in line)
