@@ -5,23 +5,10 @@ import numpy as np
 import pytest
 
 from esgs.core.labels.gaps import gap_mesh_path, through_gap, zbuffer_depth
+from tests.core.train.scene import look_at
 
 WIDTH, HEIGHT = 64, 48
 K = np.array([[50.0, 0, 31.0], [0, 50.0, 24.5], [0, 0, 1]])
-
-
-def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """world_to_camera [4, 4] of an OpenCV camera at ``eye`` looking at ``target``."""
-    eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
-    forward = target - eye
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, up)
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    rotation = np.stack([right, down, forward])
-    pose = np.eye(4)
-    pose[:3, :3], pose[:3, 3] = rotation, -rotation @ eye
-    return pose
 
 
 def raycast_depth(vertices, triangles, world_to_camera) -> np.ndarray:
