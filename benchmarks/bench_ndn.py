@@ -1,16 +1,17 @@
 """NDN inference cost per view (prints; not a test). Target: <= 2 s per view on this machine.
 
 For each output size, one view's full inference path is timed: DDIM sampling of the depth
-and normal states at the working resolution (the weights' default steps, 15), then the
-guided upsampling of depth and normals to the output size (``maps_from_states``: bilinear +
-OpenCV guided filter + renormalisation). Views are sampled in batches as
-``write_ndn_priors`` does (batch 4 by default), so ``per view`` = batch time / batch size;
-batch 1 is printed too. The minimum over repeats is reported, as wall time and as the
+and normal states at the working resolution (the weights' saved recipe: DDIM steps x samples
+per view), then the guided upsampling of depth and normals to the output size
+(``maps_from_states``: bilinear + OpenCV guided filter + renormalisation). Views are sampled
+as many per call as ``write_ndn_priors`` samples (``views_per_batch`` of its default batch of
+8 samples: one view per call with the shipped 5-sample recipe), so ``per view`` = call time /
+views per call; ``--batch N`` adds a line for N views per call. The minimum over repeats is reported, as wall time and as the
 process's CPU time: on the shared, overloaded 2-core machine the wall time of a one-thread
 run is inflated by waiting for a core, while its CPU time is what an idle core would take.
 
     .venv/bin/python benchmarks/bench_ndn.py [--weights W] [--sizes 1920x1080 480x270]
-        [--batch 4] [--repeats 3] [--threads N]
+        [--batch N] [--repeats 3] [--threads N]
 """
 from __future__ import annotations
 
@@ -24,7 +25,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--weights", default=None, help="default: the shipped weights")
     parser.add_argument("--sizes", nargs="+", default=["1920x1080", "480x270"])
-    parser.add_argument("--batch", type=int, default=4)
+    parser.add_argument("--batch", type=int, default=0,
+                        help="also time N views per call (default: only what write_ndn_priors does)")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1, help="torch threads (0 = torch's default)")
     args = parser.parse_args()
@@ -33,7 +35,7 @@ def main() -> int:
 
     import torch
 
-    from esgs.core.ndn.infer import maps_from_states
+    from esgs.core.ndn.infer import maps_from_states, views_per_batch
     from esgs.core.ndn.shipped import resolve_default_weights
     from esgs.core.ndn.train import load_checkpoint
 
@@ -42,11 +44,13 @@ def main() -> int:
     weights = resolve_default_weights(args.weights)
     model, diffusion, config, _ = load_checkpoint(weights)
     working = config.model.working_size
-    print(f"weights {weights} | DDIM steps {config.diffusion.sample_steps} | working size {working}x{working * 9 // 16} "
+    inference_batch = views_per_batch(8, diffusion)  # write_ndn_priors' default batch_size
+    print(f"weights {weights} | DDIM steps {config.diffusion.sample_steps} x {config.diffusion.sample_ensemble} "
+          f"samples ({config.diffusion.sample_reduce}) | {inference_batch} view(s) per call like write_ndn_priors | working size {working}x{working * 9 // 16} "
           f"| torch threads {torch.get_num_threads()} | load average {os.getloadavg()[0]:.1f}")
     rng = np.random.default_rng(0)
     height = working * 9 // 16
-    for batch in sorted({1, args.batch}):
+    for batch in sorted({inference_batch, args.batch or inference_batch}):
         views = torch.from_numpy(rng.uniform(-1, 1, (batch, 9, height, working)).astype(np.float32))
         sample_times, sample_cpu = [], []
         for repeat in range(args.repeats):
