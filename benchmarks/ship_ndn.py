@@ -152,6 +152,13 @@ def _stage_facts(checkpoint: Path, step: int) -> dict:
         for key in ("cpu_seconds", "validation", "lineage"):
             if key in payload:
                 facts[key] = payload[key]
+        if "provenance" in payload:
+            # an exported weights file (e.g. weights shipped before, fine-tuned with --init): its own
+            # run folders may be gone, so it is one stage described by what export_weights recorded
+            provenance = payload["provenance"]
+            facts.update(exported=str(checkpoint), exported_provenance=provenance, from_step=0)
+            if provenance.get("train_seconds"):
+                facts["train_seconds"] = float(provenance["train_seconds"])
     return facts
 
 
@@ -159,7 +166,8 @@ def training_facts(checkpoint: Path, step: int) -> dict:
     """The facts of the run that wrote ``checkpoint`` and, for a fine-tune (``--init``), of the
     runs it started from: ``stages`` lists them oldest first; ``train_seconds`` sums their wall time."""
     stages = [_stage_facts(checkpoint, step)]
-    while stages[0].get("lineage", {}).get("init_from") or stages[0].get("config", {}).get("init_from"):
+    while "exported" not in stages[0] and (stages[0].get("lineage", {}).get("init_from")
+                                           or stages[0].get("config", {}).get("init_from")):
         lineage = stages[0].get("lineage") or stages[0]["config"]
         stages.insert(0, _stage_facts(Path(lineage["init_from"]), int(lineage["init_step"])))
     facts = dict(stages[-1])
@@ -181,6 +189,21 @@ def stage_lines(facts: dict) -> list[str]:
     """One bullet per training run behind the shipped weights."""
     lines = []
     for stage in facts["stages"]:
+        if "exported" in stage:
+            provenance = stage["exported_provenance"]
+            text = (f"- Steps 0 -> {stage['to_step']}: the exported weights `{stage['exported']}` (from "
+                    f"`{provenance.get('source', '?')}` of a run on `{provenance.get('data', '?')}`"
+                    + (f", {provenance['train_triples']} training triples" if provenance.get("train_triples") else "")
+                    + ")")
+            if stage.get("train_seconds"):
+                text += f"; wall time of the runs behind them {stage['train_seconds'] / 3600:.2f} h"
+            cpu = provenance.get("cpu_seconds")
+            if cpu:
+                text += (f"; CPU time of their last run {cpu['train'] / 3600:.2f} h training + "
+                         f"{cpu['validation'] / 3600:.2f} h validation scoring")
+            lines.append(text + "; how they were trained: the model card in the git history of the commit that "
+                         "shipped them.")
+            continue
         train = stage.get("config", {}).get("train", {})
         ema = train.get("ema_decay", 0.0)
         start = stage.get("lineage", {}).get("init_step", stage.get("from_step", 0)) or 0
@@ -329,6 +352,11 @@ def reproduce_train_lines(facts: dict, data_dir: Path) -> list[str]:
     """The `esgs ndn train` command of every run behind the weights."""
     lines, previous = [], None
     for index, stage in enumerate(facts["stages"]):
+        if "exported" in stage:
+            lines.append(f"# steps 0-{stage['to_step']}: the exported weights {stage['exported']} "
+                         "(their own commands: the model card of the commit that shipped them)")
+            previous = stage["exported"]
+            continue
         train = stage.get("config", {}).get("train", {})
         out = "MODEL" if index == 0 else f"MODEL_FT{index}"
         command = (f"esgs ndn train {data_dir} --out {out} --steps {train.get('steps', stage['to_step'])} --batch-size "
@@ -346,7 +374,9 @@ def reproduce_train_lines(facts: dict, data_dir: Path) -> list[str]:
         depth_state = stage.get("config", {}).get("ndn", {}).get("diffusion", {}).get("depth_state", "affine")
         if previous is None and depth_state != "affine":
             command += f" --depth-state {depth_state}"  # a fine-tune keeps its checkpoint's state
-        if previous is not None:
+        if previous is not None and previous.endswith(".pt"):
+            command += f" --init {previous}"
+        elif previous is not None:
             command += f" --init {previous}/checkpoints/step_{stage.get('lineage', {}).get('init_step', 0):07d}.pt"
         lines.append(command)
         previous = out

@@ -77,3 +77,36 @@ def test_train_command_names_a_log_state_only_on_the_first_run(ship):
     assert "--depth-state log" in lines[0]
     assert "--depth-state" not in lines[1] and "--init MODEL/checkpoints/step_0000050.pt" in lines[1]
     assert "--depth-state" not in ship.reproduce_train_lines({"stages": [stage("affine")]}, Path("DATA"))[0]
+
+
+def test_a_fine_tune_of_exported_weights_is_one_stage_described_by_their_provenance(ship, tmp_path):
+    import torch
+
+    exported = tmp_path / "shipped.pt"
+    torch.save({"format": "esgs-ndn-1", "step": 1000, "provenance": {
+        "source": "step_0001000.pt", "step": 1000, "data": "/old/data", "train_seconds": 3600.0, "train_triples": 600,
+        "cpu_seconds": {"train": 1800.0, "validation": 360.0},
+        "lineage": {"init_from": "/gone/ndn_model/checkpoints/step_0000600.pt", "init_step": 600}}}, exported)
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    checkpoint = run / "checkpoints" / "step_0001200.pt"
+    torch.save({"step": 1200, "lineage": {"init_from": str(exported), "init_step": 1000},
+                "cpu_seconds": {"train": 720.0, "validation": 72.0}}, checkpoint)
+    (run / "config.json").write_text(json.dumps({"train": {"steps": 1200, "seed": 2, "lr_schedule": "cosine",
+                                                           "learning_rate": 1e-4, "min_lr_ratio": 0.05,
+                                                           "warmup_steps": 50, "ema_decay": 0.999,
+                                                           "validation_triples": 0, "batch_size": 8}}))
+    events = [{"stage": "ndn-train", "kind": "progress", "step": step, "time": 1000.0 + 3 * (step - 1001)}
+              for step in (1001, 1200)]
+    (run / "events.jsonl").write_text("\n".join(json.dumps(e) for e in events))
+
+    facts = ship.training_facts(checkpoint, 1200)
+    # the exported file's own lineage (a folder that no longer exists) is not followed
+    assert [stage.get("exported") for stage in facts["stages"]] == [str(exported), None]
+    assert facts["train_seconds"] == 3600.0 + 3 * 199
+    first, second = ship.stage_lines(facts)
+    assert "Steps 0 -> 1000: the exported weights" in first and "step_0001000.pt" in first and "1.00 h" in first
+    assert second.startswith("- Steps 1000 -> 1200")
+    commands = ship.reproduce_train_lines(facts, Path("DATA"))
+    assert commands[0].startswith("# steps 0-1000: the exported weights")
+    assert f"--init {exported}" in commands[1] and "--out MODEL_FT1" in commands[1]
