@@ -156,6 +156,10 @@ def _stage_facts(checkpoint: Path, step: int) -> dict:
             # an exported weights file (e.g. weights shipped before, fine-tuned with --init): its own
             # run folders may be gone, so it is one stage described by what export_weights recorded
             provenance = payload["provenance"]
+            if int(provenance.get("step", payload.get("step", -1))) != step:
+                # the file was replaced since the fine-tune started from it (shipping overwrites the
+                # shipped weights): its facts are another model's
+                provenance = {"source": f"step {step}, since replaced at that path"}
             facts.update(exported=str(checkpoint), exported_provenance=provenance, from_step=0)
             if provenance.get("train_seconds"):
                 facts["train_seconds"] = float(provenance["train_seconds"])
@@ -323,9 +327,9 @@ def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | 
         + (f" --ensemble {shipped_diffusion['sample_ensemble']} --reduce {shipped_diffusion['sample_reduce']}"
            if shipped_diffusion.get("sample_ensemble", 1) > 1 else ""),
         f"esgs ndn eval core/ndn/weights/ndn_mars.pt {data_dir}",
-        "# the real-mesh set (one scene per rig), and its shards",
-        *[f"esgs scene --mesh ../shared/data/mars_landform/terrain.glb --rig {rig} --views 8 --resolution 160x90 "
-          f"--samples 8 --seed 1 --out {landform_dir}/scenes/heldout_landform_{rig}_1" for rig in ("traverse", "orbit")],
+        "# the real-mesh set (two orbits of the landform mesh), and its shards",
+        *[f"esgs scene --mesh ../shared/data/mars_landform/terrain.glb --rig orbit --views 8 --resolution 160x90 "
+          f"--samples 8 --seed {seed} --out {landform_dir}/scenes/heldout_orbit_s{seed}" for seed in (1, 2)],
         f"esgs ndn shard {landform_dir}/scenes/* --data {landform_dir}",
         "# the baselines (regression: the same network and data, --prediction regression)",
         f"esgs ndn train {data_dir} --out REGRESSION --steps N --batch-size 8 --checkpoint-every 100 --threads 1 "

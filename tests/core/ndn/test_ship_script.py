@@ -110,3 +110,14 @@ def test_a_fine_tune_of_exported_weights_is_one_stage_described_by_their_provena
     commands = ship.reproduce_train_lines(facts, Path("DATA"))
     assert commands[0].startswith("# steps 0-1000: the exported weights")
     assert f"--init {exported}" in commands[1] and "--out MODEL_FT1" in commands[1]
+
+
+def test_exported_weights_replaced_since_the_fine_tune_lend_no_facts(ship, tmp_path):
+    import torch
+
+    exported = tmp_path / "shipped.pt"  # now holds the step-2200 export, the fine-tune started from step 1000
+    torch.save({"format": "esgs-ndn-1", "step": 2200, "provenance": {"source": "step_0002200.pt", "step": 2200,
+                                                                       "train_seconds": 9000.0}}, exported)
+    facts = ship._stage_facts(exported, 1000)
+    assert "train_seconds" not in facts
+    assert "since replaced" in facts["exported_provenance"]["source"]
