@@ -4,10 +4,10 @@ For each output size, one view's full inference path is timed: DDIM sampling of 
 and normal states at the working resolution (the weights' saved recipe: DDIM steps x samples
 per view), then the guided upsampling of depth and normals to the output size
 (``maps_from_states``: bilinear + OpenCV guided filter + renormalisation). Views are sampled
-as many per call as ``write_ndn_priors`` samples (``views_per_batch`` of its default batch of
-8 samples: one view per call with the shipped 5-sample recipe), so ``per view`` = call time /
-views per call; ``--batch N`` adds a line for N views per call. The minimum over repeats is reported, as wall time and as the
-process's CPU time: on the shared, overloaded 2-core machine the wall time of a one-thread
+as many per call as ``write_ndn_priors`` samples with its default ``batch_size``
+(``views_per_batch``: one view per call with the shipped 5-sample recipe), so ``per view`` =
+call time / views per call; ``--batch N`` adds a line for N views per call. The minimum over
+repeats is reported, as wall time and as the process's CPU time: on the shared, overloaded 2-core machine the wall time of a one-thread
 run is inflated by waiting for a core, while its CPU time is what an idle core would take.
 
     .venv/bin/python benchmarks/bench_ndn.py [--weights W] [--sizes 1920x1080 480x270]
@@ -35,7 +35,9 @@ def main() -> int:
 
     import torch
 
-    from esgs.core.ndn.infer import maps_from_states, views_per_batch
+    import inspect
+
+    from esgs.core.ndn.infer import maps_from_states, views_per_batch, write_ndn_priors
     from esgs.core.ndn.shipped import resolve_default_weights
     from esgs.core.ndn.train import load_checkpoint
 
@@ -44,10 +46,10 @@ def main() -> int:
     weights = resolve_default_weights(args.weights)
     model, diffusion, config, _ = load_checkpoint(weights)
     working = config.model.working_size
-    inference_batch = views_per_batch(8, diffusion)  # write_ndn_priors' default batch_size
+    inference_batch = views_per_batch(inspect.signature(write_ndn_priors).parameters["batch_size"].default, diffusion)
     print(f"weights {weights} | DDIM steps {config.diffusion.sample_steps} x {config.diffusion.sample_ensemble} "
-          f"samples ({config.diffusion.sample_reduce}) | {inference_batch} view(s) per call like write_ndn_priors | working size {working}x{working * 9 // 16} "
-          f"| torch threads {torch.get_num_threads()} | load average {os.getloadavg()[0]:.1f}")
+          f"samples ({config.diffusion.sample_reduce}) | {inference_batch} view(s) per call like write_ndn_priors "
+          f"| working size {working}x{working * 9 // 16} | torch threads {torch.get_num_threads()} | load average {os.getloadavg()[0]:.1f}")
     rng = np.random.default_rng(0)
     height = working * 9 // 16
     for batch in sorted({inference_batch, args.batch or inference_batch}):

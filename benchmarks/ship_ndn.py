@@ -160,7 +160,7 @@ def _stage_facts(checkpoint: Path, step: int) -> dict:
                 # the file was replaced since the fine-tune started from it (shipping overwrites the
                 # shipped weights): its facts are another model's
                 provenance = {"source": f"step {step}, since replaced at that path"}
-            facts.update(exported=str(checkpoint), exported_provenance=provenance, from_step=0)
+            facts.update(exported=str(checkpoint), exported_provenance=provenance)
             if provenance.get("train_seconds"):
                 facts["train_seconds"] = float(provenance["train_seconds"])
     return facts
@@ -354,12 +354,13 @@ def torch_config(weights: Path) -> dict:
 
 def reproduce_train_lines(facts: dict, data_dir: Path) -> list[str]:
     """The `esgs ndn train` command of every run behind the weights."""
-    lines, previous = [], None
+    lines = []
+    init_path = None  # how the next run names its starting point, from its init step; None before the first run
     for index, stage in enumerate(facts["stages"]):
         if "exported" in stage:
             lines.append(f"# steps 0-{stage['to_step']}: the exported weights {stage['exported']} "
                          "(their own commands: the model card of the commit that shipped them)")
-            previous = stage["exported"]
+            init_path = lambda _step, path=stage["exported"]: path  # noqa: E731
             continue
         train = stage.get("config", {}).get("train", {})
         out = "MODEL" if index == 0 else f"MODEL_FT{index}"
@@ -376,14 +377,12 @@ def reproduce_train_lines(facts: dict, data_dir: Path) -> list[str]:
         else:
             command += " --lr-schedule constant --ema-decay 0  # (run before schedules and EMA existed)"
         depth_state = stage.get("config", {}).get("ndn", {}).get("diffusion", {}).get("depth_state", "affine")
-        if previous is None and depth_state != "affine":
+        if init_path is None and depth_state != "affine":
             command += f" --depth-state {depth_state}"  # a fine-tune keeps its checkpoint's state
-        if previous is not None and previous.endswith(".pt"):
-            command += f" --init {previous}"
-        elif previous is not None:
-            command += f" --init {previous}/checkpoints/step_{stage.get('lineage', {}).get('init_step', 0):07d}.pt"
+        if init_path is not None:
+            command += f" --init {init_path(stage.get('lineage', {}).get('init_step', 0))}"
         lines.append(command)
-        previous = out
+        init_path = lambda step, out=out: f"{out}/checkpoints/step_{step:07d}.pt"  # noqa: E731
     return lines
 
 
