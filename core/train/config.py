@@ -49,6 +49,9 @@ class TrainConfig:
     backend: str = field(default="auto", metadata=_help("rasterizer backend", choices=BACKENDS))
     resume: bool = field(default=False, metadata=_help("continue from the last checkpoint in --out"))
     events: Optional[Path] = field(default=None, metadata=_help("also append progress events to this JSON-lines file"))
+    stop_file: Optional[Path] = field(default=None, metadata=_help(
+        "stop request: when this file appears the run finishes its step, saves a checkpoint and ends as "
+        "'interrupted' (works on every platform; RUN/STOP is always watched too)"))
     checkpoint_every: int = field(default=1000, metadata=_help("steps between checkpoints (not scaled; 0 = only at the end)"))
     keep_checkpoints: int = field(default=2, metadata=_help("checkpoints kept in RUN/checkpoints"))
     progress_every: int = field(default=10, metadata=_help("steps between progress events"))

@@ -47,5 +47,10 @@ class RunDir:
         """Summary of the last training invocation (status, steps, timings)."""
         return self.root / "train_result.json"
 
+    @property
+    def stop_request(self) -> Path:
+        """A file whose appearance asks a running trainer to save a checkpoint and stop."""
+        return self.root / "STOP"
+
     def exists(self) -> bool:
         return self.config.is_file()

@@ -50,7 +50,7 @@ from .spatial_order import sort_gaussians
 
 #: Settings that may change when a run is resumed (they do not change what is computed).
 RESUMABLE_SETTINGS = frozenset({
-    "scene", "out", "resume", "max_minutes", "threads", "events", "checkpoint_every", "keep_checkpoints",
+    "scene", "out", "resume", "max_minutes", "threads", "events", "stop_file", "checkpoint_every", "keep_checkpoints",
     "progress_every", "evaluate", "save_renders", "lpips", "backend",
 })
 
@@ -465,9 +465,16 @@ class Trainer:
         self._session_start = time.monotonic()
         status = "completed"
         saved_step = self.step if checkpoint_state is not None else -1
+        stop_files = [path for path in (self.run_dir.stop_request, config.stop_file) if path is not None]
+        for path in stop_files:
+            Path(path).unlink(missing_ok=True)  # a request left by an earlier session must not stop this one
         with _StopRequests() as stop:
             for step in range(start_step + 1, config.iterations + 1):
                 self.train_step(step)
+                if stop.signal_name is None and any(Path(path).exists() for path in stop_files):
+                    stop.signal_name = "stop request"
+                    for path in stop_files:
+                        Path(path).unlink(missing_ok=True)
                 if stop.signal_name is not None:
                     self.save_checkpoint()
                     saved_step = step

@@ -273,3 +273,23 @@ def test_resume_skips_a_damaged_newest_checkpoint(fast_config):
     assert result.status == "completed" and result.step == 4
     assert any("resuming from step 2" in message for message in messages)
     assert load_checkpoint(list_checkpoints(fast_config().out / "checkpoints")[-1][1])["step"] == 4
+
+
+def test_a_stop_file_saves_a_checkpoint_and_ends_the_run_as_interrupted(fast_config, tmp_path):
+    """The platform-independent cancel: a file appearing mid-run stops it like SIGTERM does."""
+    from esgs.core.progress import ProgressEvent
+    from esgs.core.train import train
+    from esgs.core.train.checkpoint import list_checkpoints
+
+    stop = tmp_path / "please_stop"
+    stop.write_text("left by an earlier session")  # stale: removed at the start, must not stop this run
+
+    def request_stop_at_step_12(event: ProgressEvent) -> None:
+        if event.kind == "progress" and event.step >= 10:
+            stop.write_text("")
+
+    config = fast_config(iterations=40, stop_file=stop, progress_every=5)
+    result = train(config, progress=request_stop_at_step_12)
+    assert result.status == "interrupted" and 10 <= result.step < 40
+    assert list_checkpoints(config.out / "checkpoints")[-1][0] == result.step
+    assert not stop.exists()  # consumed, so a resume is not stopped again at once
