@@ -25,9 +25,11 @@ from typing import Any, Optional
 
 from .errors import ConfigError, DatasetError, ESGSError
 from .progress import ProgressCallback, ProgressEvent, no_progress
+from .scene_dir import PriorSource, SceneDir, names
+from .train.run_dir import RunDir
 
 #: Prior sources the demo can train ESGS with (folders under SCENE/priors/).
-PRIOR_SOURCES = ("ndn", "sfm", "gt")
+PRIOR_SOURCES = names(PriorSource.for_synthetic_scenes())
 SPARSE_POINTS = ("triangulated", "exact")
 #: What an ESGS switch the demo does not set means in a saved run config (the 3DGS baseline's).
 _DEFAULT_ESGS = {"priors": "", "depth": False, "normal": False, "consistency": False, "gpdfn": False}
@@ -85,7 +87,7 @@ def esgs_settings(priors: str, gpdfn: bool = True) -> dict:
     """
     if priors not in PRIOR_SOURCES:
         raise ConfigError(f"unknown prior source {priors!r}", hint=f"use one of {', '.join(PRIOR_SOURCES)}")
-    has_normals = priors != "sfm"
+    has_normals = PriorSource(priors).has_normals
     return {"priors": priors, "depth": True, "normal": has_normals, "consistency": not has_normals, "gpdfn": gpdfn}
 
 
@@ -134,11 +136,11 @@ def make_scene(config: DemoConfig, progress: ProgressCallback) -> Path:
     """Render the synthetic scene (``OUT/scene``); with triangulated points, render it into
     ``OUT/scene_rendered`` and make ``OUT/scene`` from it with SfM points of its own images."""
     scene = config.out / "scene"
-    if (scene / "scene.json").is_file():
+    if SceneDir(scene).provenance.is_file():
         progress(ProgressEvent(0, 1, "scene", kind="message", message=f"scene: reusing {scene}"))
         return scene
     rendered = scene if config.sparse_points == "exact" else config.out / "scene_rendered"
-    if not (rendered / "scene.json").is_file():
+    if not SceneDir(rendered).provenance.is_file():
         command = [sys.executable, "-m", "esgs.core", "scene", "--preset", config.preset, "--seed", str(config.seed),
                    "--views", str(config.views), "--resolution", f"{config.width}x{config.height}",
                    "--samples", str(config.samples), "--out", str(rendered)]
@@ -163,26 +165,25 @@ def make_scene(config: DemoConfig, progress: ProgressCallback) -> Path:
 def _priors_complete(scene: Path, source: str) -> bool:
     """Whether ``SCENE/priors/<source>/depth`` has a map for every image of the scene's COLMAP model."""
     from .colmap import read_model
-    from .priors import image_stem, prior_dir
 
-    depth = prior_dir(scene, source) / "depth"
-    if not depth.is_dir():
+    folder = SceneDir(scene)
+    if not folder.has_prior_maps(source, "depth"):
         return False
-    names = [image.name for image in read_model(scene / "sparse" / "0").images.values()]
-    return bool(names) and all((depth / f"{image_stem(name)}.exr").is_file() for name in names)
+    images = [image.name for image in read_model(folder.model).images.values()]
+    return bool(images) and all(folder.depth_map(source, name).is_file() for name in images)
 
 
 def make_priors(config: DemoConfig, scene: Path, progress: ProgressCallback) -> None:
     """Write ``SCENE/priors/<config.priors>/`` unless complete (ndn: shipped NDN weights; sfm: COLMAP points)."""
     source = config.priors
     if _priors_complete(scene, source):
-        progress(ProgressEvent(0, 1, "priors", kind="message", message=f"priors: reusing {scene / 'priors' / source}"))
+        progress(ProgressEvent(0, 1, "priors", kind="message", message=f"priors: reusing {SceneDir(scene).prior(source)}"))
         return
     if source == "sfm":
         from .colmap import read_model
         from .priors.sfm import write_sfm_priors
 
-        write_sfm_priors(scene, read_model(scene / "sparse" / "0"), progress=progress)
+        write_sfm_priors(scene, read_model(SceneDir(scene).model), progress=progress)
     elif source == "ndn":
         import torch
 
@@ -200,7 +201,7 @@ def make_priors(config: DemoConfig, scene: Path, progress: ProgressCallback) -> 
         finally:
             torch.set_num_threads(threads)
     if not _priors_complete(scene, source):
-        raise ConfigError(f"the scene has no complete {source!r} priors", path=scene / "priors" / source,
+        raise ConfigError(f"the scene has no complete {source!r} priors", path=SceneDir(scene).prior(source),
                           hint="gt priors come with synthetic scenes from esgs scene; use --priors ndn or sfm")
 
 
@@ -243,13 +244,13 @@ def train_method(config: DemoConfig, scene: Path, name: str, esgs: dict, progres
 
     run = config.out / "runs" / name
     _check_same_settings(run, esgs, {"iterations": config.iterations, "max_gaussians": config.max_gaussians})
-    result_path = run / "train_result.json"
+    result_path = RunDir(run).result
     if result_path.is_file() and json.loads(result_path.read_text()).get("status") in ("completed", "time_limit") \
-            and (run / "metrics.json").is_file():
+            and RunDir(run).metrics.is_file():
         progress(ProgressEvent(0, 1, name, kind="message", message=f"{name}: reusing finished run {run}"))
         return _run_summary(run)
     train_config = TrainConfig(scene=scene, out=run, iterations=config.iterations, max_gaussians=config.max_gaussians,
-                               threads=config.threads, resume=(run / "checkpoints").is_dir(),
+                               threads=config.threads, resume=RunDir(run).has_checkpoints(),
                                esgs=config_from_dict(ESGSConfig, esgs), progress_every=20)
     hooks = []
     if snapshots and config.snapshots > 0:
@@ -270,7 +271,7 @@ def _check_same_settings(run: Path, esgs: dict, train: dict) -> None:
     A finished run is reused and an unfinished one resumed; either would silently report
     (or mix) the old settings, e.g. after changing ``--priors`` in the same output folder.
     """
-    saved_path = run / "config.json"
+    saved_path = RunDir(run).config
     if not saved_path.is_file():
         return
     try:
@@ -288,8 +289,8 @@ def _check_same_settings(run: Path, esgs: dict, train: dict) -> None:
 
 def _run_summary(run: Path) -> dict:
     """What the report needs of a finished run: its train_result.json plus metrics.json."""
-    summary = json.loads((run / "train_result.json").read_text())
-    metrics_path = run / "metrics.json"
+    summary = json.loads(RunDir(run).result.read_text())
+    metrics_path = RunDir(run).metrics
     summary["metrics"] = json.loads(metrics_path.read_text()) if metrics_path.is_file() else None
     return summary
 
@@ -303,7 +304,7 @@ def mesh_distances(scene: Path, run: Path, opacity_min: float = 0.5, threshold: 
     """
     from .compare import compare_ply_to_mesh
 
-    result = compare_ply_to_mesh(run / "point_cloud.ply", scene / "mesh" / "ground_truth.ply",
+    result = compare_ply_to_mesh(RunDir(run).point_cloud, SceneDir(scene).ground_truth_mesh,
                                  opacity_min=opacity_min, threshold_m=threshold)
     return result.summary
 

@@ -11,7 +11,7 @@ One format for every source (``gt`` synthetic ground truth, ``labels`` rendered 
 - mask PNG: 255 = valid surface, 0 = sky / no surface / no prior. Header ``mask_kind`` of the
   depth and normal EXRs says what 0 means: ``surface`` (the source knows where there is no
   surface at all: 0 is sky; gt and ndn) or ``coverage`` (0 only means "no value here": sparse
-  SfM points, stereo holes). Files without the header follow their source (:data:`SURFACE_MASK_SOURCES`).
+  SfM points, stereo holes). Files without the header follow their source (:attr:`PriorSource.mask_kind`).
 
 ``<stem>`` is the image name without its extension (sub-folders kept).
 """
@@ -24,12 +24,10 @@ import numpy as np
 
 from ..errors import DatasetError
 from ..imageio import read_depth_exr, read_image, read_normal_exr, write_depth_exr, write_normal_exr, write_png
+from ..scene_dir import PriorSource, SceneDir
 
-PRIOR_SOURCES = ("gt", "labels", "ndn", "sfm")
 CAMERA_FRAME = "camera_opencv"
 MASK_KINDS = ("surface", "coverage")
-# sources whose mask marks where there is no surface (sky) when a file predates ``mask_kind``
-SURFACE_MASK_SOURCES = ("gt", "ndn", "gt_skyfilled")
 
 
 @dataclass
@@ -51,18 +49,21 @@ class PriorMaps:
 
 def prior_dir(scene_dir: str | Path, source: str) -> Path:
     """``SCENE/priors/<source>``."""
-    return Path(scene_dir) / "priors" / source
+    return SceneDir(scene_dir).prior(source)
 
 
-def image_stem(image_name: str) -> str:
-    """The image name without its extension, sub-folders kept ("a/b.png" -> "a/b")."""
-    path = Path(image_name)
-    return str(path.with_suffix("")) if path.suffix else image_name
+def _fallback_mask_kind(source: str) -> str:
+    """What a mask's zeros mean in files written before the ``mask_kind`` header: the source's
+    kind (:attr:`PriorSource.mask_kind`); "coverage" for a source we do not know."""
+    try:
+        return PriorSource(source).mask_kind
+    except ValueError:
+        return "coverage"
 
 
 def available_prior_sources(scene_dir: str | Path) -> list[str]:
     """Sources present under ``SCENE/priors`` (folders with a depth or normal sub-folder)."""
-    root = Path(scene_dir) / "priors"
+    root = SceneDir(scene_dir).priors
     if not root.is_dir():
         return []
     return sorted(p.name for p in root.iterdir() if (p / "depth").is_dir() or (p / "normal").is_dir())
@@ -79,17 +80,16 @@ def write_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, dep
     """
     if mask_kind not in MASK_KINDS:
         raise ValueError(f"mask_kind must be one of {MASK_KINDS}, got {mask_kind!r}")
-    root = prior_dir(scene_dir, source)
-    stem = image_stem(image_name)
-    extra = {"source": source, "mask_kind": mask_kind, **(metadata or {})}
+    scene = SceneDir(scene_dir)
+    extra = {"source": str(source), "mask_kind": mask_kind, **(metadata or {})}
     if depth is not None:
-        write_depth_exr(root / "depth" / f"{stem}.exr", np.asarray(depth, np.float32), units=units,
+        write_depth_exr(scene.depth_map(source, image_name), np.asarray(depth, np.float32), units=units,
                         metadata={**extra, "depth_kind": "relative" if relative_depth else "metric"})
     if normal is not None:
-        write_normal_exr(root / "normal" / f"{stem}.exr", np.asarray(normal, np.float32), frame=CAMERA_FRAME,
+        write_normal_exr(scene.normal_map(source, image_name), np.asarray(normal, np.float32), frame=CAMERA_FRAME,
                          metadata=extra)
     if mask is not None:
-        write_png(root / "mask" / f"{stem}.png", np.where(np.asarray(mask, bool), 255, 0).astype(np.uint8))
+        write_png(scene.mask_map(source, image_name), np.where(np.asarray(mask, bool), 255, 0).astype(np.uint8))
 
 
 def _resize_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -126,10 +126,10 @@ def load_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, size
     :class:`DatasetError` naming the file for a missing view, mismatched sizes or an unknown
     frame.
     """
-    root = prior_dir(scene_dir, source)
-    stem = image_stem(image_name)
-    depth_path, normal_path, mask_path = (root / "depth" / f"{stem}.exr", root / "normal" / f"{stem}.exr",
-                                          root / "mask" / f"{stem}.png")
+    scene = SceneDir(scene_dir)
+    root = scene.prior(source)
+    depth_path, normal_path, mask_path = (scene.depth_map(source, image_name), scene.normal_map(source, image_name),
+                                          scene.mask_map(source, image_name))
     if not root.is_dir():
         raise DatasetError(f"no prior folder for source {source!r}", path=root,
                            hint=f"available: {', '.join(available_prior_sources(scene_dir)) or 'none'}; "
@@ -173,7 +173,7 @@ def load_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, size
     else:
         mask = np.ones((height, width), bool)
     if depth is not None:
-        mask = mask & (depth > 0) if source == "sfm" else mask
+        mask = mask & (depth > 0) if source == PriorSource.SFM else mask
     if size is not None:
         target_width, target_height = size
         if abs(target_width / width - target_height / height) > 0.02:
@@ -183,14 +183,14 @@ def load_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, size
             depth = _resize_depth(depth, target_width, target_height)
         if normal is not None:
             normal = _resize_nearest(normal, target_width, target_height)
-        if depth is not None and source == "sfm":
+        if depth is not None and source == PriorSource.SFM:
             mask = depth > 0  # sparse samples: nearest resizing of the mask would drop them
         else:
             mask = _resize_nearest(mask.astype(np.uint8), target_width, target_height).astype(bool)
     if normal is not None:
         length = np.linalg.norm(normal, axis=-1, keepdims=True)
         normal = np.where(length > 1e-6, normal / np.maximum(length, 1e-6), 0.0).astype(np.float32)
-    mask_kind = mask_kind or ("surface" if source in SURFACE_MASK_SOURCES else "coverage")
+    mask_kind = mask_kind or _fallback_mask_kind(source)
     if mask_kind not in MASK_KINDS:
         raise DatasetError(f"unknown mask_kind {mask_kind!r} (expected {' or '.join(MASK_KINDS)})",
                            path=depth_path if depth is not None else normal_path)

@@ -19,10 +19,7 @@ import numpy as np
 import torch
 
 from ..errors import DatasetError
-
-# Sources whose masks mark sky / no surface. "sfm" is not one: its mask marks the sparse pixels
-# that have a depth sample, and using it for the photometric loss would blank most of the image.
-MASK_SOURCES = ("gt", "labels", "ndn")
+from ..scene_dir import PriorSource, SceneDir
 
 
 @dataclass
@@ -120,13 +117,16 @@ def find_mask_source(scene: Path, requested: str) -> Optional[str]:
     """The priors source whose mask/ folder to use: requested name, first found for 'auto', None for 'none'."""
     if requested == "none":
         return None
+    folder = SceneDir(scene)
     if requested == "auto":
-        for source in MASK_SOURCES:
-            if (scene / "priors" / source / "mask").is_dir():
-                return source
+        # only dense masks: sfm's marks the sparse pixels with a depth sample, and using it for
+        # the photometric loss would blank most of the image
+        for source in PriorSource.auto_mask_order():
+            if folder.has_prior_maps(source, "mask"):
+                return source.value
         return None
-    if not (scene / "priors" / requested / "mask").is_dir():
-        raise DatasetError(f"no mask folder for prior source {requested!r}", path=scene / "priors" / requested / "mask",
+    if not folder.has_prior_maps(requested, "mask"):
+        raise DatasetError(f"no mask folder for prior source {requested!r}", path=folder.prior_maps(requested, "mask"),
                            hint="use --mask-source auto or none")
     return requested
 
@@ -191,7 +191,7 @@ def load_scene_data(scene: str | Path, *, images_dir: str = "images", resolution
     undistorter = _Undistorter()
     images = model.sorted_images()
     if not images:
-        raise DatasetError("the COLMAP model has no registered images", path=scene / "sparse")
+        raise DatasetError("the COLMAP model has no registered images", path=SceneDir(scene).sparse)
     source = find_mask_source(scene, mask_source)
 
     views = []
@@ -213,7 +213,8 @@ def load_scene_data(scene: str | Path, *, images_dir: str = "images", resolution
         K = torch.tensor([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]], dtype=torch.float32)
         mask = None
         if source is not None:
-            mask_path = scene / "priors" / source / "mask" / f"{Path(entry.name).stem}.png"
+            # the file stem only (sub-folders dropped), as this loader has always looked masks up
+            mask_path = SceneDir(scene).mask_map(source, Path(entry.name).name)
             if mask_path.is_file():
                 raw = _read_mask(mask_path)
                 if raw.shape != (distorted.height, distorted.width):

@@ -36,7 +36,11 @@ class RunDir:
 
     @property
     def test_renders(self) -> Path:
-        return self.root / "renders" / "test"
+        return self.renders / "test"
+
+    def test_render(self, stem: str) -> Path:
+        """``renders/test/<stem>.png``: the render of held-out view ``stem`` (its ground truth: ``<stem>_gt.png``)."""
+        return self.test_renders / f"{stem}.png"
 
     @property
     def events(self) -> Path:
@@ -54,3 +58,7 @@ class RunDir:
 
     def exists(self) -> bool:
         return self.config.is_file()
+
+    def has_checkpoints(self) -> bool:
+        """Whether ``checkpoints/`` exists (a run that can resume)."""
+        return self.checkpoints.is_dir()
