@@ -13,6 +13,8 @@ class ESGSError(Exception):
     """Base class of every error the project raises on purpose."""
 
     def __init__(self, message: str, *, path: str | Path | None = None, hint: str | None = None):
+        # kept apart from the formatted text so a child process can send the parts to its parent
+        self.message = message
         self.path = Path(path) if path is not None else None
         self.hint = hint
         text = f"{self.path}: {message}" if self.path is not None else message

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from esgs.core import jobs
-from esgs.core.errors import ConfigError, ESGSError
+from esgs.core.errors import ConfigError, DatasetError, ESGSError
 
 # A stand-in for `esgs train` with the same arguments and event protocol. It checkpoints
 # its step on SIGTERM and continues from the checkpoint with --resume, like the real one.
@@ -21,38 +21,42 @@ FAKE_TRAINER = textwrap.dedent(
     from pathlib import Path
 
     parser = argparse.ArgumentParser()
-    parser.add_argument("scene")
-    parser.add_argument("--out", required=True)
-    parser.add_argument("--iterations", type=int, required=True)
+    parser.add_argument("job")
+    parser.add_argument("config")
     parser.add_argument("--events", required=True)
-    parser.add_argument("--resume", action="store_true")
+    parser.add_argument("--result", required=True)
+    parser.add_argument("--stop-file", required=True)
     parser.add_argument("--step-s", type=float, default=0.0)
     parser.add_argument("--crash-at", type=int, default=-1)
     parser.add_argument("--error-event-at", type=int, default=-1)
     args = parser.parse_args()
+    config = json.loads(Path(args.config).read_text())
+    iterations = config["iterations"]
 
-    out = Path(args.out)
+    out = Path(config["out"])
     out.mkdir(parents=True, exist_ok=True)
     checkpoint = out / "checkpoint.json"
-    start = json.loads(checkpoint.read_text())["step"] if args.resume and checkpoint.exists() else 0
-    (out / f"args_{int(time.time() * 1e6)}.json").write_text(json.dumps(sys.argv[1:]))
+    start = json.loads(checkpoint.read_text())["step"] if config["resume"] and checkpoint.exists() else 0
+    (out / f"config_{int(time.time() * 1e6)}.json").write_text(json.dumps(config))
     events = open(args.events, "a", buffering=1)
     step = start
 
     def emit(kind="progress", message="", **metrics):
-        events.write(json.dumps({"step": step, "total": args.iterations, "stage": "train",
+        events.write(json.dumps({"step": step, "total": iterations, "stage": "train",
                                  "metrics": metrics, "kind": kind, "message": message,
                                  "time": time.time()}) + "\\n")
         events.flush()
 
-    def on_term(signum, frame):
+    def stop(*_):
         checkpoint.write_text(json.dumps({"step": step}))
         emit("message", "checkpoint saved")
         sys.exit(0)
 
-    signal.signal(signal.SIGTERM, on_term)
+    signal.signal(signal.SIGTERM, stop)
     print("fake trainer starting at", start, flush=True)
-    while step < args.iterations:
+    while step < iterations:
+        if Path(args.stop_file).exists():
+            stop()
         step += 1
         if step == args.crash_at:
             print("Traceback (most recent call last):", file=sys.stderr)
@@ -60,11 +64,14 @@ FAKE_TRAINER = textwrap.dedent(
             sys.exit(3)
         if step == args.error_event_at:
             emit("error", "scene has no cameras (fake)")
+            Path(args.result).write_text(json.dumps({"status": "error", "error": {
+                "type": "DatasetError", "message": "scene has no cameras (fake)", "path": None, "hint": None}}))
             sys.exit(2)
-        emit(loss=1.0 / step, psnr=10.0 + step, n_gaussians=1000 + step, eta_s=(args.iterations - step) * args.step_s)
+        emit(loss=1.0 / step, psnr=10.0 + step, n_gaussians=1000 + step, eta_s=(iterations - step) * args.step_s)
         time.sleep(args.step_s)
     (out / "point_cloud.ply").write_text("ply")
     emit("done", "finished", loss=1.0 / step, psnr=10.0 + step, n_gaussians=1000 + step, eta_s=0.0)
+    Path(args.result).write_text(json.dumps({"status": "ok", "result": {"step": step}}))
     """
 )
 
@@ -102,14 +109,18 @@ def test_progress_is_parsed_and_job_finishes(tmp_path, fake_trainer, scene):
     assert any("fake trainer starting at 0" in line for line in job.output_tail)
 
 
-def test_command_line_has_the_trainer_interface(tmp_path, scene):
-    job = jobs.TrainingJob(scene, tmp_path / "run", iterations=7, extra_args=["--depth", "--priors", "gt"],
-                           trainer=["PY", "-m", "esgs.core.cli", "train"])
-    assert job.command() == ["PY", "-m", "esgs.core.cli", "train", str(scene), "--out", str(tmp_path / "run"),
-                             "--iterations", "7", "--events", str(tmp_path / "run" / "events.jsonl"),
-                             "--depth", "--priors", "gt"]
-    assert "--resume" in job.command(resume=True)
-    assert "--resume" not in job.command()
+def test_child_is_started_with_a_config_file_not_flags(tmp_path, scene):
+    job = jobs.TrainingJob(scene, tmp_path / "run", iterations=7, config={"width": 480, "seed": 3},
+                           trainer=["PY", "-m", "esgs.core.runtime.child"])
+    folder = tmp_path / "run" / jobs.JOB_FOLDER
+    assert job.command() == ["PY", "-m", "esgs.core.runtime.child", "train", str(folder / "job_config.json"),
+                             "--events", str(tmp_path / "run" / "events.jsonl"),
+                             "--result", str(folder / "job_result.json"), "--stop-file", str(folder / "job_stop")]
+    data = job.config_for_child()
+    assert (data["width"], data["seed"], data["iterations"], data["resume"]) == (480, 3, 7, False)
+    assert (data["scene"], data["out"]) == (str(scene), str(tmp_path / "run"))
+    assert data["stop_file"] == str(folder / "job_stop")
+    assert job.config_for_child(resume=True)["resume"] is True
 
 
 def test_cancel_checkpoints_and_resume_continues(tmp_path, fake_trainer, scene):
@@ -135,10 +146,10 @@ def test_cancel_checkpoints_and_resume_continues(tmp_path, fake_trainer, scene):
     assert state.step == stopped_at + 10
     # only the resumed run's events count: it restarted from the checkpoint, not from 0
     assert state.events_seen == 11
-    argv_files = sorted(run.glob("args_*.json"))
-    assert len(argv_files) == 2
-    assert "--resume" not in json.loads(argv_files[0].read_text())
-    assert "--resume" in json.loads(argv_files[1].read_text())
+    config_files = sorted(run.glob("config_*.json"))
+    assert len(config_files) == 2
+    assert json.loads(config_files[0].read_text())["resume"] is False
+    assert json.loads(config_files[1].read_text())["resume"] is True
 
 
 def test_crash_reports_the_childs_message(tmp_path, fake_trainer, scene):
@@ -155,6 +166,7 @@ def test_error_event_message_wins(tmp_path, fake_trainer, scene):
     state = job.start().wait(timeout=60, poll_s=0.05)
     assert state.status == jobs.FAILED
     assert state.error == "scene has no cameras (fake)"
+    assert type(job.error) is DatasetError  # the child's error comes back as its own type
 
 
 def test_missing_interpreter_fails_cleanly(tmp_path, scene):
@@ -279,7 +291,9 @@ def test_missing_module_failure_names_the_interpreter(tmp_path, scene):
 def test_installed_trainer_has_the_interface_the_runner_uses():
     if not jobs.trainer_available():
         pytest.skip("the engine's trainer (esgs.core.train) is not installed")
-    options = jobs.trainer_options()
-    assert {"--out", "--iterations", "--events", "--resume", "--threads"} <= options
-    command = jobs.trainer_command("PY")
-    assert command == ["PY", "-m", "esgs.core.cli", "train"]
+    from esgs.core.runtime.entry_points import entry_point, load_job_function
+
+    assert callable(load_job_function("train"))
+    assert entry_point("train").watches_stop_file  # the trainer checkpoints on the stop file itself
+    command = jobs.child_command("PY")
+    assert command == ["PY", "-m", "esgs.core.runtime.child"]
