@@ -15,10 +15,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from esgs.core.experiments.ablate import MESH_PATH, available_priors
+from esgs.core.experiments.ablate import available_priors
 from esgs.core.experiments.runs import RunTask, run_task
 from esgs.core.experiments.tables import COST_COLUMNS, QUALITY_COLUMNS, aggregate, markdown_table
 from esgs.core.io_utils import atomic_write_json, atomic_write_text
+from esgs.core.scene_dir import SceneDir
 
 
 def main(argv=None) -> int:
@@ -37,7 +38,7 @@ def main(argv=None) -> int:
     kinds = available_priors(args.scene).get(args.priors, set())
     if not kinds:
         parser.error(f"no priors/{args.priors}/depth or normal under {args.scene}")
-    mesh = args.scene / MESH_PATH
+    mesh = SceneDir(args.scene).ground_truth_mesh
     summaries = []
     for seed in args.seeds:
         for every in args.every:

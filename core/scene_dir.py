@@ -263,7 +263,7 @@ class SceneDir:
     @property
     def reconstructed_gaps(self) -> Path:
         """``mesh/reconstructed_gaps.ply``: the triangles bridging gaps of the reconstructed mesh."""
-        return gaps_mesh_path(self.reconstructed_mesh)
+        return gap_mesh_path(self.reconstructed_mesh)
 
     @property
     def provenance(self) -> Path:
@@ -279,7 +279,7 @@ class SceneDir:
         return self.prior_maps(source, kind).is_dir()
 
 
-def gaps_mesh_path(mesh_path: Path) -> Path:
+def gap_mesh_path(mesh_path: str | Path) -> Path:
     """The gap mesh written beside a reconstructed mesh: ``<stem>_gaps.ply``."""
     mesh_path = Path(mesh_path)
     return mesh_path.with_name(f"{mesh_path.stem}_gaps.ply")

@@ -29,10 +29,12 @@ import bpy
 from ..core import jobs
 from ..core.colmap.io import find_model_dir
 from ..core.errors import CheckpointError, ConfigError, DatasetError, ESGSError
-from ..core.jobs import JobState, TrainingJob
+from ..core.commands.priors import PriorsSettings
+from ..core.jobs import ChildJob, JobState
+from ..core.scene_dir import PriorSource, SceneDir, names
 from . import preferences
 
-METHODS = ("ndn", "sfm")
+METHODS = names(PriorSource.computed())
 #: the weights ``esgs priors --method ndn`` loads when none are named; the same path as
 #: ``core/ndn/shipped.py``'s SHIPPED_WEIGHTS (a test checks), which cannot be imported here
 #: because it imports torch and Blender's Python has none
@@ -107,7 +109,7 @@ def check_scene(scene_dir: str | Path, method: str, weights: str | Path | None =
     # the error names what is missing
     find_model_dir(scene_dir)
     if method == "ndn":
-        if not (scene_dir / "images").is_dir():
+        if not SceneDir(scene_dir).images.is_dir():
             raise DatasetError("the scene folder has no images/ folder (NDN predicts from the images)",
                                path=scene_dir, hint="put the views named in the COLMAP model in SCENE/images")
         path = default_ndn_weights(weights)

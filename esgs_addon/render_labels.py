@@ -80,8 +80,8 @@ def render_labels(scene_dir: str | Path, mesh_path: str | Path, *, method: str =
     from ..core.labels.gaps import through_gap, zbuffer_depth
     from ..core.labels.mesh_io import load_mesh
     from ..core.labels.pipeline import check_pinhole
-    from ..core.labels.writer import REPORT_NAME, LabelWriter
-    from ..core.priors.io import prior_dir
+    from ..core.labels.writer import LabelWriter
+    from ..core.scene_dir import PriorSource, SceneDir
     from .cameras import opencv_from_camera_object, use_camera
     from .colmap_scene import PROP_IMAGE_NAME, ColmapImportOptions, import_colmap_scene
     from .render_dataset import _PassOutputs, _read_single_channel, _read_vector, camera_normals_from_pass, depth_from_pass
@@ -149,8 +149,8 @@ def render_labels(scene_dir: str | Path, mesh_path: str | Path, *, method: str =
                    if block.session_uid not in uids]
         if created:
             bpy.data.batch_remove(created)
-    result = json.loads((prior_dir(scene_dir, "labels") / REPORT_NAME).read_text())
-    report(ProgressEvent(total, total, "labels", kind="done", message=f"labels written: {prior_dir(scene_dir, 'labels')}",
+    result = json.loads(SceneDir(scene_dir).labels_report.read_text())
+    report(ProgressEvent(total, total, "labels", kind="done", message=f"labels written: {SceneDir(scene_dir).prior(PriorSource.LABELS)}",
                          metrics={"seconds": time.perf_counter() - start}))
     return result
 

@@ -48,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
     from ..labels.reconstruct import ReconstructOptions
     from ..labels.stereo import StereoOptions
     from ..progress import ConsoleProgress, JsonLinesProgress, combine
+    from ..scene_dir import PriorSource, SceneDir
 
     reconstruct_options = dataclass_from_args(ReconstructOptions, args)
     reconstruct_options.stereo = dataclass_from_args(StereoOptions, args, prefix="stereo_")
@@ -68,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     # labels.json of runs before the gap rule have no through_gap_fraction
     through_gap = sum(view.get("through_gap_fraction", 0.0) for view in views) / len(views)
     gaps = f"; {100 * through_gap:.2f} % dropped, seen through gaps of the rebuilt mesh" if through_gap > 0 else ""
-    print(f"esgs labels: {len(views)} views -> {args.scene / 'priors' / 'labels'} "
+    print(f"esgs labels: {len(views)} views -> {SceneDir(args.scene).prior(PriorSource.LABELS)} "
           f"(filled {100 * filled:.2f} % of pixels, no label {100 * empty:.2f} %{gaps})", file=sys.stderr)
     if result["accuracy"] is not None:
         print(format_accuracy_table(result["accuracy"]))

@@ -19,16 +19,17 @@ from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
 from ..errors import ConfigError, DatasetError
+from ..scene_dir import PriorSource, SceneDir, names
 from .runs import RunTask
 from .tables import QUALITY_COLUMNS, aggregate, markdown_table
 
-#: Prior sources in the order of the paper's prior-source study (none first).
-PRIOR_SOURCES = ("none", "sfm", "ndn", "labels", "gt")
+#: Prior sources in the order of the paper's prior-source study: none first, then the least
+#: faithful up to gt, the upper bound.
+PRIOR_SOURCES = ("none", *names(tuple(reversed(PriorSource.standard_sources()))))
 #: The studies, in the order of the tables.
 STUDIES = ("grid", "priors", "fused_k")
 #: Preference when no source is named.
-DEFAULT_PRIOR_ORDER = ("gt", "labels", "ndn", "sfm")
-MESH_PATH = Path("mesh") / "ground_truth.ply"
+DEFAULT_PRIOR_ORDER = names(PriorSource.standard_sources())
 
 
 @dataclass(frozen=True)
@@ -48,7 +49,7 @@ def available_priors(scene: Path) -> dict[str, set[str]]:
     """Prior sources under SCENE/priors and which of depth/normal each provides."""
     found = {}
     for source in DEFAULT_PRIOR_ORDER:
-        kinds = {kind for kind in ("depth", "normal") if (Path(scene) / "priors" / source / kind).is_dir()}
+        kinds = {kind for kind in ("depth", "normal") if SceneDir(scene).has_prior_maps(source, kind)}
         if kinds:
             found[source] = kinds
     return found
@@ -80,7 +81,7 @@ def ablation_variants(scene: Path, priors: str = "", fused_ks: Sequence[int] = (
         raise ConfigError(f"unknown or no studies {', '.join(unknown)}".rstrip(), hint=f"choose among {', '.join(STUDIES)}")
     found = available_priors(scene)
     if priors and priors != "none" and priors not in found:
-        raise DatasetError(f"no prior maps for source {priors!r} (depth/ or normal/)", path=Path(scene) / "priors" / priors,
+        raise DatasetError(f"no prior maps for source {priors!r} (depth/ or normal/)", path=SceneDir(scene).prior(priors),
                            hint=f"sources found: {', '.join(found) or 'none'}; make them with esgs priors")
     source = priors or next(iter(found), "")
     if priors == "none":
@@ -116,7 +117,7 @@ def plan_ablation(scene: Path, out: Path, *, iterations: int, seeds: Sequence[in
     """The variants and the (deduplicated) run tasks of an ablation."""
     scene, out = Path(scene), Path(out)
     variants = ablation_variants(scene, priors, fused_ks, studies)
-    mesh = scene / MESH_PATH
+    mesh = SceneDir(scene).ground_truth_mesh
     tasks: dict[tuple[str, int], RunTask] = {}
     for variant in variants:
         for seed in seeds:
@@ -159,7 +160,7 @@ def run_ablation(scene: str | Path, out: str | Path, *, iterations: int = 3000, 
     from .runs import run_task
 
     scene, out = Path(scene), Path(out)
-    if not (scene / "sparse").is_dir():
+    if not SceneDir(scene).has_model():
         raise DatasetError("not a scene folder (no sparse/)", path=scene, hint="make one with esgs scene or esgs colmap")
     variants, tasks = plan_ablation(scene, out, iterations=iterations, seeds=seeds, priors=priors,
                                     fused_ks=fused_ks, train=train, studies=studies)

@@ -26,7 +26,8 @@ from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
 from ..errors import ConfigError, ESGSError
-from .ablate import MESH_PATH, available_priors
+from ..scene_dir import PriorSource, SceneDir, names
+from .ablate import available_priors
 from .runs import RunTask
 from .tables import COST_COLUMNS, QUALITY_COLUMNS, aggregate, markdown_table
 
@@ -98,11 +99,11 @@ def _method(key: str, label: str, *, esgs: Optional[dict] = None, baselines: Opt
 
 
 #: Where the prior-based rows may take their priors from (``--priors``).
-PRIOR_SOURCES = ("ndn", "sfm", "gt")
+PRIOR_SOURCES = names(PriorSource.for_synthetic_scenes())
 #: The sources ``esgs priors`` can compute for a scene that lacks them.
-COMPUTED_PRIOR_SOURCES = ("ndn", "sfm")
+COMPUTED_PRIOR_SOURCES = names(PriorSource.computed())
 #: ... and those :func:`ensure_priors` can (``labels``: ``esgs labels --reconstruct``, needs bpy).
-ENSURED_PRIOR_SOURCES = (*COMPUTED_PRIOR_SOURCES, "labels")
+ENSURED_PRIOR_SOURCES = (*COMPUTED_PRIOR_SOURCES, *names(tuple(s for s in PriorSource if s.made_by_labels)))
 UPPER_BOUND_KEY = "esgs_full_gt"
 _FULL_ESGS = {"depth": True, "normal": True, "gpdfn": True, "fused_k": 3}
 
@@ -130,7 +131,7 @@ def ensure_priors(scene: Path, source: str) -> Path:
     whole folder or none, and a restart reuses it.
     """
     scene = Path(scene)
-    folder = scene / "priors" / source
+    folder = SceneDir(scene).prior(source)
     if source in available_priors(scene):
         return folder
     if source not in ENSURED_PRIOR_SOURCES:
@@ -151,7 +152,7 @@ def ensure_priors(scene: Path, source: str) -> Path:
 def make_scene(preset: str, seed: int, suite: BenchSuite, scenes_dir: Path) -> Path:
     """``esgs scene`` into ``scenes_dir/<preset>_s<seed>`` unless it is there (the folder appears complete)."""
     folder = Path(scenes_dir) / suite.scene_folder_name(preset, seed)
-    if (folder / "sparse").is_dir():
+    if SceneDir(folder).has_model():
         return folder
     command = [sys.executable, "-m", "esgs.core.cli", "scene", "--preset", preset, "--seed", str(seed),
                "--views", str(suite.views), "--resolution", suite.resolution, "--samples", str(suite.samples),
@@ -185,7 +186,7 @@ def plan_bench(scenes: dict[str, tuple[Path, int]], out: Path, *, iterations: in
         raise ConfigError(f"unknown prior source {priors!r}", hint=f"use one of {', '.join(PRIOR_SOURCES)}")
     for scene_name, (folder, seed) in scenes.items():
         found = available_priors(folder)
-        mesh = folder / MESH_PATH
+        mesh = SceneDir(folder).ground_truth_mesh
         for method in methods:
             esgs = dict(method.esgs)
             if method.priors:
@@ -289,7 +290,7 @@ def _prior_description(source: str, scenes: dict[str, tuple[Path, int]]) -> dict
     weights = set()
     if source == "ndn":
         for folder, _ in scenes.values():
-            for path in sorted((Path(folder) / "priors" / source / "depth").glob("*.exr"))[:1]:
+            for path in sorted(SceneDir(folder).prior_maps(source, "depth").glob("*.exr"))[:1]:
                 try:
                     weights.add(Path(read_exr(path)[1].get("weights", "")).name)
                 except (OSError, ValueError, ESGSError):

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import DatasetError
-from ..priors.io import image_stem, prior_dir
+from ..scene_dir import PriorSource, SceneDir
 
 DELTA1 = 1.25
 
@@ -34,7 +34,8 @@ def depth_errors(label: np.ndarray, truth: np.ndarray) -> dict[str, float]:
             "delta1": float(np.mean(np.maximum(ratio, 1.0 / ratio) < DELTA1)), "pixels": int(len(truth))}
 
 
-def label_accuracy(scene_dir: str | Path, source: str = "labels", truth_source: str = "gt") -> dict[str, Any]:
+def label_accuracy(scene_dir: str | Path, source: str = PriorSource.LABELS.value,
+                   truth_source: str = PriorSource.GT.value) -> dict[str, Any]:
     """Compare ``priors/<source>`` with ``priors/<truth_source>`` for every view of the scene.
 
     Returns ``{"overall": {...}, "rendered": {...}, "filled": {...}, "baseline": {...},
@@ -43,7 +44,8 @@ def label_accuracy(scene_dir: str | Path, source: str = "labels", truth_source: 
     from ..imageio import read_depth_exr, read_image
 
     scene_dir = Path(scene_dir)
-    label_root, truth_root = prior_dir(scene_dir, source), prior_dir(scene_dir, truth_source)
+    folder = SceneDir(scene_dir)
+    label_root, truth_root = folder.prior(source), folder.prior(truth_source)
     for root in (label_root, truth_root):
         if not (root / "depth").is_dir():
             raise DatasetError(f"no depth maps under {root}", path=root,

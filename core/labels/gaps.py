@@ -13,17 +13,11 @@ The label writer drops those pixels (no label) before hole filling.
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
-GAPS_NAME = "reconstructed_gaps.ply"
+from ..scene_dir import gap_mesh_path
 
-
-def gap_mesh_path(mesh_path: str | Path) -> Path:
-    """The gap mesh written beside a reconstructed mesh (``<stem>_gaps.ply``)."""
-    mesh_path = Path(mesh_path)
-    return mesh_path.with_name(f"{mesh_path.stem}_gaps.ply")
+__all__ = ["gap_mesh_path", "through_gap", "zbuffer_depth"]
 
 
 def _clip_near(corners: np.ndarray, near: float) -> list[np.ndarray]:

@@ -17,9 +17,8 @@ from ..blender_child import run_child
 from ..errors import ConfigError, DatasetError
 from ..progress import ProgressCallback, no_progress
 from .fill import FillOptions
-from .reconstruct import MESH_NAME, ReconstructOptions
-
-ACCURACY_NAME = "accuracy.json"
+from ..scene_dir import PriorSource, SceneDir
+from .reconstruct import ReconstructOptions
 
 
 @dataclass
@@ -75,13 +74,12 @@ def run_label_job(job: LabelJob, progress: ProgressCallback = no_progress, *, ve
     import importlib.util
 
     from ..io_utils import atomic_write_json
-    from ..priors.io import prior_dir
 
     job.validate()
     check_scene(job.scene)
     if job.mesh is not None and not Path(job.mesh).is_file():
         raise DatasetError("mesh file not found", path=job.mesh, hint="give an existing mesh, or use --reconstruct")
-    if job.report and not (prior_dir(job.scene, "gt") / "depth").is_dir():
+    if job.report and not SceneDir(job.scene).has_prior_maps(PriorSource.GT, "depth"):
         raise DatasetError("--report needs the ground truth of a synthetic scene (priors/gt/depth)", path=job.scene)
     if importlib.util.find_spec("bpy") is None:
         raise ConfigError("rendering labels needs Blender's bpy module, which this Python does not have",
@@ -92,32 +90,27 @@ def run_label_job(job: LabelJob, progress: ProgressCallback = no_progress, *, ve
     if job.reconstruct:
         from .reconstruct import reconstruct_mesh
 
-        mesh = job.scene / "mesh" / MESH_NAME
+        mesh = SceneDir(job.scene).reconstructed_mesh
         reconstruction = reconstruct_mesh(job.scene, job.reconstruct_options, out_path=mesh, progress=progress)
-        atomic_write_json(mesh.with_suffix(".json"), reconstruction)
+        atomic_write_json(SceneDir(job.scene).reconstruction_report, reconstruction)
         gaps = reconstruction["gaps"]
         metadata = {"reconstruction": "plane-sweep ZNCC stereo, cross-view check, 2.5D Delaunay "
                                       "(esgs.core.labels.reconstruct)",
-                    "reconstruction_report": str(mesh.with_suffix(".json").resolve())}
+                    "reconstruction_report": str(SceneDir(job.scene).reconstruction_report.resolve())}
         method = "reconstruct"
     else:
         mesh = Path(job.mesh)
         method = "mesh"
-    command = [sys.executable, "-m", "esgs.esgs_addon.render_labels", str(job.scene), "--mesh", str(mesh),
-               "--method", method, "--samples", str(job.samples),
-               "--max-hole-fraction", repr(job.fill.max_hole_fraction), "--edge-radius-px", str(job.fill.edge_radius_px),
-               "--metadata", json.dumps(metadata), "--events-stdout"]
-    if not job.smooth:
-        command.append("--flat")
-    if gaps is not None:
-        command += ["--gaps", str(gaps)]
-    run_child(command, progress, verbose=verbose, task="label rendering")
-    labels = json.loads((prior_dir(job.scene, "labels") / "labels.json").read_text())
+    request = {"scene": str(job.scene), "mesh": str(mesh), "method": method, "samples": job.samples,
+               "smooth": job.smooth, "fill": job.fill, "metadata": metadata,
+               "gaps": None if gaps is None else str(gaps)}
+    run_job("render_labels", request, progress, verbose=verbose, task="label rendering")
+    labels = json.loads(SceneDir(job.scene).labels_report.read_text())
     accuracy = None
     if job.report:
         from .accuracy import label_accuracy
 
         accuracy = label_accuracy(job.scene)
         accuracy["method"] = method
-        atomic_write_json(prior_dir(job.scene, "labels") / ACCURACY_NAME, accuracy)
+        atomic_write_json(SceneDir(job.scene).labels_accuracy, accuracy)
     return {"labels": labels, "reconstruction": reconstruction, "accuracy": accuracy}

@@ -35,10 +35,9 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ..progress import ProgressCallback, ProgressEvent, no_progress
-from .gaps import gap_mesh_path
+from ..scene_dir import SceneDir, gap_mesh_path
 from .stereo import StereoOptions, View, consistent_depths, depth_maps
 
-MESH_NAME = "reconstructed.ply"
 
 
 @dataclass
@@ -282,7 +281,7 @@ def reconstruct_mesh(scene_dir: str | Path, options: ReconstructOptions | None =
     cell = options.cell_factor * float(np.median(across))
     built = mesh_from_points(points_all, normal, cell, options.max_edge_cells, options.spike_threshold,
                              ground_footprints)
-    mesh_path = Path(out_path) if out_path is not None else scene_dir / "mesh" / MESH_NAME
+    mesh_path = Path(out_path) if out_path is not None else SceneDir(scene_dir).reconstructed_mesh
     gaps_path = gap_mesh_path(mesh_path)
     # the gap mesh first: a mesh file never sits beside a gap mesh of another run
     if len(built.gap_triangles):

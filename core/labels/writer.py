@@ -17,11 +17,11 @@ import numpy as np
 
 from ..errors import DatasetError
 from ..io_utils import atomic_write_json
-from ..priors.io import prior_dir, write_prior_maps
+from ..priors.io import write_prior_maps
+from ..scene_dir import PriorSource, SceneDir
 from .fill import EMPTY, FILLED, RENDERED, FillOptions, fill_missing
 
-SOURCE = "labels"
-REPORT_NAME = "labels.json"
+SOURCE = PriorSource.LABELS
 MASK_VALUES = f"{RENDERED} rendered from the mesh, {FILLED} filled (hole filling), {EMPTY} no label"
 
 
@@ -86,9 +86,8 @@ class LabelWriter:
                                    "filled_pixels": str(int((mask == FILLED).sum()))})
         # the mask keeps three values (write_prior_maps would binarise it)
         from ..imageio import write_png
-        from ..priors.io import image_stem
 
-        write_png(prior_dir(self._staging, SOURCE) / "mask" / f"{image_stem(image_name)}.png", mask)
+        write_png(SceneDir(self._staging).mask_map(SOURCE, image_name), mask)
         self.views.append(stats)
         return stats
 
@@ -104,14 +103,14 @@ class LabelWriter:
                 raise DatasetError("no camera sees the mesh; nothing written", path=self.metadata.get("mesh"),
                                    hint="the mesh must be in the COLMAP model's frame and units (for a synthetic "
                                         "scene: mesh/ground_truth.ply)")
-            built = prior_dir(staging, SOURCE)
-            atomic_write_json(built / REPORT_NAME, {
-                "source": SOURCE, **self.metadata, "mask_values": MASK_VALUES,
+            built = SceneDir(staging).prior(SOURCE)
+            atomic_write_json(SceneDir(staging).labels_report, {
+                "source": SOURCE.value, **self.metadata, "mask_values": MASK_VALUES,
                 "fill": {"max_hole_fraction": self.fill.max_hole_fraction, "edge_radius_px": self.fill.edge_radius_px,
                          "method": "membrane (Laplace) interpolation of inverse depth and normals"},
                 "views": self.views,
             })
-            _replace_directory(built, prior_dir(self.scene_dir, SOURCE))
+            _replace_directory(built, SceneDir(self.scene_dir).prior(SOURCE))
         finally:
             shutil.rmtree(staging, ignore_errors=True)
 
