@@ -29,8 +29,7 @@ import bpy
 from ..core import jobs
 from ..core.colmap.io import find_model_dir
 from ..core.errors import CheckpointError, ConfigError, DatasetError, ESGSError
-from ..core.commands.priors import PriorsSettings
-from ..core.jobs import ChildJob, JobState
+from ..core.jobs import JobState, TrainingJob
 from ..core.scene_dir import PriorSource, SceneDir, names
 from . import preferences
 

@@ -101,10 +101,15 @@ def run_label_job(job: LabelJob, progress: ProgressCallback = no_progress, *, ve
     else:
         mesh = Path(job.mesh)
         method = "mesh"
-    request = {"scene": str(job.scene), "mesh": str(mesh), "method": method, "samples": job.samples,
-               "smooth": job.smooth, "fill": job.fill, "metadata": metadata,
-               "gaps": None if gaps is None else str(gaps)}
-    run_job("render_labels", request, progress, verbose=verbose, task="label rendering")
+    command = [sys.executable, "-m", "esgs.esgs_addon.render_labels", str(job.scene), "--mesh", str(mesh),
+               "--method", method, "--samples", str(job.samples),
+               "--max-hole-fraction", repr(job.fill.max_hole_fraction), "--edge-radius-px", str(job.fill.edge_radius_px),
+               "--metadata", json.dumps(metadata), "--events-stdout"]
+    if not job.smooth:
+        command.append("--flat")
+    if gaps is not None:
+        command += ["--gaps", str(gaps)]
+    run_child(command, progress, verbose=verbose, task="label rendering")
     labels = json.loads(SceneDir(job.scene).labels_report.read_text())
     accuracy = None
     if job.report:
