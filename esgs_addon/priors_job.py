@@ -1,9 +1,8 @@
-"""Prior maps from Blender: run ``esgs priors SCENE --method ndn|sfm`` in a separate process.
+"""Prior maps from Blender: compute ndn or sfm priors in a separate process.
 
 NDN inference takes ~1-2 s per view on a CPU and needs torch, which Blender's own Python
-lacks, so the priors are computed by the same kind of child process as training
-(:class:`esgs.core.jobs.TrainingJob`, here with the ``priors`` command and its ``--events``
-progress file). Public entry points (``operators/priors.py`` wraps them):
+lacks, so the priors are computed by the same child-process runtime as training
+(:mod:`esgs.core.runtime`, its ``"priors"`` job). Public entry points (``operators/priors.py`` wraps them):
 
 - :func:`check_scene` - the checks that fail at once, before a process starts;
 - :func:`start_priors` - start the job for a scene folder, non-blocking;
@@ -12,7 +11,7 @@ progress file). Public entry points (``operators/priors.py`` wraps them):
 - :func:`start_polling` - the UI path: a timer mirrors the job into ``scene.esgs.priors``.
 
 Both writers replace ``SCENE/priors/<method>`` only when every view is done, and a cancel
-(SIGTERM) lets them remove their staging folders: a failed or cancelled job leaves the
+(the stop file, then SIGTERM) lets them remove their staging folders: a failed or cancelled job leaves the
 previous priors, or none.
 """
 from __future__ import annotations
@@ -29,7 +28,8 @@ import bpy
 from ..core import jobs
 from ..core.colmap.io import find_model_dir
 from ..core.errors import CheckpointError, ConfigError, DatasetError, ESGSError
-from ..core.jobs import JobState, TrainingJob
+from ..core.commands.priors import PriorsSettings
+from ..core.jobs import ChildJob, JobState
 from ..core.scene_dir import PriorSource, SceneDir, names
 from . import preferences
 
@@ -39,42 +39,47 @@ METHODS = names(PriorSource.computed())
 #: because it imports torch and Blender's Python has none
 SHIPPED_NDN_WEIGHTS = Path(__file__).resolve().parents[1] / "core" / "ndn" / "weights" / "ndn_mars.pt"
 NDN_WEIGHTS_VARIABLE = "ESGS_NDN_WEIGHTS"
-#: Tests replace the command prefix (``[python, script]``) with a fake one.
+#: Tests replace the command prefix (``[python, -m, esgs.core.runtime.child]``) with a fake one.
 COMMAND_OVERRIDE: Optional[list[str]] = None
 
 
-class PriorsJob(TrainingJob):
-    """``esgs priors SCENE --method M --events FILE [--weights W]`` in a child process.
+class PriorsJob(ChildJob):
+    """The ``"priors"`` job of the child-process runtime for one scene folder and method.
 
-    The job runner of training (start, progress events, cancel with SIGTERM, failure
-    message) with the priors command line. The events file lives in a temporary folder
-    (``events_dir``), never in the scene folder; :meth:`cleanup` removes it once the job ended.
+    Its settings are a :class:`esgs.core.commands.priors.PriorsSettings`, written as the
+    child's config file; progress, cancel (the stop file: the writers remove their staging
+    folders) and the failure message are the runtime's. The exchange files and events live
+    in a temporary folder (``events_dir``), never in the scene folder; :meth:`cleanup`
+    removes it once the job ended.
     """
+
+    task = "priors"
 
     def __init__(self, scene_dir: str | Path, method: str, *, weights: str | Path | None = None,
                  command: Optional[list[str]] = None, python: Optional[str] = None, threads: int = 0,
                  on_output: Optional[Callable[[str], None]] = None):
         if method not in METHODS:
             raise ConfigError(f"unknown prior method {method!r}", hint=f"choose one of {', '.join(METHODS)}")
-        events_dir = Path(tempfile.mkdtemp(prefix="esgs_priors_"))
-        prefix = list(command) if command else jobs.trainer_command(python)[:-1] + ["priors"]
-        # iterations=1 only until the first event brings the view count
-        super().__init__(scene_dir, events_dir, iterations=1, events_path=events_dir / "events.jsonl",
-                         trainer=prefix, threads=threads, on_output=on_output)
+        self.scene_dir = Path(scene_dir)
         self.method = method
         self.weights = Path(weights) if weights else None
+        self.events_dir = Path(tempfile.mkdtemp(prefix="esgs_priors_"))
+        settings = PriorsSettings(scene=self.scene_dir, method=method, weights=self.weights)
+        super().__init__("priors", settings, workdir=self.events_dir, command=command, python=python,
+                         threads=threads, on_output=on_output)
 
-    def command(self, resume: bool = False) -> list[str]:
-        """The full command line the child runs (``resume`` has no meaning here)."""
-        args = [str(self.scene_dir), "--method", self.method, "--events", str(self.events_path)]
-        if self.weights is not None:
-            args += ["--weights", str(self.weights)]
-        return self.trainer + args
+    @property
+    def run_dir(self) -> Path:
+        """The temporary folder of the job's files (named like the training job's run folder)."""
+        return self.events_dir
+
+    def initial_total(self) -> int:
+        return 1  # only until the first event brings the view count
 
     def cleanup(self) -> None:
         """Remove the temporary events folder (only once the child has ended)."""
         if not self.running:
-            shutil.rmtree(self.run_dir, ignore_errors=True)
+            shutil.rmtree(self.events_dir, ignore_errors=True)
 
 
 def job_key(scene_dir: str | Path) -> str:

@@ -1,4 +1,4 @@
-"""Training from Blender: start ``esgs train`` in a separate process and follow it.
+"""Training from Blender: start the trainer in a separate process and follow it.
 
 Public entry points (the operators in ``operators/train.py`` are thin wrappers):
 
@@ -25,6 +25,8 @@ import numpy as np
 from ..core import jobs
 from ..core.errors import DatasetError
 from ..core.jobs import JobState, TrainingJob
+from ..core.methods.esgs.config import ESGSConfig
+from ..core.train.config import TrainConfig
 from . import gaussians_import, preferences
 
 #: collection property naming the scene folder a collection was imported from
@@ -35,7 +37,7 @@ PROP_COLMAP_TRANSFORM = "esgs_world_from_colmap"
 #: object property: the run folder an imported result came from
 PROP_RUN_DIR = "esgs_run_dir"
 
-#: Tests replace the trainer command (``[python, script]``) with a fake one.
+#: Tests replace the child command (``[python, -m, esgs.core.runtime.child]``) with a fake one.
 TRAINER_OVERRIDE: Optional[Sequence[str]] = None
 POLL_INTERVAL_S = 0.5
 
@@ -96,38 +98,23 @@ def collection_of_scene_dir(scene: bpy.types.Scene, scene_dir: Path) -> Optional
     return None
 
 
-# --------------------------------------------------------------------------- trainer options
+# --------------------------------------------------------------------------- settings
 
 
-def supported_options() -> set[str]:
-    """Long options of the installed ``esgs train`` (cached for the session)."""
-    global _SUPPORTED
-    if _SUPPORTED is None:
-        _SUPPORTED = jobs.trainer_options()
-    return _SUPPORTED
+#: the ESGS switches of the panel (ESGSConfig fields)
+SWITCHES = ("depth", "normal", "consistency", "gpdfn")
 
 
-_SUPPORTED: Optional[set[str]] = None
-
-
-def trainer_arguments(options: dict[str, Any], supported: Optional[set[str]] = None) -> list[str]:
-    """Command-line flags for ``options`` (depth, normal, gpdfn, priors, width, threads...).
-
-    An option the installed trainer does not have is left out, so the UI never sends a
-    flag the trainer would reject. Booleans become ``--name`` / ``--no-name``; zero or
-    empty values are left to the trainer's defaults.
-    """
-    supported = supported_options() if supported is None else supported
-    args: list[str] = []
-    for name, value in options.items():
-        flag = "--" + name.replace("_", "-")
-        if isinstance(value, bool):
-            chosen = flag if value else "--no-" + name.replace("_", "-")
-            if chosen in supported:
-                args.append(chosen)
-        elif value not in (None, "", 0) and flag in supported:
-            args += [flag, str(value)]
-    return args
+def training_config(settings: Any) -> TrainConfig:
+    """The TrainConfig of the panel's settings (``scene.esgs.training``): the image width, and
+    the ESGS method with the switched-on losses and prior source when any is set, else 3DGS.
+    The child fills in every other setting's default and validates it (a ConfigError comes
+    back as the job's error)."""
+    switches = {name: bool(getattr(settings, name)) for name in SWITCHES}
+    priors = str(getattr(settings, "priors", "") or "")
+    if any(switches.values()) or priors:
+        return TrainConfig(width=int(settings.width), method="esgs", method_config=ESGSConfig(priors=priors, **switches))
+    return TrainConfig(width=int(settings.width))
 
 
 def new_run_dir(scene_dir: Path) -> Path:
@@ -149,7 +136,7 @@ def job_key(scene_dir: str | Path) -> str:
 
 
 def start_training(scene_dir: str | Path, run_dir: str | Path | None = None, iterations: int = 30_000, *,
-                   options: Optional[dict[str, Any]] = None, resume: bool = False, python: Optional[str] = None,
+                   config: Optional[TrainConfig] = None, resume: bool = False, python: Optional[str] = None,
                    threads: Optional[int] = None, on_output: Optional[Callable[[str], None]] = None) -> TrainingJob:
     """Start the trainer for ``scene_dir`` in a child process and return its job (non-blocking).
 
@@ -157,8 +144,8 @@ def start_training(scene_dir: str | Path, run_dir: str | Path | None = None, ite
         scene_dir: the COLMAP scene folder.
         run_dir: the run folder (default: :func:`new_run_dir`); with ``resume`` an existing run.
         iterations: training steps.
-        options: trainer options by name, e.g. ``{"depth": True, "priors": "gt", "width": 480}``;
-            those the installed trainer lacks are left out (:func:`trainer_arguments`).
+        config: the training settings (e.g. :func:`training_config`); its scene, run folder and
+            steps are this call's. None: the trainer's defaults (a resumed run keeps its own).
         python: interpreter (default: preferences, then :func:`esgs.core.jobs.find_python`).
         threads: CPU threads for the child (default: the preference).
 
@@ -168,12 +155,9 @@ def start_training(scene_dir: str | Path, run_dir: str | Path | None = None, ite
     scene_dir = Path(scene_dir)
     run_dir = Path(run_dir) if run_dir else new_run_dir(scene_dir)
     threads = preferences.trainer_threads() if threads is None else threads
-    options = dict(options or {})
-    if threads:
-        options.setdefault("threads", threads)
-    trainer = list(TRAINER_OVERRIDE) if TRAINER_OVERRIDE else jobs.trainer_command(python or preferences.trainer_python())
-    job = TrainingJob(scene_dir, run_dir, iterations=iterations, extra_args=trainer_arguments(options),
-                      trainer=trainer, threads=threads, on_output=on_output)
+    trainer = list(TRAINER_OVERRIDE) if TRAINER_OVERRIDE else jobs.child_command(python or preferences.trainer_python())
+    job = TrainingJob(scene_dir, run_dir, iterations=iterations, config=config, trainer=trainer, threads=threads or 0,
+                      on_output=on_output)
     return jobs.start_job(job_key(scene_dir), job, resume=resume)
 
 
@@ -209,7 +193,7 @@ def import_run_result(run_dir: str | Path, scene: Optional[bpy.types.Scene] = No
 
 
 def train_scene(scene_dir: str | Path, run_dir: str | Path | None = None, iterations: int = 30_000, *,
-                options: Optional[dict[str, Any]] = None, resume: bool = False, import_result: bool = True,
+                config: Optional[TrainConfig] = None, resume: bool = False, import_result: bool = True,
                 python: Optional[str] = None, threads: Optional[int] = None,
                 report: Callable[[str], None] = print, **import_options: Any) -> dict[str, Any]:
     """Train ``scene_dir`` blocking (console progress) and import the result.
@@ -218,7 +202,7 @@ def train_scene(scene_dir: str | Path, run_dir: str | Path | None = None, iterat
     None when training did not finish or ``import_result`` is False; check ``state.status``
     and ``state.error``.
     """
-    job = start_training(scene_dir, run_dir, iterations, options=options, resume=resume, python=python,
+    job = start_training(scene_dir, run_dir, iterations, config=config, resume=resume, python=python,
                          threads=threads)
     state = wait_for_training(job, report=report)
     obj = None

@@ -98,8 +98,8 @@ def main(argv: list[str]) -> int:
         gaussian_nodes = module(esgs, "esgs_addon.gaussian_nodes")
 
         imported = colmap_scene.import_colmap_scene(scene_dir, colmap_scene.ColmapImportOptions(import_points=False))
-        result = training_job.train_scene(scene_dir, args.out / "run", args.iterations,
-                                          options={"max_gaussians": args.max_gaussians})
+        train_config = module(esgs, "core.train.config").TrainConfig(max_gaussians=args.max_gaussians)
+        result = training_job.train_scene(scene_dir, args.out / "run", args.iterations, config=train_config)
         state = result["state"]
         if result["object"] is None:
             print(f"training {state.status}: {state.error}", file=sys.stderr)

@@ -8,18 +8,6 @@ from ..core.errors import ESGSError
 from ..esgs_addon import training_job
 from ._blocking import finish_headless_job
 
-#: the ESGS switches of the panel, passed only when the installed trainer has them
-SWITCHES = ("depth", "normal", "consistency", "gpdfn")
-
-
-def options_from_settings(settings) -> dict:
-    """Trainer options from ``scene.esgs.training`` (unsupported ones are dropped later)."""
-    options = {name: bool(getattr(settings, name)) for name in SWITCHES}
-    options["priors"] = settings.priors
-    options["width"] = settings.width
-    return options
-
-
 def _run(operator, context, resume: bool) -> set[str]:
     settings = context.scene.esgs.training
     try:
@@ -30,9 +18,10 @@ def _run(operator, context, resume: bool) -> set[str]:
         else:
             scene_dir = training_job.find_scene_dir(context.scene, settings.scene_dir, context.active_object)
             run_dir = bpy.path.abspath(settings.run_dir) if settings.run_dir else None
-        # a resumed run keeps the options saved in its config.json: pass none that could override them
+        # a resumed run keeps the settings saved in its config.json: pass none that could override them
         job = training_job.start_training(scene_dir, run_dir, settings.iterations,
-                                          options=None if resume else options_from_settings(settings), resume=resume)
+                                          config=None if resume else training_job.training_config(settings),
+                                          resume=resume)
     except ESGSError as error:
         operator.report({"ERROR"}, str(error))
         return {"CANCELLED"}

@@ -34,16 +34,12 @@ class ESGS_PT_training(ESGSSection, bpy.types.Panel):
                 column.label(text="Import a COLMAP scene or choose its folder", icon="INFO")
         column.prop(settings, "run_dir")
         column.prop(settings, "iterations")
-        supported = training_job.supported_options()
-        if "--width" in supported:
-            column.prop(settings, "width")
-        switches = [name for name in ("depth", "normal", "consistency", "gpdfn") if f"--{name}" in supported]
+        column.prop(settings, "width")
         box = column.box()
         box.label(text="ESGS")
-        for name in switches:
+        for name in training_job.SWITCHES:
             box.prop(settings, name)
-        if "--priors" in supported:
-            box.prop(settings, "priors")
+        box.prop(settings, "priors")
         _draw_priors(box, context.scene.esgs.priors)
         column.prop(settings, "import_result")
 

@@ -6,8 +6,9 @@ import contextlib
 import os
 import signal
 import threading
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, Optional
 
 from ..scene_dir import PriorSource, SceneDir, names
 
@@ -95,3 +96,44 @@ def _sigterm_interrupts() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+# --------------------------------------------------------------------------- child process
+
+
+@dataclass
+class PriorsSettings:
+    """One priors job (what the Blender add-on and the bench run in a child process)."""
+
+    scene: Path = field(metadata={"help": "scene folder (images/ + sparse/0)"})
+    method: str = field(default="sfm", metadata={"help": "prior source to compute", "choices": METHODS})
+    max_error_px: float = field(default=2.0, metadata={"help": "sfm: drop points with a larger reprojection error"})
+    min_track_length: int = field(default=2, metadata={"help": "sfm: drop points seen in fewer views"})
+    weights: Optional[Path] = field(default=None, metadata={"help": "ndn: weights file or model folder (default: shipped)"})
+    steps: Optional[int] = field(default=None, metadata={"help": "ndn: DDIM steps (default: the model's)"})
+    seed: int = field(default=0, metadata={"help": "ndn: seed of the starting noise"})
+
+    def validate(self) -> None:
+        from ..errors import ConfigError
+
+        if self.method not in METHODS:
+            raise ConfigError(f"unknown prior method {self.method!r}", hint=f"choose one of {', '.join(METHODS)}")
+
+
+def child_job(data: dict, context) -> dict:
+    """The ``"priors"`` job of the child-process runtime: ``data`` is a :class:`PriorsSettings`
+    dict. The runtime turns a stop request into KeyboardInterrupt, on which the writers remove
+    their staging folders (the previous priors are kept). Returns ``{"views", "weights", "folder"}``."""
+    from ..config import config_from_dict
+    from ..progress import ProgressEvent
+
+    settings = config_from_dict(PriorsSettings, data, source=context.config_path)
+    # the same argument names as the command line, so both paths share one implementation
+    args = argparse.Namespace(**{name: getattr(settings, name) for name in (
+        "scene", "method", "max_error_px", "min_track_length", "weights", "steps", "seed")})
+    count, weights = _run_ndn(args, context.progress) if settings.method == "ndn" else (
+        _run_sfm(args, context.progress), None)
+    folder = SceneDir(settings.scene).prior(settings.method)
+    line = f"wrote {settings.method} priors for {count} views to {folder}"
+    context.progress(ProgressEvent(count, count, f"{settings.method} priors", kind="done", message=line))
+    return {"views": count, "weights": None if weights is None else str(weights), "folder": str(folder)}

@@ -51,8 +51,8 @@ def test_saved_running_jobs_become_interrupted_and_the_training_resumes(tmp_path
 
     # the button does what the message says: the same run folder, --resume
     assert bpy.ops.esgs.train_resume() == {"FINISHED"}
-    argv = json.loads((tmp_path / "run" / "argv.json").read_text())
-    assert argv[:3] == [str(scene_dir), "--out", str(tmp_path / "run")] and "--resume" in argv
+    config = json.loads((tmp_path / "run" / "child_config.json").read_text())
+    assert (config["scene"], config["out"]) == (str(scene_dir), str(tmp_path / "run")) and config["resume"] is True
     assert training.status == jobs.FINISHED and training.error == ""
 
 

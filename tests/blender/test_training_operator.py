@@ -28,19 +28,21 @@ FAKE_TRAINER = textwrap.dedent(
     from esgs.core.ply import GaussianPly, write_gaussians_ply
 
     parser = argparse.ArgumentParser()
-    parser.add_argument("scene")
-    parser.add_argument("--out", required=True)
-    parser.add_argument("--iterations", type=int, required=True)
+    parser.add_argument("job")
+    parser.add_argument("config")
     parser.add_argument("--events", required=True)
-    parser.add_argument("--resume", action="store_true")
+    parser.add_argument("--result", required=True)
+    parser.add_argument("--stop-file", required=True)
     parser.add_argument("--crash", action="store_true")
-    args, unknown = parser.parse_known_args()
-    out = Path(args.out)
+    args = parser.parse_args()
+    config = json.loads(Path(args.config).read_text())
+    iterations = config["iterations"]
+    out = Path(config["out"])
     out.mkdir(parents=True, exist_ok=True)
-    (out / "argv.json").write_text(json.dumps(sys.argv[1:]))
+    (out / "child_config.json").write_text(json.dumps(config))
     with open(args.events, "a") as events:
-        for step in range(1, args.iterations + 1):
-            events.write(json.dumps({"step": step, "total": args.iterations, "stage": "train",
+        for step in range(1, iterations + 1):
+            events.write(json.dumps({"step": step, "total": iterations, "stage": "train",
                                      "metrics": {"loss": 1.0 / step, "psnr": 20.0 + step, "n_gaussians": 16},
                                      "kind": "progress"}) + "\\n")
             events.flush()
@@ -54,7 +56,7 @@ FAKE_TRAINER = textwrap.dedent(
         means=means, normals=np.zeros((16, 3)), sh_dc=np.zeros((16, 3)), sh_rest=np.zeros((16, 0, 3)),
         opacity_logit=np.full(16, 3.0), log_scales=np.full((16, 3), -3.0), quats_wxyz=np.tile([1.0, 0, 0, 0], (16, 1))))
     with open(args.events, "a") as events:
-        events.write(json.dumps({"step": args.iterations, "total": args.iterations, "stage": "train",
+        events.write(json.dumps({"step": iterations, "total": iterations, "stage": "train",
                                  "metrics": {"n_gaussians": 16}, "kind": "done", "message": "completed"}) + "\\n")
     """
 )
@@ -107,8 +109,8 @@ def test_headless_operator_trains_imports_and_compares(tmp_path, fake_trainer, s
     assert (settings.step, settings.total) == (12, 12)
     assert settings.psnr == pytest.approx(32.0)
     assert settings.last_run_dir == str(tmp_path / "run")
-    argv = json.loads((tmp_path / "run" / "argv.json").read_text())
-    assert argv[:4] == [str(scene_dir), "--out", str(tmp_path / "run"), "--iterations"]
+    config = json.loads((tmp_path / "run" / "child_config.json").read_text())
+    assert (config["scene"], config["out"]) == (str(scene_dir), str(tmp_path / "run")) and "iterations" in config
 
     obj = bpy.context.view_layer.objects.active
     assert gaussians_import.is_gaussian_object(obj)
@@ -135,18 +137,18 @@ def test_failure_shows_the_trainers_message(tmp_path, fake_trainer, scene_dir, m
     objects_before = len(bpy.data.objects)
     with pytest.raises(RuntimeError, match="ran out of memory"):
         bpy.ops.esgs.train()
-    argv = json.loads((tmp_path / "run" / "argv.json").read_text())
-    if "--depth" in training_job.supported_options():  # the ESGS switches of the installed trainer
-        assert "--depth" in argv and argv[argv.index("--priors") + 1] == "gt"
+    config = json.loads((tmp_path / "run" / "child_config.json").read_text())
+    assert config["method"] == "esgs"  # the ESGS switches reach the trainer as its TrainConfig
+    assert config["method_config"]["depth"] is True and config["method_config"]["priors"] == "gt"
     assert settings.status == "failed"
     assert settings.error == "RuntimeError: the fake trainer ran out of memory"
     assert len(bpy.data.objects) == objects_before
     # the failed run can be resumed: same folders, --resume
     monkeypatch.setattr(training_job, "TRAINER_OVERRIDE", list(training_job.TRAINER_OVERRIDE)[:-1])
     assert bpy.ops.esgs.train_resume() == {"FINISHED"}
-    argv = json.loads((tmp_path / "run" / "argv.json").read_text())
-    assert "--resume" in argv
-    assert "--depth" not in argv and "--priors" not in argv  # the run keeps its saved options
+    config = json.loads((tmp_path / "run" / "child_config.json").read_text())
+    assert config["resume"] is True
+    assert "method_config" not in config and "priors" not in config  # the run keeps its saved options
     assert settings.status == "finished"
 
 
@@ -172,12 +174,14 @@ def test_scene_folder_from_the_imported_collection(scene_dir, tmp_path):
     assert training_job.scene_dir_of_collection(tagged) == other
 
 
-def test_only_supported_switches_are_passed():
-    supported = {"--depth", "--no-depth", "--priors", "--width"}
-    args = training_job.trainer_arguments({"depth": False, "gpdfn": True, "priors": "gt", "width": 0, "normal": True},
-                                          supported)
-    assert args == ["--no-depth", "--priors", "gt"]
-    assert training_job.trainer_arguments({"depth": True, "width": 480}, supported) == ["--depth", "--width", "480"]
+def test_panel_settings_become_a_train_config():
+    settings = bpy.context.scene.esgs.training
+    settings.depth, settings.gpdfn, settings.priors, settings.width = True, True, "gt", 480
+    config = training_job.training_config(settings)
+    assert (config.method, config.width) == ("esgs", 480)
+    assert (config.method_config.depth, config.method_config.gpdfn, config.method_config.priors) == (True, True, "gt")
+    settings.depth, settings.normal, settings.consistency, settings.gpdfn, settings.priors = False, False, False, False, ""
+    assert training_job.training_config(settings).method == "3dgs"
 
 
 def test_new_run_folders_do_not_collide(scene_dir):
@@ -262,8 +266,8 @@ def test_panels_draw_progress_and_results(tmp_path):
 @pytest.mark.slow
 def test_real_trainer_end_to_end(tmp_path):
     """The installed trainer on a tiny synthetic plane scene: train headless, import, compare."""
-    if not jobs.trainer_available() or "--iterations" not in jobs.trainer_options():
-        pytest.skip("the engine's trainer (esgs.core.train, esgs train) is not installed")
+    if not jobs.trainer_available():
+        pytest.skip("the engine's trainer (esgs.core.train) is not installed")
     pytest.importorskip("torch")
     from tests.core.train.scene import make_scene
 
