@@ -18,6 +18,8 @@ from esgs.core.colmap.io import read_model
 from esgs.core.compare import point_to_mesh_distances
 from esgs.core.labels.mesh_io import load_mesh
 from esgs.core.ply import read_gaussians_ply
+from esgs.core.scene_dir import SceneDir
+from esgs.core.train.run_dir import RunDir
 
 GROUPS = ((0, 0), (1, 1), (2, 3), (4, 10**6))
 
@@ -44,9 +46,9 @@ def main() -> None:
     parser.add_argument("scene", type=Path)
     parser.add_argument("runs", type=Path, nargs="+")
     args = parser.parse_args()
-    vertices, triangles = load_mesh(args.scene / "mesh" / "ground_truth.ply")
+    vertices, triangles = load_mesh(SceneDir(args.scene).ground_truth_mesh)
     for run in args.runs:
-        gaussians = read_gaussians_ply(run / "point_cloud.ply")
+        gaussians = read_gaussians_ply(RunDir(run).point_cloud)
         opaque = 1.0 / (1.0 + np.exp(-gaussians.opacity_logit.reshape(-1))) >= 0.5
         points = gaussians.means[opaque].astype(np.float64)
         distance = point_to_mesh_distances(points, vertices, triangles)

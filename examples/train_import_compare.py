@@ -85,7 +85,7 @@ def main(argv: list[str]) -> int:
     started = time.perf_counter()
     try:
         scene_dir = args.scene.resolve() if args.scene else generate_scene(esgs, args)
-        mesh_path = scene_dir / "mesh" / "ground_truth.ply"
+        mesh_path = module(esgs, "core.scene_dir").SceneDir(scene_dir).ground_truth_mesh
         if not mesh_path.is_file():
             raise errors.DatasetError("the scene has no ground-truth mesh", path=mesh_path,
                                       hint="use a synthetic scene (esgs scene) or omit --scene")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import bpy
 
 from ..core.errors import ESGSError
+from ..core.scene_dir import SceneDir
 from ..esgs_addon import priors_job, training_job
 from ._blocking import finish_headless_job
 
@@ -43,7 +44,7 @@ class ESGS_OT_compute_priors(bpy.types.Operator):
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         priors_job.copy_state(settings, job.state(), scene_dir=scene_dir, method=settings.method)
-        target = scene_dir / "priors" / settings.method
+        target = SceneDir(scene_dir).prior(settings.method)
         if not bpy.app.background:
             priors_job.start_polling(context.scene.name, priors_job.job_key(scene_dir))
             self.report({"INFO"}, f"Computing {settings.method} priors into {target}")

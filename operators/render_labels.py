@@ -4,6 +4,7 @@ from __future__ import annotations
 import bpy
 
 from ..core.errors import ConfigError
+from ..core.scene_dir import PriorSource, SceneDir
 from ._blocking import BlockingJobOperator
 
 
@@ -44,7 +45,7 @@ class ESGS_OT_render_labels(BlockingJobOperator, bpy.types.Operator):
             gaps_path = None
         result = render_labels(scene_dir, mesh_path, method="reconstruct" if reconstruct else "mesh",
                                gaps_path=gaps_path, progress=progress)
-        return f"Wrote labels of {len(result['views'])} views to {Path(scene_dir) / 'priors' / 'labels'}"
+        return f"Wrote labels of {len(result['views'])} views to {SceneDir(scene_dir).prior(PriorSource.LABELS)}"
 
 
 CLASSES = (ESGS_OT_render_labels,)

@@ -55,14 +55,14 @@ def label_accuracy(scene_dir: str | Path, source: str = PriorSource.LABELS.value
     covered_total = surface_total = 0
     for truth_path in sorted((truth_root / "depth").rglob("*.exr")):
         stem = str(truth_path.relative_to(truth_root / "depth").with_suffix(""))
-        label_path = label_root / "depth" / f"{stem}.exr"
+        label_path = folder.depth_map(source, f"{stem}.exr")  # the name with a suffix: stems may hold dots
         if not label_path.is_file():
             raise DatasetError(f"no label for view {stem!r}", path=label_path)
         truth, _ = read_depth_exr(truth_path)
         label, _ = read_depth_exr(label_path)
-        mask_path = label_root / "mask" / f"{stem}.png"
+        mask_path = folder.mask_map(source, f"{stem}.png")
         mask = read_image(mask_path) if mask_path.is_file() else np.where(label > 0, 255, 0).astype(np.uint8)
-        truth_mask_path = truth_root / "mask" / f"{stem}.png"
+        truth_mask_path = folder.mask_map(truth_source, f"{stem}.png")
         surface = truth > 0
         if truth_mask_path.is_file():
             surface &= read_image(truth_mask_path) > 127

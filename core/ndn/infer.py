@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from ..progress import ProgressCallback, ProgressEvent, no_progress
+from ..scene_dir import SceneDir
 from .data import (LOG_DEPTH_RANGE, SceneTriples, load_shards, relative_depth_bounds, scene_triples,
                    state_to_relative_depth)
 from .diffusion import GaussianDiffusion
@@ -122,11 +123,12 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
         metadata["log_depth_range"] = str(config.diffusion.log_depth_range)
     # all maps go to a staging folder that replaces priors/ndn only when complete: a failure
     # never leaves a mix of old and new views
-    (scene_dir / "priors").mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=".ndn.work.", dir=scene_dir / "priors"))
+    priors = SceneDir(scene_dir).priors
+    priors.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=".ndn.work.", dir=priors))
     try:
         for index, name in enumerate(triples.names):
-            image = read_image(scene_dir / "images" / name)
+            image = read_image(SceneDir(scene_dir).image(name))
             image = np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
             depth, normal, mask = maps_from_states(depth_states_all[index, 0], normal_states_all[index], image,
                                                    kind=config.diffusion.depth_state,

@@ -11,6 +11,7 @@ import numpy as np
 from ..colmap import ColmapModel
 from ..progress import ProgressCallback, ProgressEvent, no_progress
 from ..io_utils import atomic_directory
+from ..scene_dir import SceneDir
 from .io import prior_dir, write_prior_maps
 
 
@@ -47,8 +48,9 @@ def write_sfm_priors(scene_dir: str | Path, model: ColmapModel, progress: Progre
     """
     scene_dir = Path(scene_dir)
     images = model.sorted_images()
-    (scene_dir / "priors").mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=".sfm.work.", dir=scene_dir / "priors"))
+    priors = SceneDir(scene_dir).priors
+    priors.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=".sfm.work.", dir=priors))
     try:
         prior_dir(work, "sfm").mkdir(parents=True)
         for index, image in enumerate(images):
