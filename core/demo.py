@@ -3,8 +3,8 @@
 ``run_demo(DemoConfig(...))`` runs every stage with progress and writes ``OUT/report.md``
 (pictures beside it). Each stage's output lives in its own folder, so a re-run skips what is
 already complete (scene, priors, runs) and redoes only the rest. The Blender stage runs the
-bpy module in a subprocess (``python -m esgs.esgs_addon.results_scene``), since core never
-imports bpy.
+bpy module in a child process (the ``"results_scene"`` job of :mod:`esgs.core.runtime`),
+since core never imports bpy.
 
 Prior sources (``DemoConfig.priors``): ``ndn`` (the default) predicts dense relative depth and
 normals with the NDN weights shipped in the package; ``sfm`` projects the scene's COLMAP
@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
@@ -76,7 +75,8 @@ class DemoConfig:
 
 
 def esgs_settings(priors: str, gpdfn: bool = True) -> dict:
-    """The ``ESGSConfig`` values of the demo's ESGS run for a prior source.
+    """The ``ESGSConfig`` switches of the demo's ESGS run for a prior source: the full method
+    (:func:`esgs.core.methods.full_esgs`), GPDFN optional.
 
     Every source drives the depth-prior loss (relative NDN depth is pinned to the scene's
     scale by a scale/shift fit to each image's SfM points, since the prior's EXR says
@@ -85,10 +85,20 @@ def esgs_settings(priors: str, gpdfn: bool = True) -> dict:
     alignment branch; sparse ``sfm`` has no normals, so the depth-normal consistency loss
     stands in for them there.
     """
+    from .methods import full_esgs
+
     if priors not in PRIOR_SOURCES:
         raise ConfigError(f"unknown prior source {priors!r}", hint=f"use one of {', '.join(PRIOR_SOURCES)}")
-    has_normals = PriorSource(priors).has_normals
-    return {"priors": priors, "depth": True, "normal": has_normals, "consistency": not has_normals, "gpdfn": gpdfn}
+    full = full_esgs(priors, gpdfn=gpdfn)
+    return {name: getattr(full, name) for name in _DEFAULT_ESGS}
+
+
+def _esgs_settings_of(switches: dict) -> Any:
+    """The ESGSConfig of the demo's switches (None for the 3DGS run, which has none)."""
+    from .config import config_from_dict
+    from .methods import ESGSConfig
+
+    return config_from_dict(ESGSConfig, switches) if switches else None
 
 
 class StageClock:
@@ -121,15 +131,26 @@ class StageClock:
 
 
 # --------------------------------------------------------------------------------------
-def _run_command(command: list[str], stage: str, progress: ProgressCallback, log_path: Path) -> None:
-    """Run a subprocess, keep its output in a log, raise with its last lines on failure."""
-    progress(ProgressEvent(step=0, total=1, stage=stage, kind="message", message=f"{stage}: {' '.join(command[2:])}"))
+def _run_stage(job: str, config: Any, stage: str, progress: ProgressCallback, log_path: Path) -> Any:
+    """Run a registered child job for a demo stage, keep its output in a log; the child's
+    error comes back as our error type, a crash with its last lines. Returns its result."""
+    from .runtime import ChildJob, child_command
+
+    progress(ProgressEvent(step=0, total=1, stage=stage, kind="message", message=f"{stage}: {job} job"))
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    workdir = log_path.parent / f".{stage}_job"
     with open(log_path, "w", encoding="utf-8") as log:
-        result = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT, text=True)
-    if result.returncode != 0:
-        tail = log_path.read_text(encoding="utf-8", errors="replace").strip().splitlines()[-8:]
-        raise ESGSError(f"the {stage} stage failed (exit {result.returncode}): " + " | ".join(tail),
-                        path=log_path, hint="see the log for the whole output")
+        child = ChildJob(job, config, workdir=workdir, command=child_command(sys.executable),
+                         on_output=lambda line: print(line, file=log, flush=True))
+        child.task = f"{stage} stage"
+        state = child.start().wait(poll_s=0.2)
+    if state.status == "finished":
+        return child.result
+    if child.error is not None:
+        raise child.error
+    tail = log_path.read_text(encoding="utf-8", errors="replace").strip().splitlines()[-8:]
+    raise ESGSError(f"the {stage} stage failed (exit {state.returncode}): " + " | ".join(tail),
+                    path=log_path, hint="see the log for the whole output")
 
 
 def make_scene(config: DemoConfig, progress: ProgressCallback) -> Path:
@@ -141,10 +162,12 @@ def make_scene(config: DemoConfig, progress: ProgressCallback) -> Path:
         return scene
     rendered = scene if config.sparse_points == "exact" else config.out / "scene_rendered"
     if not SceneDir(rendered).provenance.is_file():
-        command = [sys.executable, "-m", "esgs.core", "scene", "--preset", config.preset, "--seed", str(config.seed),
-                   "--views", str(config.views), "--resolution", f"{config.width}x{config.height}",
-                   "--samples", str(config.samples), "--out", str(rendered)]
-        _run_command(command, "scene", progress, config.out / "logs" / "scene.log")
+        from .commands.scene import SceneJob, check_request
+
+        job = SceneJob(preset=config.preset, seed=config.seed, views=config.views, width=config.width,
+                       height=config.height, samples=config.samples)
+        check_request(job, rendered)  # bad settings or no bpy fail here, before Blender starts
+        _run_stage("scene", {"job": job, "out": str(rendered)}, "scene", progress, config.out / "logs" / "scene.log")
     if config.sparse_points == "triangulated":
         from .experiments.sfm_scene import make_sfm_scene
 
@@ -210,24 +233,18 @@ def _snapshot_hook(folder: Path, steps: list[int]):
     import torch
 
     from .imageio import write_png
-    from .method.gpdfn_hook import GPDFNHook
-    from .train.hooks import TrainHook
+    from .train.hooks import RunView, TrainHook
 
     class SnapshotHook(TrainHook):
         name = "demo_snapshots"
 
-        def setup(self, trainer: Any) -> None:
-            self.view = (trainer.data.test or trainer.data.train)[0]
+        def setup(self, run: RunView) -> None:
+            self.view = (run.test_views or run.train_views)[0]
 
-        def after_backward(self, trainer: Any, context: Any) -> None:
+        def after_backward(self, run: RunView, context: Any) -> None:
             if context.step not in steps:
                 return
-            with torch.no_grad():
-                params = trainer.gaussians.render_params(context.sh_degree)
-                for hook in trainer.hooks:
-                    if isinstance(hook, GPDFNHook):
-                        params = hook.before_render(trainer, context, params)
-                output = trainer.render(params, self.view)
+            output = run.render_model(self.view, sh_degree=context.sh_degree)
             image = (output.image.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
             write_png(folder / f"step_{context.step:06d}.png", image)
 
@@ -237,10 +254,9 @@ def _snapshot_hook(folder: Path, steps: list[int]):
 def train_method(config: DemoConfig, scene: Path, name: str, esgs: dict, progress: ProgressCallback,
                  snapshots: bool) -> dict:
     """Train one method into OUT/runs/<name> (skipped when already finished); returns its result.json."""
-    from .config import config_from_dict
-    from .method import ESGSConfig
+    from .methods import train
     from .progress import JsonLinesProgress, combine
-    from .train import TrainConfig, train
+    from .train import TrainConfig
 
     run = config.out / "runs" / name
     _check_same_settings(run, esgs, {"iterations": config.iterations, "max_gaussians": config.max_gaussians})
@@ -251,7 +267,8 @@ def train_method(config: DemoConfig, scene: Path, name: str, esgs: dict, progres
         return _run_summary(run)
     train_config = TrainConfig(scene=scene, out=run, iterations=config.iterations, max_gaussians=config.max_gaussians,
                                threads=config.threads, resume=RunDir(run).has_checkpoints(),
-                               esgs=config_from_dict(ESGSConfig, esgs), progress_every=20)
+                               method="esgs" if esgs else "3dgs", method_config=_esgs_settings_of(esgs),
+                               progress_every=20)
     hooks = []
     if snapshots and config.snapshots > 0:
         steps = sorted({max(1, round(config.iterations * (i + 1) / config.snapshots)) for i in range(config.snapshots)})
@@ -278,7 +295,10 @@ def _check_same_settings(run: Path, esgs: dict, train: dict) -> None:
         saved = json.loads(saved_path.read_text())
     except (OSError, json.JSONDecodeError):
         return  # a damaged config: the trainer's own resume check reports it
-    saved_esgs = saved.get("esgs") or {}
+    from .train.config import with_predating_values
+
+    saved = with_predating_values(saved)  # runs saved before methods were registered, too
+    saved_esgs = (saved.get("method_config") or {}) if saved.get("method") == "esgs" else {}
     differences = [f"{key} {saved_esgs.get(key)!r} -> {value!r}" for key, value in esgs.items()
                    if saved_esgs.get(key, _DEFAULT_ESGS.get(key)) != value]
     differences += [f"{key} {saved.get(key)!r} -> {value!r}" for key, value in train.items() if saved.get(key) != value]
@@ -341,10 +361,9 @@ def run_demo(config: DemoConfig, progress: ProgressCallback = no_progress) -> Pa
     blender: Optional[dict] = None
     if config.blender:
         started = clock.start()
-        command = [sys.executable, "-m", "esgs.esgs_addon.results_scene", "--scene", str(scene),
-                   "--run", str(config.out / "runs" / "esgs"), "--out", str(config.out / "blender")]
+        request = {"scene": str(scene), "run": str(config.out / "runs" / "esgs"), "out": str(config.out / "blender")}
         try:
-            _run_command(command, "blender", progress, config.out / "logs" / "blender.log")
+            _run_stage("results_scene", request, "blender", progress, config.out / "logs" / "blender.log")
             blender = json.loads((config.out / "blender" / "compare.json").read_text())
             blender["heat_map"] = str(config.out / "blender" / "heat_map.png")
             blender["blend"] = str(config.out / "blender" / "results.blend")

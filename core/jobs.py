@@ -93,6 +93,11 @@ class TrainingJob(ChildJob):
     def initial_total(self) -> int:
         return self.iterations
 
+    def stopped_early(self) -> bool:
+        # the trainer ends a stopped run normally (checkpoint, PLY, a "done" event), so only
+        # its result tells a stop from a finished run
+        return isinstance(self.result, dict) and self.result.get("status") == "interrupted"
+
     def config_for_child(self, resume: bool = False) -> dict[str, Any]:
         """The TrainConfig dict the child reads: ``config`` with this job's folders and steps."""
         data = config_data(self.config)

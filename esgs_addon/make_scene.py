@@ -5,9 +5,9 @@ Run with a Python that has the ``bpy`` module::
     python -m esgs.esgs_addon.make_scene --preset cratered_plain --seed 3 --views 30 \\
         --resolution 480x270 --out scenes/plain_s3
 
-(``esgs scene`` runs exactly this in a child process; ``examples/make_mars_scene.py`` wraps
-it for ``blender -b --python``.) Blocking; progress goes to the console, or as
-``ESGS_EVENT <json>`` lines on stdout with ``--events-stdout``.
+(``examples/make_mars_scene.py`` wraps it for ``blender -b --python``.) Blocking; progress
+goes to the console. ``esgs scene`` runs :func:`make_scene` as the ``"scene"`` job of the
+child-process runtime (:func:`child_job`, see :mod:`esgs.core.runtime`).
 """
 from __future__ import annotations
 
@@ -16,7 +16,6 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from ..core.blender_child import print_event, report_error
 from ..core.commands.scene import add_arguments, job_from_args
 from ..core.errors import ESGSError
 from ..core.progress import ConsoleProgress, JsonLinesProgress, combine
@@ -25,7 +24,6 @@ from ..core.progress import ConsoleProgress, JsonLinesProgress, combine
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="make_scene", description=__doc__.splitlines()[0])
     add_arguments(parser)
-    parser.add_argument("--events-stdout", action="store_true", help="print progress as ESGS_EVENT JSON lines on stdout")
     parser.add_argument("--save-blend", type=Path, default=None, help="also save the generated scene as this .blend file")
     return parser
 
@@ -62,24 +60,34 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         print("\n".join(list_presets()))
         return 0
-    console = None if args.events_stdout else ConsoleProgress()
+    console = ConsoleProgress()
     events = JsonLinesProgress(args.events) if args.events else None
-    progress = combine(print_event if args.events_stdout else console, events)
+    progress = combine(console, events)
     try:
         if args.out is None:
             parser.error("--out is required")
         job = job_from_args(args)
         out = make_scene(job, args.out, progress=progress, save_blend=args.save_blend)
     except ESGSError as error:
-        return report_error(error, program="make_scene", events_stdout=args.events_stdout)
+        print(f"make_scene: error: {error}", file=sys.stderr)
+        return 2
     finally:
-        if console is not None:
-            console.close()
+        console.close()
         if events is not None:
             events.close()
-    if not args.events_stdout:
-        print(f"make_scene: wrote {out}", file=sys.stderr)
+    print(f"make_scene: wrote {out}", file=sys.stderr)
     return 0
+
+
+def child_job(data: dict, context) -> dict:
+    """The ``"scene"`` job of the child-process runtime: ``data`` is ``{"job": SceneJob as a
+    dict, "out": folder}`` (see :func:`esgs.core.commands.scene.render_scene`); returns ``{"out": folder}``."""
+    from ..core.commands.scene import SceneJob
+    from ..core.config import config_from_dict
+
+    job = config_from_dict(SceneJob, data["job"], source=context.config_path)
+    out = make_scene(job, Path(data["out"]), progress=context.progress)
+    return {"out": str(out)}
 
 
 if __name__ == "__main__":

@@ -10,9 +10,9 @@ Everything happens in a temporary Blender scene holding only the imported camera
 mesh; it and every datablock it used are removed afterwards (also on failure), so the
 user's file is left as it was and no other object can show up in the labels.
 
-Headless, in a child process (what ``esgs labels`` runs)::
-
-    python -m esgs.esgs_addon.render_labels SCENE --mesh MESH [--method mesh] [--events-stdout]
+Headless: ``python -m esgs.esgs_addon.render_labels SCENE --mesh MESH [--method mesh]``.
+``esgs labels`` runs :func:`child_job`, the ``"render_labels"`` job of the child-process
+runtime (:mod:`esgs.core.runtime`).
 """
 from __future__ import annotations
 
@@ -169,35 +169,40 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max-hole-fraction", type=float, default=FillOptions.max_hole_fraction)
     parser.add_argument("--edge-radius-px", type=int, default=FillOptions.edge_radius_px)
     parser.add_argument("--metadata", default="{}", help="JSON object of extra metadata strings")
-    parser.add_argument("--events-stdout", action="store_true")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``python -m esgs.esgs_addon.render_labels`` (see the module docstring)."""
-    from ..core.blender_child import print_event, report_error
     from ..core.progress import ConsoleProgress
 
     args = build_parser().parse_args(argv)
-    console = None if args.events_stdout else ConsoleProgress()
-
-    def emit(event: ProgressEvent) -> None:
-        if args.events_stdout:
-            print_event(event)
-        else:
-            console(event)
-
+    console = ConsoleProgress()
     try:
         bpy.ops.wm.read_factory_settings(use_empty=True)
         render_labels(args.scene, args.mesh, method=args.method, samples=args.samples, smooth=not args.flat,
                       fill=FillOptions(max_hole_fraction=args.max_hole_fraction, edge_radius_px=args.edge_radius_px),
-                      metadata=json.loads(args.metadata), gaps_path=args.gaps, progress=emit)
+                      metadata=json.loads(args.metadata), gaps_path=args.gaps, progress=console)
     except ESGSError as error:
-        return report_error(error, program="render_labels", events_stdout=args.events_stdout)
+        print(f"render_labels: error: {error}", file=sys.stderr)
+        return 2
     finally:
-        if console is not None:
-            console.close()
+        console.close()
     return 0
+
+
+def child_job(data: dict[str, Any], context: Any) -> dict[str, Any]:
+    """The ``"render_labels"`` job of the child-process runtime: ``data`` holds
+    :func:`render_labels`' arguments (``scene``, ``mesh``, ``method``, ``samples``, ``smooth``,
+    ``fill`` as a FillOptions dict, ``metadata``, ``gaps``) in a fresh Blender file."""
+    from ..core.config import config_from_dict
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    fill = config_from_dict(FillOptions, data.get("fill") or {}, source=context.config_path)
+    return render_labels(data["scene"], data["mesh"], method=data.get("method", "mesh"),
+                         samples=int(data.get("samples", 0)), smooth=bool(data.get("smooth", True)), fill=fill,
+                         metadata=dict(data.get("metadata") or {}), gaps_path=data.get("gaps"),
+                         progress=context.progress)
 
 
 if __name__ == "__main__":

@@ -2,7 +2,8 @@
 
 ``build_results_blend(scene_dir, run_dir, out_dir)`` is what the demo (and a user after
 training) calls; ``python -m esgs.esgs_addon.results_scene --scene S --run R --out O`` runs
-it headless with the bpy module (core spawns it that way, since core never imports bpy).
+it headless with the bpy module; the demo runs :func:`child_job`, the ``"results_scene"`` job of
+the child-process runtime (:mod:`esgs.core.runtime`), since core never imports bpy.
 """
 from __future__ import annotations
 
@@ -109,6 +110,16 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(json.dumps({k: summary[k] for k in ("blend", "heat_map", "precision", "recall", "fscore")}))
     return 0
+
+
+def child_job(data: dict, context: Any) -> dict:
+    """The ``"results_scene"`` job of the child-process runtime (the demo's Blender stage):
+    ``data`` holds ``scene``, ``run``, ``out`` and optionally ``opacity_min``, ``threshold_m``;
+    returns the .blend and heat-map paths and the comparison's precision, recall and F-score."""
+    summary = build_results_blend(Path(data["scene"]), Path(data["run"]), Path(data["out"]),
+                                  opacity_min=float(data.get("opacity_min", 0.5)),
+                                  threshold_m=float(data.get("threshold_m", 0.05)))
+    return {k: summary[k] for k in ("blend", "heat_map", "precision", "recall", "fscore")}
 
 
 if __name__ == "__main__":

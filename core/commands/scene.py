@@ -2,12 +2,10 @@
 
 Rendering needs Blender (the ``bpy`` module or a Blender binary), which ``core`` never
 imports. This command checks the request here (bad settings fail at once, before any
-work), then runs ``python -m esgs.esgs_addon.make_scene`` with the same arguments in a
-child process and relays its progress events to the console.
-
-The child speaks the line protocol of :mod:`esgs.core.blender_child` (progress events and
-a handled failure as prefixed JSON lines); every other line it prints (Blender's own log) is
-shown only with ``--verbose``.
+work), then runs the ``"scene"`` job of the child-process runtime (:mod:`esgs.core.runtime`,
+the add-on's ``make_scene``) with the SceneJob as its config file and relays its progress
+events to the console. The child's own output (Blender's log) is shown only with ``--verbose``.
+:func:`render_scene` is the same for scripts (the demo, the bench, the NDN data builder).
 """
 from __future__ import annotations
 
@@ -127,26 +125,45 @@ def job_from_args(args: argparse.Namespace) -> SceneJob:
     return job
 
 
-def child_arguments(job: SceneJob, out: Path) -> list[str]:
-    """Command-line arguments reproducing ``job`` for :mod:`esgs.esgs_addon.make_scene`."""
-    arguments = ["--preset", job.preset, "--seed", str(job.seed), "--views", str(job.views),
-                 "--samples", str(job.samples), "--points-per-view", str(job.points_per_view), "--out", str(out)]
-    if job.config:
-        arguments += ["--config", job.config]
-    if job.mesh:
-        arguments += ["--mesh", job.mesh, "--rig", job.rig, "--mast-height-m", repr(job.mast_height_m)]
-    if job.width:
-        arguments += ["--resolution", f"{job.width}x{job.height}"]
-    arguments.append("--sfm" if job.sfm else "--no-sfm")
-    arguments.append("--overwrite" if job.overwrite else "--no-overwrite")
-    return arguments
+def render_scene(job: SceneJob, out: str | Path, progress: Any = None, *, verbose: bool = False) -> Path:
+    """Generate, render and export the scene of ``job`` into ``out`` in a Blender child process.
+
+    Bad settings, an existing ``out`` (without ``job.overwrite``) and a Python without the
+    bpy module fail here, before Blender starts. Returns ``out``.
+
+    Raises:
+        ConfigError, DatasetError: here or from the child (the same type).
+    """
+    from ..progress import no_progress
+    from ..runtime import run_job
+
+    out = Path(out)
+    check_request(job, out)
+    run_job("scene", {"job": job, "out": str(out)}, progress or no_progress, task="scene generation",
+            verbose=verbose)
+    return out
+
+
+def check_request(job: SceneJob, out: Path) -> Any:
+    """Fail before Blender starts: bad settings, an existing ``out`` (without overwrite), no
+    bpy module. Returns the job's validated scene config."""
+    import importlib.util
+
+    from ..errors import ConfigError
+
+    config = job.scene_config()
+    if out.exists() and not job.overwrite:
+        raise ConfigError("output folder already exists", path=out, hint="choose another folder or pass --overwrite")
+    if importlib.util.find_spec("bpy") is None:
+        raise ConfigError("rendering needs Blender's bpy module, which this Python does not have",
+                          hint="pip install bpy==5.0.1, or run: blender -b --python examples/make_mars_scene.py -- "
+                               "--preset ... --out DIR")
+    return config
 
 
 def run(args: argparse.Namespace) -> int:
-    import importlib.util
     import sys
 
-    from ..blender_child import run_child
     from ..errors import ConfigError
     from ..progress import ConsoleProgress, JsonLinesProgress, combine
 
@@ -159,22 +176,15 @@ def run(args: argparse.Namespace) -> int:
     if args.out is None:
         raise ConfigError("--out is required", hint="e.g. esgs scene --preset cratered_plain --out scenes/plain")
     job = job_from_args(args)
-    config = job.scene_config()  # bad settings fail here, before Blender starts
     out = Path(args.out)
-    if out.exists() and not job.overwrite:
-        raise ConfigError("output folder already exists", path=out, hint="choose another folder or pass --overwrite")
-    if importlib.util.find_spec("bpy") is None:
-        raise ConfigError("rendering needs Blender's bpy module, which this Python does not have",
-                          hint="pip install bpy==5.0.1, or run: blender -b --python examples/make_mars_scene.py -- "
-                               "--preset ... --out DIR")
+    config = check_request(job, out)
     console = ConsoleProgress()
     events = JsonLinesProgress(args.events) if args.events else None
     progress = combine(console, events)
     print(f"esgs scene: {config.name}, seed {config.seed}, {config.rig.views} views at "
           f"{config.render.width}x{config.render.height}, {config.render.samples} samples -> {out}", file=sys.stderr)
-    command = [sys.executable, "-m", "esgs.esgs_addon.make_scene", *child_arguments(job, out), "--events-stdout"]
     try:
-        run_child(command, progress, verbose=args.verbose, task="scene generation")
+        render_scene(job, out, progress, verbose=args.verbose)
     finally:
         console.close()
         if events is not None:

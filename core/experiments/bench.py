@@ -19,13 +19,12 @@ from __future__ import annotations
 
 import datetime
 import platform
-import subprocess
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
 from ..errors import ConfigError, ESGSError
+from ..runtime import run_job
 from ..scene_dir import PriorSource, SceneDir, names
 from .ablate import available_priors
 from .runs import RunTask
@@ -80,22 +79,37 @@ SUITES = {
 
 @dataclass(frozen=True)
 class Method:
-    """A compared method: TrainConfig ``esgs``/``baselines`` values; ``priors``: needs prior maps;
-    ``prior_source``: a fixed ``priors/<source>`` ("" = the bench's choice, see :func:`plan_bench`)."""
+    """A compared row: ``method`` (a registered training method) with ``settings`` (fields of
+    its settings dataclass; ``full``: start from :func:`esgs.core.methods.full_esgs` for the
+    row's prior source); ``priors``: needs prior maps; ``prior_source``: a fixed
+    ``priors/<source>`` ("" = the bench's choice, see :func:`plan_bench`)."""
 
     key: str
     label: str
-    esgs: tuple = ()
-    baselines: tuple = ()
+    method: str = "3dgs"
+    settings: tuple = ()
+    full: bool = False
     priors: bool = False
     prior_source: str = ""
 
+    def method_config(self, source: str, scene: Path) -> Optional[dict]:
+        """The row's ``method_config`` on ``scene`` with prior source ``source``."""
+        from ..config import config_to_dict
+        from ..methods import full_esgs
 
-def _method(key: str, label: str, *, esgs: Optional[dict] = None, baselines: Optional[dict] = None,
+        if self.full:
+            return config_to_dict(full_esgs(source, scene=scene, **dict(self.settings)))
+        settings = dict(self.settings)
+        if self.priors:
+            settings["priors"] = source
+        return settings or None
+
+
+def _method(key: str, label: str, method: str = "3dgs", *, settings: Optional[dict] = None, full: bool = False,
             prior_source: str = "") -> Method:
-    esgs = esgs or {}
-    return Method(key, label, tuple(sorted(esgs.items())), tuple(sorted((baselines or {}).items())),
-                  priors=bool(esgs.get("depth") or esgs.get("normal")), prior_source=prior_source)
+    settings = settings or {}
+    return Method(key, label, method, tuple(sorted(settings.items())), full,
+                  priors=full or bool(settings.get("depth") or settings.get("normal")), prior_source=prior_source)
 
 
 #: Where the prior-based rows may take their priors from (``--priors``).
@@ -105,19 +119,18 @@ COMPUTED_PRIOR_SOURCES = names(PriorSource.computed())
 #: ... and those :func:`ensure_priors` can (``labels``: ``esgs labels --reconstruct``, needs bpy).
 ENSURED_PRIOR_SOURCES = (*COMPUTED_PRIOR_SOURCES, *names(tuple(s for s in PriorSource if s.made_by_labels)))
 UPPER_BOUND_KEY = "esgs_full_gt"
-_FULL_ESGS = {"depth": True, "normal": True, "gpdfn": True, "fused_k": 3}
 
 
 METHODS = (
     _method("3dgs", "3DGS"),
-    _method("mip_splatting", "Mip-Splatting", baselines={"mip_splatting": True}),
-    _method("dropout_gs", "DropoutGS", baselines={"dropout_gs": True, "dropout_rate": 0.1}),
-    _method("esgs_depth", "ESGS: depth prior", esgs={"depth": True}),
-    _method("esgs_normal", "ESGS: normal prior", esgs={"normal": True}),
-    _method("esgs_depth_normal", "ESGS: depth + normal", esgs={"depth": True, "normal": True}),
-    _method("esgs_full", "ESGS (depth + normal + GPDFN)", esgs=_FULL_ESGS),
+    _method("mip_splatting", "Mip-Splatting", "mip-splatting"),
+    _method("dropout_gs", "DropoutGS", "dropout-gs", settings={"dropout_rate": 0.1}),
+    _method("esgs_depth", "ESGS: depth prior", "esgs", settings={"depth": True}),
+    _method("esgs_normal", "ESGS: normal prior", "esgs", settings={"normal": True}),
+    _method("esgs_depth_normal", "ESGS: depth + normal", "esgs", settings={"depth": True, "normal": True}),
+    _method("esgs_full", "ESGS (depth + normal + GPDFN)", "esgs", full=True),
     # not a method a user can run on real data: the same ESGS fed the exact synthetic depth and normals
-    _method(UPPER_BOUND_KEY, "ESGS, ground-truth priors (upper bound)", esgs=_FULL_ESGS, prior_source="gt"),
+    _method(UPPER_BOUND_KEY, "ESGS, ground-truth priors (upper bound)", "esgs", full=True, prior_source="gt"),
 )
 
 
@@ -138,29 +151,35 @@ def ensure_priors(scene: Path, source: str) -> Path:
         raise ConfigError(f"the scene has no {source} priors and the bench cannot compute them", path=scene,
                           hint=f"use --priors {' or '.join(COMPUTED_PRIOR_SOURCES)}, or a scene made by esgs scene")
     if source == "labels":
-        command = [sys.executable, "-m", "esgs.core.cli", "labels", str(scene), "--reconstruct"]
+        from ..labels.pipeline import LabelJob
+
+        job, config, what, options = "labels", LabelJob(scene=scene, reconstruct=True), "esgs labels", "--reconstruct"
     else:
-        command = [sys.executable, "-m", "esgs.core.cli", "priors", str(scene), "--method", source]
-    completed = subprocess.run(command, capture_output=True, text=True)
-    if completed.returncode != 0:
-        raise ESGSError(f"esgs {command[3]} {' '.join(command[5:])} failed: "
-                        f"{completed.stdout[-500:]}{completed.stderr[-1500:]}",
-                        path=scene, hint="run the command by hand: esgs " + " ".join(command[3:]))
+        # the PriorsSettings fields as a dict: the child builds the dataclass
+        job, config, what, options = "priors", {"scene": str(scene), "method": source}, "esgs priors", f"--method {source}"
+    try:
+        run_job(job, config, task=f"{what} {options}")
+    except ESGSError as error:
+        raise type(error)(f"{what} {options} failed: {error.message}", path=error.path or scene,
+                          hint=error.hint or f"run the command by hand: {what} {scene} {options}") from error
     return folder
 
 
 def make_scene(preset: str, seed: int, suite: BenchSuite, scenes_dir: Path) -> Path:
     """``esgs scene`` into ``scenes_dir/<preset>_s<seed>`` unless it is there (the folder appears complete)."""
+    from ..commands.scene import SceneJob, parse_resolution, render_scene
+
     folder = Path(scenes_dir) / suite.scene_folder_name(preset, seed)
     if SceneDir(folder).has_model():
         return folder
-    command = [sys.executable, "-m", "esgs.core.cli", "scene", "--preset", preset, "--seed", str(seed),
-               "--views", str(suite.views), "--resolution", suite.resolution, "--samples", str(suite.samples),
-               "--points-per-view", str(suite.points_per_view), "--out", str(folder)]
-    completed = subprocess.run(command, capture_output=True, text=True)
-    if completed.returncode != 0:
-        raise ESGSError(f"esgs scene failed for {preset} seed {seed}: {completed.stdout[-500:]}{completed.stderr[-1500:]}",
-                        path=folder, hint="run the command by hand: " + " ".join(command[1:]))
+    width, height = parse_resolution(suite.resolution)
+    job = SceneJob(preset=preset, seed=seed, views=suite.views, width=width, height=height, samples=suite.samples,
+                   points_per_view=suite.points_per_view)
+    try:
+        render_scene(job, folder)
+    except ESGSError as error:
+        raise type(error)(f"esgs scene failed for {preset} seed {seed}: {error.message}", path=error.path or folder,
+                          hint=error.hint) from error
     return folder
 
 
@@ -188,17 +207,17 @@ def plan_bench(scenes: dict[str, tuple[Path, int]], out: Path, *, iterations: in
         found = available_priors(folder)
         mesh = SceneDir(folder).ground_truth_mesh
         for method in methods:
-            esgs = dict(method.esgs)
+            source = method.prior_source or priors
+            method_config = method.method_config(source, folder)
             if method.priors:
-                source = method.prior_source or priors
-                needed = {kind for kind in ("depth", "normal") if esgs.get(kind)}
+                needed = {kind for kind in ("depth", "normal") if (method_config or {}).get(kind)}
                 if not needed <= found.get(source, set()):
                     notes.append(f"{method.label} skipped on {scene_name}: no {source} "
                                  f"{'/'.join(sorted(needed))} priors")
                     continue
-                esgs["priors"] = source
             for mode, folder_name, schedule in modes:
-                config = {**(train or {}), **schedule, "seed": seed, "esgs": esgs, "baselines": dict(method.baselines)}
+                config = {**(train or {}), **schedule, "seed": seed, "method": method.method,
+                          "method_config": method_config}
                 suffix = "" if mode == "steps" else "@budget"
                 tasks.append(RunTask(name=f"{scene_name}/{method.key}{suffix}", scene=folder,
                                      out=Path(out) / folder_name / scene_name / method.key, config=config,

@@ -1,21 +1,20 @@
 """The whole label job without Blender in this process: reconstruct (optional), render in a
 Blender child process, report. What ``esgs labels`` runs; scripts can call it too.
 
-The rendering needs the ``bpy`` module, which ``core`` never imports: it runs
-``python -m esgs.esgs_addon.render_labels`` and relays the child's progress lines
-(the protocol of :mod:`esgs.core.blender_child`, shared with ``esgs scene``).
+The rendering needs the ``bpy`` module, which ``core`` never imports: it runs the
+``"render_labels"`` job of the child-process runtime (:mod:`esgs.core.runtime`) and relays
+the child's progress events.
 """
 from __future__ import annotations
 
 import json
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..blender_child import run_child
 from ..errors import ConfigError, DatasetError
 from ..progress import ProgressCallback, no_progress
+from ..runtime import run_job
 from .fill import FillOptions
 from ..scene_dir import PriorSource, SceneDir
 from .reconstruct import ReconstructOptions
@@ -101,15 +100,10 @@ def run_label_job(job: LabelJob, progress: ProgressCallback = no_progress, *, ve
     else:
         mesh = Path(job.mesh)
         method = "mesh"
-    command = [sys.executable, "-m", "esgs.esgs_addon.render_labels", str(job.scene), "--mesh", str(mesh),
-               "--method", method, "--samples", str(job.samples),
-               "--max-hole-fraction", repr(job.fill.max_hole_fraction), "--edge-radius-px", str(job.fill.edge_radius_px),
-               "--metadata", json.dumps(metadata), "--events-stdout"]
-    if not job.smooth:
-        command.append("--flat")
-    if gaps is not None:
-        command += ["--gaps", str(gaps)]
-    run_child(command, progress, verbose=verbose, task="label rendering")
+    request = {"scene": str(job.scene), "mesh": str(mesh), "method": method, "samples": job.samples,
+               "smooth": job.smooth, "fill": job.fill, "metadata": metadata,
+               "gaps": None if gaps is None else str(gaps)}
+    run_job("render_labels", request, progress, verbose=verbose, task="label rendering")
     labels = json.loads(SceneDir(job.scene).labels_report.read_text())
     accuracy = None
     if job.report:

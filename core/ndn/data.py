@@ -23,14 +23,12 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, DatasetError
+from ..errors import ConfigError, DatasetError, ESGSError
 from ..io_utils import atomic_path, atomic_write_json
 from ..progress import ProgressCallback, ProgressEvent, no_progress
 from .config import DEPTH_STATES, NDNDataConfig
@@ -310,6 +308,14 @@ def check_disjoint_splits(data_dir: str | Path, splits: tuple[str, ...] = SPLITS
                     seen_views[digest] = split
 
 
+def render_scene(preset: str, seed: int, *, views: int, width: int, height: int, samples: int, out: Path) -> Path:
+    """Render one synthetic scene folder (``esgs scene``'s job, in a Blender child process)."""
+    from ..commands.scene import SceneJob, render_scene as render
+
+    job = SceneJob(preset=preset, seed=seed, views=views, width=width, height=height, samples=samples)
+    return render(job, out)
+
+
 def build_dataset(out_dir: str | Path, scenes: int, *, heldout: int = 1, validation: int = 0, presets: tuple[str, ...] = TRAIN_PRESETS,
                   heldout_presets: tuple[str, ...] = (), views: int = 8, width: int = 160, height: int = 90,
                   samples: int = 8, working_size: int = 128, multiple: int = 4, keep_scenes: bool = False,
@@ -341,13 +347,11 @@ def build_dataset(out_dir: str | Path, scenes: int, *, heldout: int = 1, validat
         work = Path(tempfile.mkdtemp(prefix=f".{preset}_{seed}.", dir=out_dir))
         scene_dir = work / "scene"
         try:
-            command = [sys.executable, "-m", "esgs.core.cli", "scene", "--preset", preset, "--seed", str(seed),
-                       "--views", str(views), "--resolution", f"{width}x{height}", "--samples", str(samples),
-                       "--out", str(scene_dir)]
-            completed = subprocess.run(command, capture_output=True, text=True)
-            if completed.returncode != 0:
-                raise DatasetError(f"rendering scene {preset} seed {seed} failed (exit {completed.returncode}): "
-                                   f"{completed.stderr.strip()[-500:]}", path=scene_dir)
+            try:
+                render_scene(preset, seed, views=views, width=width, height=height, samples=samples, out=scene_dir)
+            except ESGSError as error:
+                raise DatasetError(f"rendering scene {preset} seed {seed} failed: {error.message}",
+                                   path=error.path or scene_dir, hint=error.hint) from error
             triples = scene_triples(scene_dir, working_size, multiple)
             write_shard(shard, triples, {"preset": preset, "seed": seed, "split": split})
             if keep_scenes:

@@ -77,8 +77,8 @@ def entry_point(job: str) -> EntryPoint:
 
 
 def load_job_function(job: str, package: str = PACKAGE) -> Callable[[dict[str, Any], Any], Any]:
-    """Import and return the child-side function of ``job`` (child side only: this may
-    import bpy). ``package`` is the top-level package the child runs in."""
+    """Import and return the child-side function of ``job`` (child side only: a Blender
+    job's module needs the bpy module). ``package`` is the child's top-level package."""
     entry = entry_point(job)
     module = importlib.import_module(f"{package}.{entry.module}")
     return getattr(module, entry.function)

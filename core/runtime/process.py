@@ -253,6 +253,11 @@ class ChildJob:
         """The progress total shown before the first event."""
         return 0
 
+    def stopped_early(self) -> bool:
+        """Whether the child's result says it stopped on request before its end (subclasses
+        whose job reports that in its result override this; the trainer's "interrupted")."""
+        return False
+
     def check(self) -> None:
         """Fail before starting for what would make the child fail (subclasses override)."""
 
@@ -402,7 +407,7 @@ class ChildJob:
             self.error = error_from_dict(record["error"])
         self.result = record.get("result")
         stopped = record.get("status") == "cancelled" or returncode == EXIT_CANCELLED
-        if self._cancel_requested and not self._done_event_seen or stopped:
+        if self._cancel_requested and not self._done_event_seen or stopped or self.stopped_early():
             self._finish(CANCELLED, returncode=returncode)
         elif returncode == 0 and self.error is None and not self._error_event_message:
             self._finish(FINISHED, returncode=returncode)

@@ -1,9 +1,12 @@
 """``core`` must import in a Python where bpy (and the Blender-side packages) cannot be imported."""
 from __future__ import annotations
 
+import ast
+import importlib
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 SCRIPT = textwrap.dedent(
     """
@@ -60,4 +63,55 @@ def test_core_sources_never_mention_blender_imports():
                 stripped.startswith("from ..") and any(p in stripped for p in ("esgs_addon", "operators", "panels"))
             ):
                 offenders.append(f"{path.relative_to(root)}:{number}: {stripped}")
+    assert not offenders, offenders
+
+
+def test_every_child_entry_point_resolves_to_a_module():
+    """The registry names modules that exist (found without importing them, so no bpy)."""
+    import importlib.util
+
+    from esgs.core.runtime.entry_points import CHILD_MODULE, ENTRY_POINTS
+
+    assert {"train", "priors", "labels", "scene", "render_labels", "results_scene"} <= set(ENTRY_POINTS)
+    assert importlib.util.find_spec(CHILD_MODULE) is not None
+    for name, entry in ENTRY_POINTS.items():
+        module = entry.absolute_module
+        assert importlib.util.find_spec(module) is not None, f"{name}: {module} not found"
+        if not entry.needs_bpy:  # the others import bpy: read their source instead
+            assert callable(getattr(importlib.import_module(module), entry.function)), name
+        source = Path(importlib.util.find_spec(module).origin).read_text(encoding="utf-8")
+        assert f"def {entry.function}(" in source, f"{name}: no {entry.function} in {module}"
+
+
+def _code_strings(tree: ast.AST) -> list[tuple[int, str]]:
+    """String constants of a module that are not docstrings, with their line numbers."""
+    docstrings = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+            body = node.body
+            if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
+                docstrings.add(id(body[0].value))
+    return [(node.lineno, node.value) for node in ast.walk(tree)
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docstrings]
+
+
+def test_no_core_module_names_a_child_module_by_hand():
+    """Only the runtime's registry names add-on modules or our own ``-m`` command lines, so
+    the test above covers every child a core module starts."""
+    core = Path(__file__).resolve().parents[2] / "core"
+    runtime = core / "runtime"
+    offenders = []
+    for path in sorted(core.rglob("*.py")):
+        if runtime in path.parents:
+            continue
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for line, text in _code_strings(tree):
+            if "esgs.esgs_addon" in text or "esgs_addon." in text:
+                offenders.append(f"{path.relative_to(core)}:{line}: {text!r}")
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.List, ast.Tuple)):
+                items = [e.value if isinstance(e, ast.Constant) else None for e in node.elts]
+                for first, second in zip(items, items[1:]):
+                    if first == "-m" and isinstance(second, str) and second.startswith("esgs"):
+                        offenders.append(f"{path.relative_to(core)}:{node.lineno}: -m {second}")
     assert not offenders, offenders

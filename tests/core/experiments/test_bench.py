@@ -59,7 +59,8 @@ def test_suites_name_their_presets_and_the_plan_skips_methods_without_priors(tmp
     assert {t.variant for t in tasks if t.scene_name == "bare"} == {"3DGS", "Mip-Splatting", "DropoutGS"}
     assert len(notes) == 5 and all("bare" in note for note in notes)
     full = next(t for t in tasks if t.name == "tiny/esgs_full")
-    assert full.config["esgs"]["priors"] == "gt" and full.config["esgs"]["gpdfn"] is True
+    assert full.config["method"] == "esgs"
+    assert full.config["method_config"]["priors"] == "gt" and full.config["method_config"]["gpdfn"] is True
 
 
 def test_the_report_names_the_prior_source_and_labels_the_upper_bound():
@@ -76,7 +77,7 @@ def test_prior_rows_use_the_chosen_source_and_only_the_labelled_upper_bound_row_
     tasks, notes = plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=5)
     planned = {t.name.split("/")[1]: t for t in tasks}
     assert set(planned) == {"3dgs", "mip_splatting", "dropout_gs", UPPER_BOUND_KEY}
-    assert planned[UPPER_BOUND_KEY].config["esgs"]["priors"] == "gt" and "upper bound" in planned[UPPER_BOUND_KEY].variant
+    assert planned[UPPER_BOUND_KEY].config["method_config"]["priors"] == "gt" and "upper bound" in planned[UPPER_BOUND_KEY].variant
     assert len(notes) == 4 and all("no ndn" in note for note in notes)
     with pytest.raises(ConfigError, match="labels"):
         plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=5, priors="labels")
@@ -91,7 +92,7 @@ def test_the_bench_computes_missing_sfm_priors_and_plans_its_rows_on_them(tmp_pa
     assert folder == copy / "priors" / "sfm" and sorted(p.name for p in (folder / "depth").glob("*.exr"))
     assert ensure_priors(copy, "sfm") == folder  # present: reused, not recomputed
     tasks, notes = plan_bench({"tiny": (copy, 0)}, tmp_path / "out", iterations=5, priors="sfm")
-    sources = {t.name.split("/")[1]: t.config["esgs"].get("priors") for t in tasks}
+    sources = {t.name.split("/")[1]: (t.config["method_config"] or {}).get("priors") for t in tasks}
     # sfm priors are depth only: the normal rows are left out with a note, the depth row uses sfm
     assert sources["esgs_depth"] == "sfm" and sources[UPPER_BOUND_KEY] == "gt" and "esgs_full" not in sources
     assert len(notes) == 3 and all("normal" in note and "no sfm" in note for note in notes)
@@ -102,26 +103,24 @@ def test_the_bench_computes_missing_sfm_priors_and_plans_its_rows_on_them(tmp_pa
 
 
 def test_missing_labels_are_reconstructed_from_the_images_never_the_mesh(tmp_path, monkeypatch):
-    import subprocess
-
     from esgs.core.errors import ESGSError
     from esgs.core.experiments import bench
 
     calls = []
 
-    def fake_run(command, **kwargs):
-        calls.append(command)
-        if len(calls) == 1:  # the first try fails: its output is in the error
-            return subprocess.CompletedProcess(command, 1, stdout="", stderr="stereo found no consistent depth")
+    def fake_run_job(job, config, progress=None, **kwargs):
+        calls.append((job, config))
+        if len(calls) == 1:  # the first try fails: the child's error is in the message
+            raise ESGSError("stereo found no consistent depth")
         (tmp_path / "priors" / "labels" / "depth").mkdir(parents=True)
         (tmp_path / "priors" / "labels" / "depth" / "v.exr").write_bytes(b"")
-        return subprocess.CompletedProcess(command, 0, stdout="", stderr="")
 
-    monkeypatch.setattr(bench.subprocess, "run", fake_run)
+    monkeypatch.setattr(bench, "run_job", fake_run_job)
     with pytest.raises(ESGSError, match="esgs labels --reconstruct failed: stereo found no consistent depth"):
         ensure_priors(tmp_path, "labels")
     assert ensure_priors(tmp_path, "labels") == tmp_path / "priors" / "labels"
-    assert calls[-1][3:] == ["labels", str(tmp_path), "--reconstruct"] and "--mesh" not in calls[-1]
+    job, config = calls[-1]
+    assert job == "labels" and config.scene == tmp_path and config.reconstruct and config.mesh is None
     assert ensure_priors(tmp_path, "labels") == tmp_path / "priors" / "labels" and len(calls) == 2  # reused
 
 
@@ -129,9 +128,19 @@ def test_a_run_saved_with_other_settings_is_stale_and_set_aside_whole(tmp_path, 
     from esgs.core.config import config_from_dict, config_to_dict
     from esgs.core.train.config import TrainConfig
 
+    from esgs.core.methods import DropoutGSConfig, ESGSConfig, MipSplattingConfig
+
     def saved_config(task):
-        values = {**task.config, "scene": str(scene), "out": str(task.out)}
-        return json.loads(json.dumps(config_to_dict(config_from_dict(TrainConfig, values))))
+        """The config.json a run of ``task`` saved before methods were registered (the legacy
+        "esgs" and "baselines" sections): such folders must keep comparing right."""
+        legacy = {key: task.config[key] for key in ("esgs", "baselines")}
+        values = {key: value for key, value in task.config.items() if key not in legacy}
+        values = config_to_dict(config_from_dict(TrainConfig, {**values, "scene": str(scene), "out": str(task.out)}))
+        del values["method"], values["method_config"]
+        baselines = {"mip_splatting": False, **config_to_dict(MipSplattingConfig()), "dropout_gs": False,
+                     **config_to_dict(DropoutGSConfig()), **legacy["baselines"]}
+        esgs = config_to_dict(ESGSConfig(**legacy["esgs"]))
+        return json.loads(json.dumps({**values, "esgs": esgs, "baselines": baselines}))
 
     out = tmp_path / "run"
     esgs = {"priors": "gt", "depth": True}
@@ -150,7 +159,7 @@ def test_a_run_saved_with_other_settings_is_stale_and_set_aside_whole(tmp_path, 
     saved["iterations"] = 6
     del saved["spatial_order"]
     (out / "config.json").write_text(json.dumps(saved))
-    assert task.stale_settings() == ["esgs", "iterations", "spatial_order"] and not task.finished()
+    assert task.stale_settings() == ["iterations", "method_config", "spatial_order"] and not task.finished()
     moved = task.set_aside_if_stale()
     assert moved is not None and moved.name.startswith("run.stale-") and not out.exists()
     assert json.loads((moved / "config.json").read_text())["esgs"]["depth_weight"] == 0.1
@@ -166,7 +175,7 @@ def test_a_run_saved_with_other_settings_is_stale_and_set_aside_whole(tmp_path, 
     assert plain.stale_settings() == []
     saved["baselines"]["dropout_gs"] = True
     (plain.out / "config.json").write_text(json.dumps(saved))
-    assert plain.stale_settings() == ["baselines"]
+    assert plain.stale_settings() == ["method", "method_config"]
     # a nested setting newer than the run (the sky loss) counts with its old value, off: such a
     # run is what a request with the loss off asks for, and stale for today's default (0.3, on)
     sky = RunTask(name="tiny/esgs_sky", scene=scene, out=tmp_path / "sky",
@@ -177,9 +186,9 @@ def test_a_run_saved_with_other_settings_is_stale_and_set_aside_whole(tmp_path, 
     (sky.out / "config.json").write_text(json.dumps(saved))
     assert sky.stale_settings() == []
     sky.config["esgs"] = dict(esgs)  # the default weight
-    assert sky.stale_settings() == ["esgs"]
+    assert sky.stale_settings() == ["method_config"]
     sky.config["esgs"] = {**esgs, "sky_weight": 0.5}
-    assert sky.stale_settings() == ["esgs"]
+    assert sky.stale_settings() == ["method_config"]
     # with no prior source the sky loss cannot act, so a 3DGS run with a weight set is still 3DGS
     plain.config["esgs"] = {"sky_weight": 0.5}
     saved = saved_config(plain)

@@ -96,8 +96,6 @@ def test_held_out_seeds_never_appear_in_training():
 
 
 def test_build_data_resumes_and_checks_its_settings(scene, tmp_path, monkeypatch):
-    import subprocess
-
     from esgs.core.errors import ConfigError
     from esgs.core.ndn import data as data_module
 
@@ -106,15 +104,15 @@ def test_build_data_resumes_and_checks_its_settings(scene, tmp_path, monkeypatch
     write_shard(out / "shards" / "train_dune_field_1.npz", triples, {})  # left by an interrupted build
     rendered = []
 
-    def fake_render(command, **kwargs):
-        # stands in for `esgs scene`: copy the fixture scene to --out
+    def fake_render(preset, seed, *, out, **settings):
+        # stands in for the Blender scene render: copy the fixture scene to out
         import shutil
 
-        rendered.append((command[command.index("--preset") + 1], int(command[command.index("--seed") + 1])))
-        shutil.copytree(scene, command[command.index("--out") + 1])
-        return subprocess.CompletedProcess(command, 0, "", "")
+        rendered.append((preset, seed))
+        shutil.copytree(scene, out)
+        return out
 
-    monkeypatch.setattr(data_module.subprocess, "run", fake_render)
+    monkeypatch.setattr(data_module, "render_scene", fake_render)
     manifest = data_module.build_dataset(out, 2, heldout=1, presets=("dune_field", "rocky_slope"), working_size=32,
                                          multiple=2)
     assert rendered == [("rocky_slope", 1), ("dune_field", HELDOUT_SEED_OFFSET)]  # the existing shard is skipped
