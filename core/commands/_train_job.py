@@ -1,4 +1,5 @@
-"""The child side of a training job: the ``"train"`` entry of :mod:`esgs.core.runtime.entry_points`.
+"""The child side of a training job (not a CLI command: the leading underscore keeps it
+out of ``esgs --help``): the ``"train"`` entry of :mod:`esgs.core.runtime.entry_points`.
 
 The parent (:class:`esgs.core.jobs.TrainingJob`) writes the run's TrainConfig as JSON; this
 reads it back, lets a resumed run keep the settings it was started with (only the
