@@ -111,8 +111,8 @@ def main(argv=None) -> int:
                         help="Gaussian orders to measure side by side: as sampled (random-like) and/or Morton-sorted")
     args = parser.parse_args(argv)
 
-    from esgs.core.gpdfn import GPDFN, GPDFNConfig
-    from esgs.core.method.gpdfn_hook import apply_residuals, fused_render_params
+    from esgs.core.methods.esgs.gpdfn import GPDFN, GPDFNConfig
+    from esgs.core.methods.esgs.gpdfn_hook import apply_residuals, fused_render_params
     from esgs.core.metrics.image import ssim_map
     from esgs.core.train.rendering import render_view
 

@@ -89,7 +89,7 @@ def esgs_options(items: list[str]) -> dict:
     import dataclasses
 
     from esgs.core.errors import ConfigError
-    from esgs.core.method.config import ESGSConfig
+    from esgs.core.methods.esgs.config import ESGSConfig
 
     fields = {field.name: field for field in dataclasses.fields(ESGSConfig)}
     defaults = ESGSConfig()

@@ -272,10 +272,15 @@ def _geometry_figure(config: Any, scene: Path, out: Path) -> tuple[str, dict[str
 
 def _esgs_terms(config: Any) -> str:
     """The ESGS switches of the run as words, from its saved config.json (what actually trained)."""
+    from .errors import ConfigError
+    from .methods import load_run_config
+    from .train.run_dir import RunDir
+
     try:
-        esgs = json.loads((config.out / "runs" / "esgs" / "config.json").read_text())["esgs"]
-    except (OSError, KeyError, TypeError, json.JSONDecodeError):
+        saved = load_run_config(RunDir(config.out / "runs" / "esgs").config)
+    except ConfigError:
         return "settings unknown"
+    esgs = vars(saved.method_config) if saved.method == "esgs" else {}
     names = (("depth", "depth-prior loss"), ("normal", "normal-prior loss"),
              ("consistency", "depth-normal consistency loss"), ("gpdfn", "GPDFN"))
     used = [words for key, words in names if esgs.get(key)]

@@ -19,7 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from ..train.evaluate import evaluate_run
+    from ..methods import evaluate_run
 
     metrics = evaluate_run(args.run_dir, backend=args.backend, save_renders=not args.no_renders,
                            use_lpips=not args.no_lpips)

@@ -20,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..train.render_views import render_run
+    from ..methods import render_run
 
     written = render_run(args.run_dir, cameras=None if args.all else args.camera, output=args.output,
                          depth=args.depth, backend=args.backend)

@@ -1,4 +1,4 @@
-"""``esgs train SCENE --out RUN_DIR``: train Gaussians on a COLMAP scene (3DGS baseline)."""
+"""``esgs train SCENE --out RUN_DIR [--method NAME]``: train Gaussians on a COLMAP scene."""
 from __future__ import annotations
 
 import argparse
@@ -7,35 +7,86 @@ from pathlib import Path
 HELP = "train Gaussians on a COLMAP scene folder (images/ + sparse/0) into a run folder"
 
 #: Settings given as positional arguments or handled here rather than as plain flags.
-_SKIPPED = ("scene", "esgs", "baselines")
+_SKIPPED = ("scene", "method", "method_config")
+
+#: Switches of the layout before methods were registered: each still chooses its method.
+_METHOD_SWITCHES = {"mip_splatting": "mip-splatting", "dropout_gs": "dropout-gs"}
+
+
+def _settings_classes() -> dict[str, type]:
+    """Method name -> settings dataclass, for every registered method that has settings."""
+    from ..methods import get_method, method_names
+
+    return {name: get_method(name).settings_class for name in method_names() if get_method(name).settings_class}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ..config import add_dataclass_arguments
+    from ..methods import get_method, method_names
     from ..train.config import TrainConfig
 
-    parser.add_argument("scene", type=Path, help="COLMAP scene folder (images/ + sparse/0)")
+    parser.add_argument("scene", type=Path, nargs="?", help="COLMAP scene folder (images/ + sparse/0)")
     add_dataclass_arguments(parser, TrainConfig, skip=_SKIPPED)
-    from ..method.config import ESGSConfig
-
-    esgs_group = parser.add_argument_group("ESGS", "prior losses and GPDFN (all off = the 3DGS baseline)")
-    add_dataclass_arguments(esgs_group, ESGSConfig)
-    from ..baselines.config import BaselinesConfig
-
-    baselines_group = parser.add_argument_group("comparison methods", "Mip-Splatting and DropoutGS (docs/baselines.md)")
-    add_dataclass_arguments(baselines_group, BaselinesConfig)
+    parser.add_argument("--method", choices=method_names(), default=None,
+                        help="training method (default: 3dgs, or the method whose flags are given); "
+                             "--method esgs starts from the full method for --priors (esgs.core.methods.full_esgs)")
+    parser.add_argument("--list-methods", action="store_true", help="list the training methods and exit")
+    seen: set[str] = set()
+    for name, settings_class in _settings_classes().items():
+        group = parser.add_argument_group(f"method {name}", get_method(name).description)
+        fields = [f.name for f in __import__("dataclasses").fields(settings_class)]
+        add_dataclass_arguments(group, settings_class, skip=tuple(f for f in fields if f in seen))
+        seen.update(fields)
+    switches = parser.add_argument_group("method switches", "older spellings of --method")
+    switches.add_argument("--mip-splatting", dest="mip_splatting", action="store_true", help="same as --method mip-splatting")
+    switches.add_argument("--dropout-gs", dest="dropout_gs", action="store_true", help="same as --method dropout-gs")
     parser.add_argument("--config", dest="config_file", type=Path, default=None,
                         help="read settings from a JSON file (flags given here override it)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def build_config(args: argparse.Namespace):
-    """The TrainConfig of a command line: a resumed run's config.json (or --config), then flags."""
-    from ..config import config_from_dict, dataclass_from_args, load_config
+def _method_flags_given(args: argparse.Namespace, settings_class: type) -> bool:
+    import dataclasses
+
+    return any(getattr(args, f.name, None) is not None for f in dataclasses.fields(settings_class))
+
+
+def _chosen_method(args: argparse.Namespace, base_method: str) -> str:
+    """--method, else an older switch, else the method whose flags were given, else ``base_method``."""
     from ..errors import ConfigError
-    from ..train.config import TrainConfig, load_run_config
+
+    switched = [method for switch, method in _METHOD_SWITCHES.items() if getattr(args, switch, False)]
+    if args.method is not None:
+        switched = [args.method, *[m for m in switched if m != args.method]]
+    if len(set(switched)) > 1:
+        raise ConfigError(f"one method per run, got {', '.join(switched)}", hint="choose one with --method NAME")
+    if switched:
+        return switched[0]
+    if base_method != "3dgs":
+        return base_method
+    flagged = [name for name, cls in _settings_classes().items() if _method_flags_given(args, cls)]
+    if len(flagged) > 1:
+        raise ConfigError(f"flags of several methods were given ({', '.join(flagged)})",
+                          hint="choose one with --method NAME")
+    return flagged[0] if flagged else "3dgs"
+
+
+def build_config(args: argparse.Namespace):
+    """The TrainConfig of a command line: a resumed run's config.json (or --config), then flags.
+
+    The method is ``--method`` (``--mip-splatting`` / ``--dropout-gs`` too), else the saved
+    or --config file's, else the one whose flags were given. ``--method esgs`` given
+    explicitly starts from :func:`~esgs.core.methods.full_esgs` for ``--priors``; ESGS flags
+    alone start from every part off, as before methods were registered.
+    """
+    from ..config import config_to_dict, dataclass_from_args
+    from ..errors import ConfigError
+    from ..methods import full_esgs, get_method, load_run_config, train_config_from_dict
+    from ..train.config import TrainConfig
     from ..train.run_dir import RunDir
 
+    if args.scene is None:
+        raise ConfigError("the scene folder is required", hint="esgs train SCENE --out RUN_DIR")
     if args.out is None:
         raise ConfigError("--out is required", hint="esgs train SCENE --out RUN_DIR")
     base = None
@@ -43,28 +94,38 @@ def build_config(args: argparse.Namespace):
         # a resumed run keeps the settings it was started with; flags override the safe ones
         base = load_run_config(RunDir(args.out).config)
     elif args.config_file is not None:
-        base = load_config(TrainConfig, args.config_file)
-    from ..method.config import ESGSConfig
+        import json
 
+        try:
+            data = json.loads(Path(args.config_file).read_text(encoding="utf-8"))
+        except (OSError, ValueError) as err:
+            raise ConfigError(f"cannot read the settings file: {err}", path=args.config_file) from err
+        base = train_config_from_dict(data, source=args.config_file)
     config = dataclass_from_args(TrainConfig, args, base=base)
-    from ..baselines.config import BaselinesConfig
-
-    esgs = dataclass_from_args(ESGSConfig, args, base=config.esgs)
-    baselines = dataclass_from_args(BaselinesConfig, args, base=config.baselines)
-    values = {**_as_dict(config), "scene": Path(args.scene), "esgs": _as_dict(esgs), "baselines": _as_dict(baselines)}
-    return config_from_dict(TrainConfig, values)
-
-
-def _as_dict(config) -> dict:
-    from ..config import config_to_dict
-
-    return config_to_dict(config)
+    name = _chosen_method(args, base.method if base is not None else "3dgs")
+    method = get_method(name)
+    if base is not None and base.method == name:
+        settings = base.method_config
+    elif name == "esgs" and args.method == "esgs" and getattr(args, "priors", None):
+        settings = full_esgs(args.priors)
+    else:
+        settings = method.default_settings()
+    if method.settings_class is not None:
+        settings = dataclass_from_args(method.settings_class, args, base=settings)
+    values = {**config_to_dict(config), "scene": str(args.scene), "method": name,
+              "method_config": config_to_dict(settings) if settings is not None else None}
+    return train_config_from_dict(values)
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..methods import get_method, method_names, train
     from ..progress import ConsoleProgress
-    from ..train import train
 
+    if args.list_methods:
+        for name in method_names():
+            method = get_method(name)
+            print(f"{name:15s} {method.label}: {method.description}")
+        return 0
     config = build_config(args)
     console = None if args.quiet else ConsoleProgress()
     try:

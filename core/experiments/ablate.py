@@ -123,7 +123,8 @@ def plan_ablation(scene: Path, out: Path, *, iterations: int, seeds: Sequence[in
         for seed in seeds:
             if (variant.key, seed) in tasks:
                 continue
-            config = {**(train or {}), "iterations": iterations, "seed": seed, "esgs": variant.esgs_dict()}
+            config = {**(train or {}), "iterations": iterations, "seed": seed, "method": "esgs",
+                      "method_config": variant.esgs_dict()}
             tasks[(variant.key, seed)] = RunTask(name=f"{variant.key}/seed{seed}", scene=scene,
                                                  out=out / "runs" / variant.key / f"seed{seed}", config=config,
                                                  variant=variant.key, seed=seed, scene_name=scene.name,

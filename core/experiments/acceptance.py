@@ -21,6 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
+from ..config import config_to_dict
+from ..methods import full_esgs
 from .runs import RunTask
 from .tables import QUALITY_COLUMNS, aggregate
 
@@ -48,8 +50,7 @@ def scene_methods(scene: Path, sources: Sequence[str] = SOURCES, esgs_options: O
         kinds = {kind for kind in ("depth", "normal") if (Path(scene) / "priors" / source / kind).is_dir()}
         if not kinds:
             continue
-        esgs = {"priors": source, "depth": "depth" in kinds, "normal": "normal" in kinds, "gpdfn": True, "fused_k": 3,
-                **(esgs_options or {})}
+        esgs = config_to_dict(full_esgs(source, scene=Path(scene), **(esgs_options or {})))
         methods.append(Method(f"ESGS ({source})", f"esgs-{source}", tuple(sorted(esgs.items())), source))
     return methods
 
@@ -66,7 +67,8 @@ def plan_runs(scenes: dict[str, Path], out: Path, *, iterations: int, seeds: Seq
         for name, scene in scenes.items():
             mesh = Path(scene) / "mesh" / "ground_truth.ply"
             for method in scene_methods(scene, sources, esgs_options):
-                config = {**(train or {}), "iterations": iterations, "seed": seed, "esgs": dict(method.esgs)}
+                config = {**(train or {}), "iterations": iterations, "seed": seed,
+                          "method": "esgs" if method.esgs else "3dgs", "method_config": dict(method.esgs) or None}
                 tasks.append(RunTask(name=f"{name}/{method.key}/seed{seed}", scene=Path(scene),
                                      out=Path(out) / "runs" / name / method.key / f"seed{seed}", config=config,
                                      variant=method.label, seed=seed, scene_name=name,

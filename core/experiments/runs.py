@@ -18,26 +18,43 @@ from typing import Any, Optional
 
 SUMMARY_NAME = "summary.json"
 CONFIG_NAME = "config.json"
-#: The switches of the ESGS parts: when all are off, the other ESGS settings do nothing.
-_ESGS_SWITCHES = ("depth", "normal", "consistency", "gpdfn")
-#: Baseline switches and the settings that act only when theirs is on.
-_BASELINE_PARTS = {"mip_splatting": "mip_", "dropout_gs": "dropout_"}
-
-
 def effective_settings(config: dict[str, Any]) -> dict[str, Any]:
-    """``config`` (a TrainConfig dict) without the sub-settings of switched-off methods, which
-    cannot change the result (a 3DGS run does not depend on the ESGS depth weight)."""
+    """``config`` (a TrainConfig dict of today's layout, ``method_config`` complete) with a
+    method that adds nothing counted as plain 3DGS, whose settings cannot change the result
+    (an ESGS run with every part off does not depend on the ESGS depth weight)."""
     settings = dict(config)
-    esgs = settings.get("esgs")
-    sky_on = isinstance(esgs, dict) and bool(esgs.get("sky_weight") and esgs.get("priors") and esgs.get("use_masks", True))
-    if isinstance(esgs, dict) and not any(esgs.get(name) for name in _ESGS_SWITCHES) and not sky_on:
-        settings["esgs"] = "off"
-    baselines = settings.get("baselines")
-    if isinstance(baselines, dict):
-        settings["baselines"] = {name: value for name, value in baselines.items()
-                                 if not any(name.startswith(prefix) and name != switch and not baselines.get(switch)
-                                            for switch, prefix in _BASELINE_PARTS.items())}
+    method, method_config = settings.get("method", "3dgs"), settings.get("method_config")
+    adds_nothing = (method == "esgs" and isinstance(method_config, dict) and not _esgs_enabled(method_config)) or \
+        (method == "dropout-gs" and isinstance(method_config, dict) and not method_config.get("dropout_rate"))
+    if method == "3dgs" or adds_nothing:
+        settings["method"], settings["method_config"] = "3dgs", None
     return settings
+
+
+def _esgs_enabled(method_config: dict[str, Any]) -> bool:
+    from ..methods import ESGSConfig
+
+    try:
+        return ESGSConfig(**method_config).enabled
+    except TypeError:  # unknown keys: not comparable, so not "off"
+        return True
+
+
+def _complete(config: dict[str, Any]) -> dict[str, Any]:
+    """``config`` in today's layout with its method's settings complete (defaults filled in),
+    the top-level settings left as they are (missing ones stay missing)."""
+    from ..config import config_to_dict
+    from ..errors import ConfigError
+    from ..methods import get_method
+    from ..train.config import TrainConfig, with_predating_values
+
+    config = with_predating_values(config)
+    try:
+        method = get_method(config.get("method", "3dgs"))
+        settings = method.settings_of(TrainConfig(method=method.name, method_config=config.get("method_config")))
+    except ConfigError:
+        return config
+    return {**config, "method_config": config_to_dict(settings) if settings is not None else None}
 
 
 @dataclass
@@ -71,8 +88,8 @@ class RunTask:
         """Names of the settings (those that change what is computed, see
         :func:`effective_settings`) whose value in the run folder's ``config.json`` differs from
         what the task asks for now; [] when they agree or the folder has no config yet."""
-        from ..config import config_from_dict, config_to_dict
-        from ..train.config import TrainConfig, with_predating_values
+        from ..config import config_to_dict
+        from ..methods import train_config_from_dict
         from ..train.trainer import RESUMABLE_SETTINGS
 
         saved_path = Path(self.out) / CONFIG_NAME
@@ -82,10 +99,10 @@ class RunTask:
             saved = json.loads(saved_path.read_text())
         except (OSError, ValueError):
             return [CONFIG_NAME]  # unreadable: treat as made with other settings
-        wanted = config_to_dict(config_from_dict(TrainConfig, {**self.config, "scene": str(self.scene),
-                                                               "out": str(self.out), "resume": True}))
+        wanted = config_to_dict(train_config_from_dict({**self.config, "scene": str(self.scene),
+                                                        "out": str(self.out), "resume": True}))
         # a setting newer than the saved run counts with the value such runs had (PREDATING_VALUES)
-        saved = effective_settings({**{name: None for name in wanted}, **with_predating_values(saved)})
+        saved = effective_settings({**{name: None for name in wanted}, **_complete(saved)})
         wanted = effective_settings(json.loads(json.dumps(wanted)))
         return sorted(name for name, value in wanted.items()
                       if name not in RESUMABLE_SETTINGS and value != saved.get(name))
@@ -129,10 +146,12 @@ def render_seconds_per_frame(run_dir: Path) -> Optional[float]:
     """Mean wall time of rendering each held-out view (training views if none) of a finished run."""
     import torch
 
+    from ..methods import render_options
     from ..train.evaluate import load_run
     from ..train.rendering import render_view
 
     config, data, model, backend, device = load_run(run_dir)
+    render = render_options(config)
     views = data.test or data.train
     if not views:
         return None
@@ -144,7 +163,7 @@ def render_seconds_per_frame(run_dir: Path) -> Optional[float]:
             start = time.perf_counter()
             render_view(params, view.viewmat.to(device), view.K.to(device), view.width, view.height,
                         background=background, backend=backend, num_threads=config.threads or None,
-                        antialiased=config.baselines.antialiased, eps2d=config.baselines.eps2d)
+                        antialiased=render.antialiased, eps2d=render.eps2d)
             if device.type == "cuda":
                 torch.cuda.synchronize()
             times.append(time.perf_counter() - start)
@@ -156,16 +175,14 @@ def run_task(task: RunTask) -> dict[str, Any]:
 
     A finished task (summary present) returns its stored summary without training.
     """
-    from ..config import config_from_dict
     from ..io_utils import atomic_write_json
-    from ..train import train
-    from ..train.config import TrainConfig
+    from ..methods import train, train_config_from_dict
 
     task.set_aside_if_stale()
     if task.finished():
         return {**task.load_summary(), "skipped": True}
     values = {**task.config, "scene": str(task.scene), "out": str(task.out), "resume": True}
-    config = config_from_dict(TrainConfig, values)
+    config = train_config_from_dict(values)
     started = time.perf_counter()
     result = train(config)
     wall_s = time.perf_counter() - started

@@ -18,6 +18,7 @@ from __future__ import annotations
 import torch
 
 from ..errors import ConfigError
+from . import constants as K
 from .projection import project_gaussians
 
 
@@ -59,7 +60,9 @@ def rasterize_cuda(means, quats, scales, opacities, colors, viewmats, Ks, width,
         means, quats, scales, opacities, features, viewmats, Ks, width, height,
         near_plane=near_plane, far_plane=far_plane, sh_degree=None, backgrounds=backgrounds,
         render_mode="RGB+ED" if render_depth else "RGB", rasterize_mode="antialiased" if antialiased else "classic",
-        eps2d=eps2d, tile_size=tile_size, packed=False)
+        # gsplat's classic mode dilates by eps2d too: give it the fixed 3DGS dilation the cpu and
+        # reference backends use, so a 3DGS run means the same on every backend
+        eps2d=eps2d if antialiased else K.CLASSIC_DILATION, tile_size=tile_size, packed=False)
     if render_depth:
         depth = render[..., -1:]
         render = torch.cat([render[..., :color_dims], depth, render[..., color_dims:-1]], dim=-1)

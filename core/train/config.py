@@ -9,12 +9,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 from ..config import config_from_dict
 from ..errors import ConfigError
-from ..baselines.config import BaselinesConfig
-from ..method.config import ESGSConfig
 
 #: The schedule every step count of :class:`TrainConfig` is written for.
 REFERENCE_ITERATIONS = 30_000
@@ -104,15 +102,21 @@ class TrainConfig:
         "initialisation and after every densification, Adam's moments and the densification statistics "
         "moving with them, so GPDFN and the rasterizer read neighbours from nearby memory (same maths, "
         "cache-friendlier; docs/esgs.md)"))
-    esgs: ESGSConfig = field(default_factory=ESGSConfig, metadata=_help(
-        "the ESGS additions: prior losses and GPDFN (all off = the 3DGS baseline)"))
-    baselines: BaselinesConfig = field(default_factory=BaselinesConfig, metadata=_help(
-        "comparison methods: Mip-Splatting, DropoutGS (all off = the 3DGS baseline)"))
+
+    # --- method ---------------------------------------------------------------------
+    method: str = field(default="3dgs", metadata=_help(
+        "training method (esgs train --list-methods): 3dgs, esgs, mip-splatting, dropout-gs"))
+    method_config: Any = field(default=None, metadata=_help(
+        "the method's settings: its dataclass (e.g. ESGSConfig), a dict of its fields when read from JSON, "
+        "or None for its defaults"))
 
     def validate(self) -> None:
         """Raise ConfigError for out-of-range or inconsistent settings."""
-        self.esgs.validate()
-        self.baselines.validate()
+        validate_method = getattr(self.method_config, "validate", None)
+        if callable(validate_method):
+            validate_method()
+        if not isinstance(self.method, str) or not self.method:
+            raise ConfigError(f"method must be a method name, got {self.method!r}")
         def positive(name: str, allow_zero: bool = False) -> None:
             value = getattr(self, name)
             if value < 0 or (value == 0 and not allow_zero):
@@ -168,13 +172,46 @@ class TrainConfig:
 #: Settings added after runs had been saved, with the value those older runs were trained
 #: with: a run folder or checkpoint whose config lacks one is read with this value, so an
 #: older run resumes as it was going (Gaussians in their old order) instead of changing.
-#: A dotted name ("esgs.sky_weight") is a setting of a section.
+#: A dotted name ("esgs.sky_weight") is a setting of a section of the legacy layout below.
 PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0}
+
+#: Legacy layout (runs saved before methods were registered): the method's settings were
+#: the sections "esgs" (ESGSConfig) and "baselines" (Mip-Splatting and DropoutGS switches
+#: and settings), and a switch inside them chose the method.
+_LEGACY_ESGS_SWITCHES = ("depth", "normal", "consistency")
+_LEGACY_BASELINES = {"mip-splatting": ("mip_splatting", ("mip_filter_3d", "mip_filter_2d", "mip_frustum_margin")),
+                     "dropout-gs": ("dropout_gs", ("dropout_rate", "dropout_compensate"))}
+
+
+def _legacy_esgs_on(esgs: dict) -> bool:
+    """Whether a legacy "esgs" section turned ESGS on (ESGSConfig.enabled of that time)."""
+    gpdfn = bool(esgs.get("gpdfn")) and int(esgs.get("fused_k", 3)) > 1
+    sky = bool(esgs.get("sky_weight", 0.3)) and bool(esgs.get("priors")) and bool(esgs.get("use_masks", True))
+    return any(esgs.get(name) for name in _LEGACY_ESGS_SWITCHES) or gpdfn or sky
+
+
+def _from_legacy_layout(data: dict) -> dict:
+    """A saved config of the legacy layout in today's (``method`` + ``method_config``)."""
+    converted = dict(data)
+    esgs = converted.pop("esgs", None) or {}
+    baselines = converted.pop("baselines", None) or {}
+    chosen: list[tuple[str, Any]] = []
+    if isinstance(esgs, dict) and _legacy_esgs_on(esgs):
+        chosen.append(("esgs", dict(esgs)))
+    for name, (switch, fields) in _LEGACY_BASELINES.items():
+        if isinstance(baselines, dict) and baselines.get(switch) and \
+                (switch != "dropout_gs" or float(baselines.get("dropout_rate", 0.1)) > 0):
+            chosen.append((name, {key: baselines[key] for key in fields if key in baselines}))
+    if len(chosen) > 1:
+        raise ConfigError(f"this run combined the methods {', '.join(name for name, _ in chosen)}, which the trainer "
+                          "no longer does", hint="train one method per run (esgs train --method NAME)")
+    converted["method"], converted["method_config"] = chosen[0] if chosen else ("3dgs", None)
+    return converted
 
 
 def with_predating_values(data: dict) -> dict:
-    """``data`` (a saved TrainConfig dict) with every setting of :data:`PREDATING_VALUES` it
-    lacks filled in with the value older runs had; sections it lacks stay absent."""
+    """``data`` (a saved TrainConfig dict) in today's layout, with every setting of
+    :data:`PREDATING_VALUES` it lacks filled in with the value older runs had."""
     filled = dict(data)
     for name, value in PREDATING_VALUES.items():
         section, _, key = name.rpartition(".")
@@ -182,11 +219,15 @@ def with_predating_values(data: dict) -> dict:
             filled.setdefault(key, value)
         elif isinstance(filled.get(section), dict) and key not in filled[section]:
             filled[section] = {**filled[section], key: value}
+    if "esgs" in filled or "baselines" in filled:
+        filled = _from_legacy_layout(filled)
     return filled
 
 
 def run_config_from_dict(data: dict, *, source: str | Path | None = None) -> TrainConfig:
-    """The TrainConfig a run was saved with (config.json or a checkpoint's ``config``), older runs included."""
+    """The TrainConfig a run was saved with (config.json or a checkpoint's ``config``), older
+    runs included. ``method_config`` stays a dict: the method resolves it
+    (:meth:`~.method.Method.settings_of`, or :func:`esgs.core.methods.load_run_config`)."""
     return config_from_dict(TrainConfig, with_predating_values(data), source=source)
 
 

@@ -21,6 +21,7 @@ import torch
 from ..errors import CheckpointError
 from ..progress import ProgressCallback, ProgressEvent
 from .gaussians import GaussianModel
+from .method import RenderOptions
 
 
 def _to_uint8(image: torch.Tensor) -> np.ndarray:
@@ -119,9 +120,11 @@ def load_run_model(run_dir: str | Path) -> GaussianModel:
 
 
 def load_run(run_dir: str | Path, *, backend: Optional[str] = None):
-    """(config, scene data, model, backend, device) of a finished or interrupted run."""
-    from ..config import load_config
-    from .config import TrainConfig
+    """(config, scene data, model, backend, device) of a finished or interrupted run.
+
+    ``config.method_config`` is left as saved (a dict); the method's render options come from
+    :func:`esgs.core.methods.render_options`."""
+    from .config import load_run_config
     from .dataset import load_scene_data
     from .rendering import backend_device, resolve_backend
     from .run_dir import RunDir
@@ -129,7 +132,7 @@ def load_run(run_dir: str | Path, *, backend: Optional[str] = None):
     run = RunDir(Path(run_dir))
     if not run.config.is_file():
         raise CheckpointError("not a run folder (no config.json)", path=run.root, hint="pass the --out folder of esgs train")
-    config = load_config(TrainConfig, run.config)
+    config = load_run_config(run.config)
     data = load_scene_data(config.scene, images_dir=config.images_dir, resolution=config.resolution,
                            width=config.width, test_every=config.test_every, mask_source=config.mask_source)
     name = resolve_backend(backend or config.backend)
@@ -139,12 +142,17 @@ def load_run(run_dir: str | Path, *, backend: Optional[str] = None):
 
 
 def evaluate_run(run_dir: str | Path, *, backend: Optional[str] = None, save_renders: bool = True,
-                 use_lpips: bool = True, progress: Optional[ProgressCallback] = None) -> dict:
-    """Evaluate a run folder on its held-out views; writes and returns ``metrics.json``'s content."""
+                 use_lpips: bool = True, progress: Optional[ProgressCallback] = None,
+                 render: Optional[RenderOptions] = None) -> dict:
+    """Evaluate a run folder on its held-out views; writes and returns ``metrics.json``'s content.
+
+    ``render``: the run's method's render options (default: plain 3DGS rendering);
+    :func:`esgs.core.methods.evaluate_run` passes the right ones for any method."""
     from ..io_utils import atomic_write_json
     from .run_dir import RunDir
 
     run = RunDir(Path(run_dir))
+    render = render or RenderOptions()
     config, data, model, name, device = load_run(run.root, backend=backend)
     if config.threads:
         torch.set_num_threads(config.threads)
@@ -152,6 +160,6 @@ def evaluate_run(run_dir: str | Path, *, backend: Optional[str] = None, save_ren
     metrics = evaluate_model(model, data, backend=name, background=background, sh_degree=model.max_sh_degree,
                              renders_dir=run.test_renders if save_renders else None, use_lpips=use_lpips,
                              num_threads=config.threads or None, progress=progress,
-                             antialiased=config.baselines.antialiased, eps2d=config.baselines.eps2d)
+                             antialiased=render.antialiased, eps2d=render.eps2d)
     atomic_write_json(run.metrics, metrics)
     return metrics

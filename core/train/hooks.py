@@ -1,21 +1,26 @@
-"""Extension points of the trainer, for the ESGS modules (priors, GPDFN, NDN).
+"""Extension points of the trainer, for the methods built on it (ESGS, the baselines).
 
 A hook is an object with any of the methods of :class:`TrainHook` (subclass it and
-override what you need). The trainer calls them in the order the hooks were given:
+override what you need). Every method receives ``run``, a :class:`RunView`: the narrow,
+typed part of a training run a hook may read and use (nerfstudio's callbacks see a
+similar fixed set of attributes). The trainer calls them in the order the hooks were given:
 
-- ``setup(trainer)`` once, after the scene and the Gaussians exist and before the first
+- ``setup(run)`` once, after the scene and the Gaussians exist and before the first
   step (also when resuming, before the checkpoint is loaded): add loss terms
-  (``trainer.add_loss_term``), optimizer groups for an ``nn.Module``'s parameters
-  (``trainer.add_parameter_group``), load prior maps...
-- ``before_render(trainer, context, params) -> params``: change the rendering parameters
+  (``run.add_loss_term``), optimizer groups for an ``nn.Module``'s parameters
+  (``run.add_parameter_group``), load prior maps...
+- ``before_render(run, context, params) -> params``: change the rendering parameters
   (GPDFN fuses neighbours here; the result must stay differentiable w.r.t. the
   Gaussians) or request channels by setting ``context.render_depth`` /
   ``context.render_normals``;
-- ``after_backward(trainer, context)``: gradients exist, the optimizer has not stepped;
-- ``on_densify(trainer, report)``: the Gaussian set changed (clone/split/prune or an
+- ``model_params(run, params) -> params``: the parameters as the method shows its model
+  outside a training step (GPDFN fuses neighbours, Mip-Splatting filters); used by
+  ``Trainer.render_model`` to render the model as it trains;
+- ``after_backward(run, context)``: gradients exist, the optimizer has not stepped;
+- ``on_densify(run, report)``: the Gaussian set changed (clone/split/prune or an
   opacity reset); ``report.source_index`` [N_new] maps every Gaussian to the one it came
   from, so per-Gaussian state can be remapped with ``state[report.source_index]``;
-- ``export_model(trainer, gaussians) -> gaussians``: at the end of a run, the model that is
+- ``export_model(run, gaussians) -> gaussians``: at the end of a run, the model that is
   written to point_cloud.ply and evaluated (GPDFN returns a copy with its residuals baked
   in; checkpoints keep the raw Gaussians so training can resume);
 - ``state_dict()`` / ``load_state_dict(state)``: saved in and restored from checkpoints
@@ -24,11 +29,16 @@ override what you need). The trainer calls them in the order the hooks were give
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Optional
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Iterable, Optional, Protocol, Sequence
 
 if TYPE_CHECKING:
+    import torch
+
+    from .dataset import View
     from .densify import DensifyReport
-    from .gaussians import RenderParams
+    from .gaussians import GaussianModel, RenderParams
+    from .losses import LossTerm
 
 
 @dataclass
@@ -53,25 +63,76 @@ class StepContext:
     extras: dict[str, Any] = field(default_factory=dict)
 
 
+class RunView(Protocol):
+    """What a hook sees of a training run: read-only facts and four actions.
+
+    Facts: ``seed`` (the run's seed), ``scene`` (the folder the scene's files, priors
+    included, are read from), ``device``, ``train_views`` / ``test_views``
+    (:class:`~.dataset.View`), ``gaussians`` (the :class:`~.gaussians.GaussianModel` being
+    trained; its tensors change at densification, the object does not) and
+    ``scaled_step(reference_step)`` (a step of the 30,000-step reference schedule moved to
+    this run's length). Actions: ``add_loss_term``, ``add_parameter_group``, ``message``,
+    ``render(params, view, ...)`` with the run's backend, background and render options, and
+    ``render_model(view)``: the model being trained as its method shows it (no gradients).
+    """
+
+    @property
+    def seed(self) -> int: ...
+
+    @property
+    def scene(self) -> Path: ...
+
+    @property
+    def device(self) -> "torch.device": ...
+
+    @property
+    def train_views(self) -> Sequence["View"]: ...
+
+    @property
+    def test_views(self) -> Sequence["View"]: ...
+
+    @property
+    def gaussians(self) -> "GaussianModel": ...
+
+    def scaled_step(self, reference_step: int, *, minimum: int = 0) -> int: ...
+
+    def add_loss_term(self, term: "LossTerm") -> None: ...
+
+    def add_parameter_group(self, name: str, params: "torch.Tensor | Iterable[torch.Tensor]", lr: float, *,
+                            schedule: Any = None) -> None: ...
+
+    def message(self, text: str) -> None: ...
+
+    def render(self, params: "RenderParams", view: "View", *, render_depth: bool = False,
+               render_normals: bool = False) -> Any: ...
+
+    def render_model(self, view: "View", *, sh_degree: Optional[int] = None, render_depth: bool = False,
+                     render_normals: bool = False) -> Any: ...
+
+
 class TrainHook:
     """Base class with do-nothing implementations of every hook method."""
 
     #: Key of this hook's state in checkpoints; must be unique among a run's hooks.
     name: str = "hook"
 
-    def setup(self, trainer: Any) -> None:
+    def setup(self, run: RunView) -> None:
         pass
 
-    def before_render(self, trainer: Any, context: StepContext, params: "RenderParams") -> Optional["RenderParams"]:
+    def before_render(self, run: RunView, context: StepContext, params: "RenderParams") -> Optional["RenderParams"]:
         return params
 
-    def after_backward(self, trainer: Any, context: StepContext) -> None:
+    def model_params(self, run: RunView, params: "RenderParams") -> "RenderParams":
+        """The parameters as this method shows its model between steps (default: unchanged)."""
+        return params
+
+    def after_backward(self, run: RunView, context: StepContext) -> None:
         pass
 
-    def on_densify(self, trainer: Any, report: "DensifyReport") -> None:
+    def on_densify(self, run: RunView, report: "DensifyReport") -> None:
         pass
 
-    def export_model(self, trainer: Any, gaussians: Any) -> Any:
+    def export_model(self, run: RunView, gaussians: "GaussianModel") -> "GaussianModel":
         """The Gaussians to write and evaluate at the end (GPDFN folds its residuals in)."""
         return gaussians
 

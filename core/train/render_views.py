@@ -7,11 +7,15 @@ from typing import Optional, Sequence
 import torch
 
 from ..errors import DatasetError
+from .method import RenderOptions
 
 
 def render_run(run_dir: str | Path, *, cameras: Optional[Sequence[str]] = None, output: Optional[Path] = None,
-               depth: bool = False, backend: Optional[str] = None) -> list[Path]:
+               depth: bool = False, backend: Optional[str] = None, render: Optional[RenderOptions] = None) -> list[Path]:
     """Render cameras (image names or stems; None = all) of a run; returns the written files.
+
+    ``render``: the run's method's render options (default: plain 3DGS rendering;
+    :func:`esgs.core.methods.render_run` passes the right ones for any method).
 
     Colour goes to ``<output>/<stem>.png`` and, with ``depth``, the expected camera-z depth
     to ``<stem>_depth.exr`` (0 where nothing was hit).
@@ -22,6 +26,7 @@ def render_run(run_dir: str | Path, *, cameras: Optional[Sequence[str]] = None, 
     from .run_dir import RunDir
 
     run = RunDir(Path(run_dir))
+    render = render or RenderOptions()
     config, data, model, name, device = load_run(run.root, backend=backend)
     views = sorted(data.train + data.test, key=lambda view: view.index)
     if cameras is not None:
@@ -41,7 +46,7 @@ def render_run(run_dir: str | Path, *, cameras: Optional[Sequence[str]] = None, 
             result = render_view(params, view.viewmat.to(device), view.K.to(device), view.width, view.height,
                                  background=background, render_depth=depth, backend=name,
                                  num_threads=config.threads or None,
-                                 antialiased=config.baselines.antialiased, eps2d=config.baselines.eps2d)
+                                 antialiased=render.antialiased, eps2d=render.eps2d)
             written.append(write_png(output / f"{view.stem}.png", _to_uint8(result.image)))
             if depth:
                 path = output / f"{view.stem}_depth.exr"

@@ -1,15 +1,16 @@
-"""The training loop: 3DGS on a COLMAP scene, with hooks for the ESGS modules.
+"""The training loop: 3DGS on a COLMAP scene, extended by a method's hooks and strategy.
 
-Public entry point: :func:`train`. One step:
+Public entry point: :func:`train` (a run of the plain 3DGS method, or of any
+:class:`~.method.Method` passed in; :func:`esgs.core.methods.train` looks the method up by
+``config.method``). The trainer imports nothing above the training layer. One step:
 
 1. pick a training view (a shuffled pass over the views, as 3DGS), update learning rates;
 2. build the rendering parameters, let hooks modify them (``before_render``);
 3. render colour (plus depth/normals when an active loss term or a hook asks);
 4. total loss = weighted active terms (L1 + D-SSIM for the baseline); stop on NaN/Inf;
 5. backward, ``after_backward`` hooks, densification statistics, Adam step;
-6. densify / prune / reset opacity on schedule (with ``spatial_order``, the changed set is put
-   back into Morton order of its centres, Adam's moments and statistics moving along), then
-   ``on_densify`` hooks;
+6. the densification strategy (:class:`~.strategy.DefaultStrategy`: densify / prune / reset
+   opacity on schedule, Morton order kept) changes the Gaussian set, then ``on_densify`` hooks;
 7. parameters checked finite; checkpoint, progress event, stop requests.
 
 Stops: SIGTERM (and Ctrl-C) finish the current step, save a checkpoint and return with
@@ -23,7 +24,6 @@ import math
 import signal
 import threading
 import time
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Optional, Sequence
@@ -38,15 +38,16 @@ from ..progress import JsonLinesProgress, ProgressCallback, ProgressEvent, combi
 from .checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint, save_checkpoint
 from .config import TrainConfig, run_config_from_dict
 from .dataset import SceneData, load_scene_data
-from .densify import DensifyReport, DensifySettings, DensifyState, densify_and_prune, reset_opacity
+from .dataset import View
 from .gaussians import GaussianModel, RenderParams
 from .hooks import StepContext, TrainHook
 from .memory import release_free_memory
 from .losses import LossContext, LossTerm, needed_channels, photometric_terms, total_loss
+from .method import PLAIN_3DGS, Method, MethodParts
 from .optim import ExponentialDecay, TrainOptimizer
-from .rendering import backend_device, render_view, resolve_backend
+from .rendering import RenderOutput, backend_device, render_view, resolve_backend
 from .run_dir import RunDir
-from .spatial_order import sort_gaussians
+from .strategy import DefaultStrategy, Strategy, StrategyContext
 
 #: Settings that may change when a run is resumed (they do not change what is computed).
 RESUMABLE_SETTINGS = frozenset({
@@ -131,28 +132,34 @@ class _StopRequests:
 
 
 class Trainer:
-    """A training run. Use :func:`train`; hooks receive the trainer and may use its API:
+    """A training run. Use :func:`train`.
 
-    ``add_loss_term(term)``, ``add_parameter_group(name, params, lr, schedule=None)``,
-    ``gaussians`` (:class:`GaussianModel`), ``optimizer`` (:class:`TrainOptimizer`),
-    ``data`` (:class:`SceneData`), ``config``, ``schedule``, ``device``, ``backend``,
-    ``render(params, view, ...)``.
+    ``method`` (default: plain 3DGS) must be the :class:`~.method.Method` named by
+    ``config.method``; its parts (hooks, strategy, render options) are built here from
+    ``config.method_config``. Hooks see the run through :class:`~.hooks.RunView`, which the
+    trainer implements: ``seed``, ``scene``, ``device``, ``train_views``, ``test_views``,
+    ``gaussians``, ``scaled_step``, ``add_loss_term``, ``add_parameter_group``, ``message``
+    and ``render``. :meth:`render_model` renders the model as the method shows it.
     """
 
     def __init__(self, config: TrainConfig, progress: Optional[ProgressCallback] = None,
-                 hooks: Sequence[TrainHook] = ()):
+                 hooks: Sequence[TrainHook] = (), *, method: Method = PLAIN_3DGS):
+        if config.method != method.name:
+            raise ConfigError(f"this run's method is {config.method!r} but the trainer was given {method.name!r}",
+                              hint="train through esgs.core.methods.train(config), which looks the method up")
+        config.method_config = method.settings_of(config)
         config.validate()
         if config.scene is None or config.out is None:
             raise ConfigError("both scene and out must be set", hint="esgs train SCENE --out RUN_DIR")
-        from ..baselines import baseline_hooks
-        from ..method.hooks import esgs_hooks
-
-        hooks = [*esgs_hooks(config.esgs), *baseline_hooks(config.baselines), *hooks]
+        self.method = method
+        self.parts: MethodParts = method.build(config.method_config, config)
+        hooks = [*self.parts.hooks, *hooks]
         names = [getattr(hook, "name", type(hook).__name__) for hook in hooks]
         if len(set(names)) != len(names):
             raise ConfigError(f"hook names must be unique, got {names}")
         self.config = config
         self.hooks = list(hooks)
+        self.strategy: Strategy = self.parts.strategy or DefaultStrategy.from_config(config)
         self.user_progress = progress
         self.run_dir = RunDir(Path(config.out))
         self.schedule = config.schedule()
@@ -168,11 +175,31 @@ class Trainer:
         self.data: SceneData
         self.gaussians: GaussianModel
         self.optimizer: TrainOptimizer
-        self.densify_state: DensifyState
         self._progress: ProgressCallback = progress or (lambda event: None)
         self._events_files: list[JsonLinesProgress] = []
 
-    # --- API for hooks -------------------------------------------------------------
+    # --- the RunView that hooks see (see hooks.RunView) -----------------------------
+    @property
+    def seed(self) -> int:
+        return self.config.seed
+
+    @property
+    def scene(self) -> Path:
+        """The folder the scene's files (priors included) are read from."""
+        return Path(self.data.source or self.config.scene)
+
+    @property
+    def train_views(self) -> Sequence[View]:
+        return self.data.train
+
+    @property
+    def test_views(self) -> Sequence[View]:
+        return self.data.test
+
+    def scaled_step(self, reference_step: int, *, minimum: int = 0) -> int:
+        """A step of the 30,000-step reference schedule, moved to this run's length."""
+        return self.config.scaled_step(reference_step, minimum=minimum)
+
     def add_loss_term(self, term: LossTerm) -> None:
         """Add a named term to the total loss (names must be unique)."""
         if any(existing.name == term.name for existing in self.loss_terms):
@@ -190,7 +217,21 @@ class Trainer:
         return render_view(params, view.viewmat.to(self.device), view.K.to(self.device), view.width, view.height,
                            background=self.background, render_depth=render_depth, render_normals=render_normals,
                            backend=self.backend, num_threads=self.num_threads,
-                           antialiased=self.config.baselines.antialiased, eps2d=self.config.baselines.eps2d)
+                           antialiased=self.parts.render.antialiased, eps2d=self.parts.render.eps2d)
+
+    def render_model(self, view: View, *, sh_degree: Optional[int] = None, render_depth: bool = False,
+                     render_normals: bool = False) -> RenderOutput:
+        """Render the model being trained as its method shows it (every hook's ``model_params``
+        applied: GPDFN's fusion, Mip-Splatting's filter), without gradients.
+
+        ``sh_degree`` defaults to the degree active at the current step.
+        """
+        degree = self.schedule.sh_degree_at(self.step, self.config.sh_degree) if sh_degree is None else sh_degree
+        with torch.no_grad():
+            params = self.gaussians.render_params(degree)
+            for hook in self.hooks:
+                params = hook.model_params(self, params)
+            return self.render(params, view, render_depth=render_depth, render_normals=render_normals)
 
     def message(self, text: str) -> None:
         """Send a message event (warnings, densification summaries) to the progress callbacks."""
@@ -216,8 +257,7 @@ class Trainer:
             self.message(f"the COLMAP model has no 3D points: starting from {config.random_init_points} random Gaussians")
             rng = np.random.default_rng(config.seed)
             model = GaussianModel.random(config.random_init_points, self.data.center, self.data.extent, rng, **kwargs)
-        if config.spatial_order:
-            sort_gaussians(model)  # before the optimizer and the hooks exist: nothing else to move
+        self.strategy.prepare_initial(model)
         return model
 
     def _build_optimizer(self) -> None:
@@ -247,7 +287,8 @@ class Trainer:
             self.gaussians = self._initial_gaussians()
         self.gaussians.to(self.device)
         self._build_optimizer()
-        self.densify_state = DensifyState.zeros(len(self.gaussians), self.device)
+        self.strategy.setup(StrategyContext(gaussians=self.gaussians, optimizer=self.optimizer, extent=self.data.extent,
+                                            device=self.device, generator=self.generator, message=self.message))
         self.sampler = ViewSampler(len(self.data.train), config.seed)
         for hook in self.hooks:
             hook.setup(self)
@@ -264,7 +305,7 @@ class Trainer:
             "config": config_to_dict(self.config),
             "gaussians": self.gaussians.state_dict(),
             "optimizer": self.optimizer.state_dict(),
-            "densify": self.densify_state.state_dict(),
+            "densify": self.strategy.state_dict(),
             "sampler": self.sampler.state_dict(),
             "torch_rng": torch.get_rng_state(),
             "generator": self.generator.get_state().cpu(),
@@ -279,7 +320,7 @@ class Trainer:
             raise CheckpointError(f"checkpoint format {state.get('format')} is not supported (expected {CHECKPOINT_FORMAT})")
         self.step = int(state["step"])
         self.optimizer.load_state_dict(state["optimizer"])
-        self.densify_state.load_state_dict(state["densify"])
+        self.strategy.load_state_dict(state["densify"])
         self.sampler.load_state_dict(state["sampler"])
         torch.set_rng_state(state["torch_rng"])
         self.generator.set_state(state["generator"])
@@ -316,6 +357,7 @@ class Trainer:
             params = replaced if replaced is not None else params
         output = self.render(params, view, render_depth=context.render_depth, render_normals=context.render_normals)
         context.output = output
+        self.strategy.step_pre_backward(step, output)
         target = view.image_float(self.device)
         mask = view.mask.to(self.device) if view.mask is not None else None
         loss_context = LossContext(step=step, image=output.image, target=target, mask=mask, alpha=output.alpha,
@@ -330,24 +372,15 @@ class Trainer:
         for hook in self.hooks:
             hook.after_backward(self, context)
 
+        self.strategy.step_post_backward(step, view, output)
         with torch.no_grad():
-            means2d = output.meta.get("means2d")
-            if self.schedule.accumulates_gradients(step) and means2d is not None and means2d.grad is not None \
-                    and means2d.shape[1] == len(self.gaussians):
-                self.densify_state.accumulate(means2d.grad, output.meta["radii"], view.width, view.height)
-            with torch.no_grad():
-                image = loss_context.masked_image().clamp(0.0, 1.0)
-                mse = float((image - target).pow(2).mean())
-            psnr = -10.0 * math.log10(max(mse, 1e-12))
+            image = loss_context.masked_image().clamp(0.0, 1.0)
+            mse = float((image - target).pow(2).mean())
+        psnr = -10.0 * math.log10(max(mse, 1e-12))
         self.optimizer.step()
         self.optimizer.zero_grad()
 
-        if self.schedule.is_densify_step(step):
-            self._densify(step)
-        if self.schedule.is_opacity_reset_step(step):
-            reset_opacity(self.gaussians, self.optimizer, config.opacity_reset_value)
-            report = DensifyReport(step=step, count_before=len(self.gaussians), count_after=len(self.gaussians),
-                                   reset_opacity=True, source_index=torch.arange(len(self.gaussians), device=self.device))
+        for report in self.strategy.step_post_optimizer(step):
             for hook in self.hooks:
                 hook.on_densify(self, report)
         # a non-finite parameter shows up in the next loss when the Gaussian is in view; the full
@@ -366,30 +399,6 @@ class Trainer:
     def _checkpoint_due(self, step: int) -> bool:
         every = self.config.checkpoint_every
         return bool(every) and step % every == 0
-
-    def _densify(self, step: int) -> None:
-        config = self.config
-        settings = DensifySettings(
-            grad_threshold=config.densify_grad_threshold, percent_dense=config.percent_dense, extent=self.data.extent,
-            prune_opacity=config.prune_opacity, prune_large=self.schedule.prunes_large(step),
-            max_screen_size_px=config.prune_screen_size_px, max_world_size=config.prune_world_size,
-            max_gaussians=config.max_gaussians)
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            report = densify_and_prune(self.gaussians, self.optimizer, self.densify_state, settings, step=step,
-                                       generator=self.generator)
-        if config.spatial_order:
-            # clones and split children were appended at the end: one permutation of every
-            # per-Gaussian tensor (parameters, Adam moments, statistics) restores the spatial
-            # order, and the hooks see it folded into the report's source_index
-            order = sort_gaussians(self.gaussians, self.optimizer, self.densify_state)
-            if order is not None and report.source_index is not None:
-                report.source_index = report.source_index[order]
-        for warning in caught:
-            self.message(f"warning: {warning.message}")
-            warnings.warn(warning.message, RuntimeWarning, stacklevel=2)
-        for hook in self.hooks:
-            hook.on_densify(self, report)
 
     def _diverged(self, what: str) -> None:
         last = latest_checkpoint(self.run_dir.checkpoints)
@@ -443,7 +452,7 @@ class Trainer:
         config = self.config
         checkpoint_state = None
         if config.resume:
-            checkpoint_state = _resume_state(self.run_dir, config)
+            checkpoint_state = _resume_state(self.run_dir, config, self.method)
         self._start_run_dir(checkpoint_state)
         self._open_progress()
         try:
@@ -511,8 +520,8 @@ class Trainer:
             metrics = evaluate_model(model, self.data, backend=self.backend, background=self.background,
                                      sh_degree=sh_degree, renders_dir=self.run_dir.test_renders if config.save_renders else None,
                                      use_lpips=config.lpips, num_threads=self.num_threads,
-                                     progress=self._progress, antialiased=config.baselines.antialiased,
-                                     eps2d=config.baselines.eps2d)
+                                     progress=self._progress, antialiased=self.parts.render.antialiased,
+                                     eps2d=self.parts.render.eps2d)
             metrics["step"] = self.step
             atomic_write_json(self.run_dir.metrics, metrics)
         elapsed = self.elapsed_before_s + self._session_elapsed()
@@ -528,7 +537,7 @@ class Trainer:
         return result
 
 
-def _resume_state(run: RunDir, config: TrainConfig) -> Optional[dict]:
+def _resume_state(run: RunDir, config: TrainConfig, method: Method) -> Optional[dict]:
     """The newest readable checkpoint of ``run`` checked against ``config`` (None: start fresh)."""
     found = list_checkpoints(run.checkpoints)
     state = None
@@ -544,6 +553,8 @@ def _resume_state(run: RunDir, config: TrainConfig) -> Optional[dict]:
             raise CheckpointError("no readable checkpoint: " + "; ".join(errors), path=run.checkpoints)
         return None
     stored = run_config_from_dict(state["config"])
+    if stored.method == method.name:
+        stored.method_config = method.settings_of(stored)  # its defaults filled in, as the current config's
     current = config_to_dict(config)
     previous = config_to_dict(stored)
     changed = sorted(name for name in current if name not in RESUMABLE_SETTINGS and current[name] != previous.get(name))
@@ -555,11 +566,13 @@ def _resume_state(run: RunDir, config: TrainConfig) -> Optional[dict]:
 
 
 def train(config: TrainConfig, progress: Optional[ProgressCallback] = None,
-          hooks: Sequence[TrainHook] = ()) -> TrainResult:
+          hooks: Sequence[TrainHook] = (), *, method: Method = PLAIN_3DGS) -> TrainResult:
     """Train Gaussians on ``config.scene`` into ``config.out`` (see :class:`TrainConfig`).
 
     ``progress`` receives :class:`~esgs.core.progress.ProgressEvent`\\ s (also written to
-    RUN/events.jsonl); ``hooks`` are :class:`~.hooks.TrainHook`\\ s (ESGS modules). With
-    ``config.resume`` the newest checkpoint in ``config.out`` is continued.
+    RUN/events.jsonl); ``hooks`` are extra :class:`~.hooks.TrainHook`\\ s, called after the
+    method's own. ``method`` must be the one ``config.method`` names (plain 3DGS by default;
+    :func:`esgs.core.methods.train` looks it up). With ``config.resume`` the newest
+    checkpoint in ``config.out`` is continued.
     """
-    return Trainer(config, progress=progress, hooks=hooks).run()
+    return Trainer(config, progress=progress, hooks=hooks, method=method).run()

@@ -15,7 +15,7 @@ from esgs.core import demo, report
 from esgs.core.config import config_from_dict
 from esgs.core.demo import DemoConfig, esgs_settings
 from esgs.core.errors import ConfigError
-from esgs.core.method import ESGSConfig
+from esgs.core.methods import ESGSConfig
 from esgs.core.priors import PriorMaps, load_prior_maps, write_prior_maps
 from tests.core.train.scene import make_scene
 
@@ -198,7 +198,7 @@ def test_the_report_shows_ndn_depth_and_normal_priors_beside_the_rendering(ndn_s
     config = DemoConfig(out=tmp_path / "demo", priors="ndn", iterations=30, max_gaussians=2000, width=64, height=48)
     result = demo.train_method(config, scene, "esgs", esgs_settings("ndn"), lambda event: None, snapshots=False)
     assert result["status"] == "completed"
-    saved = json.loads((config.out / "runs" / "esgs" / "config.json").read_text())["esgs"]
+    saved = json.loads((config.out / "runs" / "esgs" / "config.json").read_text())["method_config"]
     assert saved["priors"] == "ndn" and saved["depth"] and saved["normal"]
     (config.out / "report").mkdir(parents=True)
     name, scores = report._geometry_figure(config, scene, config.out / "report")
@@ -249,7 +249,7 @@ def test_tiny_demo_runs_every_stage_and_reuses_finished_work(tmp_path, monkeypat
     assert (tmp_path / "demo" / "blender" / "results.blend").is_file()
     metrics = json.loads((tmp_path / "demo" / "runs" / "esgs" / "metrics.json").read_text())
     assert metrics["psnr"] > 8 and f"{metrics['psnr']:.2f}" in text
-    saved = json.loads((tmp_path / "demo" / "runs" / "esgs" / "config.json").read_text())["esgs"]
+    saved = json.loads((tmp_path / "demo" / "runs" / "esgs" / "config.json").read_text())["method_config"]
     assert saved["depth"] and saved["normal"] and saved["gpdfn"] and saved["priors"] == "ndn"
     # distances are measured once per run: Blender's comparison serves ESGS, core measures 3DGS
     assert measured == ["3dgs"]

@@ -9,7 +9,7 @@ import numpy as np
 def make_experiment_scene(root: Path, views: int = 6) -> Path:
     import trimesh
 
-    from tests.core.method.test_esgs_hooks import _write_gt_priors
+    from tests.core.methods.test_esgs_hooks import _write_gt_priors
     from tests.core.train.scene import make_scene
 
     scene = make_scene(Path(root), views=views, width=32, height=24)

@@ -117,24 +117,26 @@ def test_verdict_requires_differences_beyond_the_seed_spread():
 def test_plan_runs_is_seed_first_with_every_source_and_rows_group_by_scene(tmp_path):
     scene = make_experiment_scene(tmp_path / "scene")
     assert [m.label for m in scene_methods(scene)] == ["3DGS", "ESGS (gt)"]
-    assert dict(scene_methods(scene)[1].esgs) == {"priors": "gt", "depth": True, "normal": True, "gpdfn": True,
-                                                  "fused_k": 3}
+    full = dict(scene_methods(scene)[1].esgs)  # the full method, as esgs.core.methods.full_esgs defines it
+    assert {key: full[key] for key in ("priors", "depth", "normal", "gpdfn", "fused_k")} == \
+        {"priors": "gt", "depth": True, "normal": True, "gpdfn": True, "fused_k": 3}
     tasks = plan_runs({"a": scene, "b": scene}, tmp_path / "out", iterations=7, seeds=[0, 1], train={"width": 16})
     assert [task.name for task in tasks[:4]] == ["a/3dgs/seed0", "a/esgs-gt/seed0", "b/3dgs/seed0", "b/esgs-gt/seed0"]
-    assert tasks[-1].config == {"width": 16, "iterations": 7, "seed": 1, "esgs": dict(scene_methods(scene)[1].esgs)}
+    assert tasks[-1].config == {"width": 16, "iterations": 7, "seed": 1, "method": "esgs",
+                                "method_config": dict(scene_methods(scene)[1].esgs)}
     summaries = [{"scene": "a", "variant": "3DGS", "seed": s, "psnr": 20.0 + s} for s in (0, 1)]
     rows = scene_rows(summaries)
     assert rows["a"][0]["psnr"] == {"mean": 20.5, "std": 0.5, "n": 2} and rows["a"][0]["seeds"] == [0, 1]
     # an ESGS option reaches every ESGS row and never the baseline
     tuned = plan_runs({"a": scene}, tmp_path / "tuned", iterations=7, seeds=[0], esgs_options={"depth_weight": 3.0})
-    assert tuned[0].config["esgs"] == {} and tuned[1].config["esgs"]["depth_weight"] == 3.0
-    assert tuned[1].config["esgs"]["priors"] == "gt"
+    assert tuned[0].config["method_config"] is None and tuned[1].config["method_config"]["depth_weight"] == 3.0
+    assert tuned[1].config["method_config"]["priors"] == "gt"
 
 
 def test_sky_filled_priors_keep_the_surface_and_fill_the_sky(tmp_path):
     from esgs.core.experiments.sky import horizon_band, write_sky_filled_priors
     from esgs.core.priors import load_prior_maps
-    from tests.core.method.test_esgs_hooks import _write_gt_priors
+    from tests.core.methods.test_esgs_hooks import _write_gt_priors
     from tests.core.train.scene import make_scene
 
     scene = make_scene(tmp_path / "scene", views=3, width=32, height=24)
@@ -160,7 +162,7 @@ def test_sky_figures_split_the_held_out_error_between_sky_and_surface(tmp_path):
 
     from esgs.core.experiments.sky import sky_figures
     from esgs.core.train import TrainConfig, train
-    from tests.core.method.test_esgs_hooks import _write_gt_priors
+    from tests.core.methods.test_esgs_hooks import _write_gt_priors
     from tests.core.train.scene import make_scene
 
     scene = make_scene(tmp_path / "scene", views=6, width=32, height=24)

@@ -51,7 +51,7 @@ def test_densification_grows_the_model_during_a_short_run(fast_config):
     for step in range(1, 31):
         trainer.train_step(step)
         assert trainer.optimizer.state_sizes()["means"][0] == len(trainer.gaussians)
-        assert trainer.densify_state.grad_accum.shape[0] == len(trainer.gaussians)
+        assert trainer.strategy.state.grad_accum.shape[0] == len(trainer.gaussians)
     assert reports and len(trainer.gaussians) > start
     assert any(report.cloned + report.split > 0 for report in reports)
     assert all(len(report.source_index) == report.count_after for report in reports)

@@ -22,8 +22,9 @@ from typing import Any, Optional, Sequence
 
 import torch
 
-from ..train.hooks import StepContext, TrainHook
-from .config import BaselinesConfig
+from ...train.gaussians import GaussianModel, RenderParams
+from ...train.hooks import RunView, StepContext, TrainHook
+from .config import MipSplattingConfig
 
 #: Centres closer than this to a camera (scene units) do not count as seen by it.
 NEAR_PLANE = 0.01
@@ -96,44 +97,51 @@ class MipSplattingHook(TrainHook):
 
     name = "baseline_mip_splatting"
 
-    def __init__(self, config: BaselinesConfig):
+    def __init__(self, config: MipSplattingConfig):
         self.config = config
         self.variance: Optional[torch.Tensor] = None
         self.refresh_every = 100
 
-    def compute(self, trainer: Any, means: Optional[torch.Tensor] = None) -> torch.Tensor:
+    def compute(self, run: RunView, means: Optional[torch.Tensor] = None) -> torch.Tensor:
         """The filter variance [N] of the current (or given) centres from the training cameras."""
-        means = trainer.gaussians.params["means"] if means is None else means
-        viewmats, Ks, widths, heights = training_cameras(trainer.data.train)
+        means = run.gaussians.params["means"] if means is None else means
+        viewmats, Ks, widths, heights = training_cameras(run.train_views)
         rate, _ = max_sampling_rate(means.detach().to(torch.float64).cpu(), viewmats, Ks, widths, heights,
                                     margin=self.config.mip_frustum_margin)
         return filter_variance(rate, self.config.mip_filter_3d).to(torch.float32).to(means.device)
 
-    def setup(self, trainer: Any) -> None:
+    def setup(self, run: RunView) -> None:
         # Mip-Splatting refreshes the rates every 100 of 30,000 steps; scaled like the other schedules
-        self.refresh_every = trainer.config.scaled_step(100, minimum=1)
-        self.variance = self.compute(trainer)
+        self.refresh_every = run.scaled_step(100, minimum=1)
+        self.variance = self.compute(run)
 
-    def before_render(self, trainer: Any, context: StepContext, params: Any) -> Optional[Any]:
+    def before_render(self, run: RunView, context: StepContext, params: RenderParams) -> Optional[RenderParams]:
         count = params.scales.shape[0]
         if self.variance is None or self.variance.shape[0] != count or context.step % self.refresh_every == 0:
-            self.variance = self.compute(trainer)
+            self.variance = self.compute(run)
         scales, opacities = apply_3d_filter(params.scales, params.opacities, self.variance)
         return replace(params, scales=scales, opacities=opacities)
 
-    def on_densify(self, trainer: Any, report: Any) -> None:
+    def model_params(self, run: RunView, params: RenderParams) -> RenderParams:
+        """The model with the 3D filter of its current centres applied."""
+        variance = self.variance if self.variance is not None and self.variance.shape[0] == params.scales.shape[0] \
+            else self.compute(run)
+        scales, opacities = apply_3d_filter(params.scales, params.opacities, variance)
+        return replace(params, scales=scales, opacities=opacities)
+
+    def on_densify(self, run: RunView, report: Any) -> None:
         if report.reset_opacity:
             return
         # centres of clones and split children differ from their sources: measure them again
-        self.variance = self.compute(trainer)
+        self.variance = self.compute(run)
 
-    def export_model(self, trainer: Any, gaussians: Any) -> Any:
+    def export_model(self, run: RunView, gaussians: GaussianModel) -> GaussianModel:
         """A copy with the filter folded into scales and opacities (evaluation and the PLY)."""
         copy = type(gaussians).from_state_dict(gaussians.state_dict())
-        copy.to(trainer.device)
+        copy.to(run.device)
         raw = copy.params
         with torch.no_grad():
-            variance = self.compute(trainer, raw["means"])
+            variance = self.compute(run, raw["means"])
             scales, opacities = apply_3d_filter(torch.exp(raw["log_scales"]),
                                                 torch.sigmoid(raw["opacity_logit"]).reshape(-1), variance)
             opacities = opacities.clamp(1e-7, 1.0 - 1e-7)

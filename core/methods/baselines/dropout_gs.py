@@ -13,8 +13,9 @@ from typing import Any, Optional
 
 import torch
 
-from ..train.hooks import StepContext, TrainHook
-from .config import BaselinesConfig
+from ...train.gaussians import RenderParams
+from ...train.hooks import RunView, StepContext, TrainHook
+from .config import DropoutGSConfig
 
 #: Mixed into the run seed so the dropout stream differs from torch's global one.
 _SEED_SALT = 0x5D0F
@@ -52,13 +53,13 @@ class DropoutHook(TrainHook):
 
     name = "baseline_dropout_gs"
 
-    def __init__(self, config: BaselinesConfig):
+    def __init__(self, config: DropoutGSConfig):
         self.config = config
         self.last_dropped = 0
 
-    def before_render(self, trainer: Any, context: StepContext, params: Any) -> Optional[Any]:
+    def before_render(self, run: RunView, context: StepContext, params: RenderParams) -> Optional[RenderParams]:
         count = params.opacities.shape[0]
-        keep = dropout_keep_mask(count, self.config.dropout_rate, seed=trainer.config.seed, step=context.step,
+        keep = dropout_keep_mask(count, self.config.dropout_rate, seed=run.seed, step=context.step,
                                  device=params.opacities.device)
         self.last_dropped = int(count - int(keep.sum()))
         context.extras["dropout_dropped"] = self.last_dropped

@@ -5,11 +5,11 @@ from typing import Any, Optional
 
 import torch
 
-from ..priors import load_prior_maps
-from ..priors.align import align_depth_to_points
-from ..priors.losses import depth_loss, depth_normal_consistency_loss, edge_aware_weights, normal_loss, sky_loss
-from ..train.hooks import TrainHook
-from ..train.losses import LossContext, LossTerm
+from ...priors import load_prior_maps
+from ...priors.align import align_depth_to_points
+from ...priors.losses import depth_loss, depth_normal_consistency_loss, edge_aware_weights, normal_loss, sky_loss
+from ...train.hooks import RunView, TrainHook
+from ...train.losses import LossContext, LossTerm
 from .config import ESGSConfig
 
 
@@ -28,36 +28,36 @@ class PriorLossHook(TrainHook):
         self._weights: dict[str, torch.Tensor] = {}
 
     # ------------------------------------------------------------------------------
-    def setup(self, trainer: Any) -> None:
+    def setup(self, run: RunView) -> None:
         config = self.config
-        start = trainer.config.scaled_step(config.prior_start_step)
+        start = run.scaled_step(config.prior_start_step)
         wants_sky = config.sky_loss_on
         if config.depth or config.normal or wants_sky:
-            self._load(trainer)
+            self._load(run)
         if config.depth:
-            trainer.add_loss_term(LossTerm("depth_prior", config.depth_weight, self._depth_term, start_step=start,
+            run.add_loss_term(LossTerm("depth_prior", config.depth_weight, self._depth_term, start_step=start,
                                            needs=frozenset({"depth"})))
         if config.normal:
-            trainer.add_loss_term(LossTerm("normal_prior", config.normal_weight, self._normal_term, start_step=start,
+            run.add_loss_term(LossTerm("normal_prior", config.normal_weight, self._normal_term, start_step=start,
                                            needs=frozenset({"normals"})))
         if wants_sky and any(p["sky"] is not None for p in self.priors.values()):
-            trainer.add_loss_term(LossTerm("sky", config.sky_weight, self._sky_term, start_step=start,
+            run.add_loss_term(LossTerm("sky", config.sky_weight, self._sky_term, start_step=start,
                                            needs=frozenset({"depth"})))
         elif wants_sky:
-            trainer.message(f"note: prior source {config.priors!r} marks no sky pixels (mask_kind coverage, or no "
+            run.message(f"note: prior source {config.priors!r} marks no sky pixels (mask_kind coverage, or no "
                             "sky in view); the sky loss is off")
         if config.consistency:
-            trainer.add_loss_term(LossTerm("depth_normal", config.consistency_weight, self._consistency_term,
-                                           start_step=trainer.config.scaled_step(config.consistency_start_step),
+            run.add_loss_term(LossTerm("depth_normal", config.consistency_weight, self._consistency_term,
+                                           start_step=run.scaled_step(config.consistency_start_step),
                                            needs=frozenset({"depth", "normals"})))
 
-    def _load(self, trainer: Any) -> None:
+    def _load(self, run: RunView) -> None:
         source = self.config.priors
-        device = trainer.device
+        device = run.device
         alignments = []
-        for view in trainer.data.train:
+        for view in run.train_views:
             rotation = view.viewmat[:3, :3].double().numpy()
-            maps = load_prior_maps(trainer.data.source or trainer.config.scene, source, view.name,
+            maps = load_prior_maps(run.scene, source, view.name,
                                    size=(view.width, view.height), world_to_camera_rotation=rotation)
             mask = torch.from_numpy(maps.mask.copy())
             if not self.config.use_masks:
@@ -89,11 +89,11 @@ class PriorLossHook(TrainHook):
                 "far": _far_depth(depth, mask) if depth is not None and not relative else None,
             }
         if alignments:
-            trainer.message(_alignment_summary(alignments, self.config.max_alignment_error))
+            run.message(_alignment_summary(alignments, self.config.max_alignment_error))
         if self.config.depth and all(p["depth"] is None for p in self.priors.values()):
-            trainer.message(f"warning: prior source {source!r} has no depth maps; the depth loss stays at zero")
+            run.message(f"warning: prior source {source!r} has no depth maps; the depth loss stays at zero")
         if self.config.normal and all(p["normal"] is None for p in self.priors.values()):
-            trainer.message(f"warning: prior source {source!r} has no normal maps; the normal loss stays at zero")
+            run.message(f"warning: prior source {source!r} has no normal maps; the normal loss stays at zero")
 
     def _sky_pixels(self, sky: Any, view: Any, *, failed: bool) -> Optional[torch.Tensor]:
         """[H,W] bool sky pixels of a view, or None: unknown, masks off, or the view's prediction

@@ -11,8 +11,9 @@ from typing import Any, Optional
 
 import torch
 
-from ..gpdfn import GPDFN
-from ..train.hooks import StepContext, TrainHook
+from ...train.gaussians import GaussianModel, RenderParams
+from ...train.hooks import RunView, StepContext, TrainHook
+from .gpdfn import GPDFN
 from .config import ESGSConfig
 
 
@@ -55,27 +56,33 @@ class GPDFNHook(TrainHook):
 
     def __init__(self, config: ESGSConfig):
         self.config = config
-        self.module = GPDFN(config.gpdfn_config())
-        self.every = self.module.config.every
+        self.module = GPDFN(config)
+        self.every = config.gpdfn_every
         # detached residuals of the last GPDFN run (reused on the steps between runs)
         self._cached: Optional[dict[str, torch.Tensor]] = None
 
-    def setup(self, trainer: Any) -> None:
-        self.module.to(trainer.device)
+    def setup(self, run: RunView) -> None:
+        self.module.to(run.device)
         if self.module.enabled:
-            trainer.add_parameter_group("gpdfn", list(self.module.parameters()), self.config.gpdfn_lr)
+            run.add_parameter_group("gpdfn", list(self.module.parameters()), self.config.gpdfn_lr)
 
-    def before_render(self, trainer: Any, context: StepContext, params: Any) -> Optional[Any]:
+    def before_render(self, run: RunView, context: StepContext, params: RenderParams) -> Optional[RenderParams]:
         if not self.module.enabled:
             return params
         if self.every > 1 and self._cached is not None and context.step % self.every != 0:
-            return apply_residuals(trainer.gaussians, params, self._cached)
-        residual = gpdfn_residuals(self.module, trainer.gaussians, params)
+            return apply_residuals(run.gaussians, params, self._cached)
+        residual = gpdfn_residuals(self.module, run.gaussians, params)
         if self.every > 1:
             self._cached = {name: value.detach() for name, value in residual.items()}
-        return apply_residuals(trainer.gaussians, params, residual)
+        return apply_residuals(run.gaussians, params, residual)
 
-    def on_densify(self, trainer: Any, report: Any) -> None:
+    def model_params(self, run: RunView, params: RenderParams) -> RenderParams:
+        """The model with every Gaussian fused with its neighbours by the current weights."""
+        if not self.module.enabled:
+            return params
+        return apply_residuals(run.gaussians, params, gpdfn_residuals(self.module, run.gaussians, params))
+
+    def on_densify(self, run: RunView, report: Any) -> None:
         # the cached residuals belong to the old Gaussian set (order and count)
         self._cached = None
 
@@ -91,12 +98,12 @@ class GPDFNHook(TrainHook):
             raw["opacity_logit"].add_(residual["opacity_logits"].reshape(raw["opacity_logit"].shape))
             raw["sh_dc"].add_(residual["sh_dc"].reshape(raw["sh_dc"].shape))
 
-    def export_model(self, trainer: Any, gaussians: Any) -> Any:
+    def export_model(self, run: RunView, gaussians: GaussianModel) -> GaussianModel:
         """A copy of the Gaussians with the residuals folded in (the raw model keeps training)."""
         if not self.module.enabled:
             return gaussians
         copy = type(gaussians).from_state_dict(gaussians.state_dict())
-        copy.to(trainer.device)
+        copy.to(run.device)
         self.bake(copy)
         return copy
 

@@ -41,7 +41,7 @@ import torch
 from torch import nn
 
 from . import gpdfn_kernels as kernels
-from .gpdfn_config import GPDFNConfig
+from .gpdfn_settings import GPDFNConfig
 
 FEATURE_DIM = 14  # position 3, log-scale 3, quaternion 4, opacity 1, SH DC 3
 _BASE_DIRECTIONS = ((1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, -1.0, 0.0))
@@ -248,7 +248,7 @@ class GPDFN(nn.Module):
         super().__init__()
         self.config = config or GPDFNConfig()
         self.config.validate()
-        self.voxel_size = float(self.config.voxel_size)
+        self.voxel_size = float(self.config.gpdfn_voxel_size)
         neighbours = self.config.fused_k - 1
         self.enabled = neighbours > 0
         self._table: Optional[VoxelTable] = None  # voxel table of the last forward (exact reuse)
@@ -261,7 +261,7 @@ class GPDFN(nn.Module):
         self.offset_head = nn.Linear(FEATURE_DIM, 3 * neighbours)
         nn.init.zeros_(self.offset_head.weight)
         nn.init.zeros_(self.offset_head.bias)
-        hidden = self.config.hidden
+        hidden = self.config.gpdfn_hidden
         # pointwise 1D convolutions along the fused axis, written as Linear layers on
         # [N, K, D] (the same operation, and much faster on the CPU than Conv1d here)
         self.embed = nn.Sequential(
@@ -342,7 +342,7 @@ class GPDFN(nn.Module):
         # entry-major [K-1, N, 3], the fusion core's layout (see _fusion_forward_block)
         shift = torch.tanh(self.offset_head(features)).view(count, neighbours, 3).transpose(0, 1)
         base = means.unsqueeze(0) + self.base_offsets.unsqueeze(1) * self.voxel_size
-        sample_points = torch.add(base, shift, alpha=self.config.max_shift_voxels * self.voxel_size).reshape(-1, 3)
+        sample_points = torch.add(base, shift, alpha=self.config.gpdfn_max_shift_voxels * self.voxel_size).reshape(-1, 3)
         index, weight = self.sample_voxels(sample_points, table, centroids)
         # first pointwise convolution over the [features, weight channel] rows: the own row has
         # weight channel 1; a sampled row is weight * [voxel feature, 1], so its first layer is

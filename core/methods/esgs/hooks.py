@@ -1,12 +1,12 @@
 """The trainer hooks an ESGS configuration needs."""
 from __future__ import annotations
 
-from ..train.hooks import TrainHook
+from ...train.hooks import TrainHook
 from .config import ESGSConfig
 
 
 def esgs_hooks(config: ESGSConfig) -> list[TrainHook]:
-    """The hooks a run with ``config`` needs (none for the plain 3DGS baseline)."""
+    """The hooks a run with ``config`` needs (none when every part is off)."""
     from .gpdfn_hook import GPDFNHook
     from .prior_hook import PriorLossHook
 

@@ -1,21 +1,24 @@
-"""Settings of the ESGS additions to the 3DGS trainer (priors, losses, GPDFN)."""
+"""Settings of the ESGS method: the prior losses and GPDFN added to the 3DGS trainer."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from ..errors import ConfigError
-from ..gpdfn_config import GPDFNConfig
+from ...errors import ConfigError
+from .gpdfn_settings import GPDFNConfig
 
 DEPTH_MODES = ("log", "inverse")
 ALIGNMENTS = ("sfm", "render")
 
 
 @dataclass
-class ESGSConfig:
-    """What ESGS adds to a 3DGS run. All off by default: the plain baseline.
+class ESGSConfig(GPDFNConfig):
+    """What ESGS adds to a 3DGS run: the settings of the ``esgs`` method.
 
-    Step numbers are for a 30,000-step run and scale with the run's length, like every
-    other schedule of the trainer.
+    Each part is a switch, all off in a bare ``ESGSConfig()``; the full method (its parts
+    chosen for the prior source) is :func:`esgs.core.methods.full_esgs`, its one definition.
+    GPDFN's own settings (``fused_k``, ``gpdfn_*``) are inherited from
+    :class:`~.gpdfn_settings.GPDFNConfig`. Step numbers are for a 30,000-step run and scale
+    with the run's length, like every other schedule of the trainer.
     """
 
     priors: str = field(default="", metadata={"help": "prior source under SCENE/priors/ (gt, labels, ndn, sfm); empty = none"})
@@ -23,7 +26,6 @@ class ESGSConfig:
     normal: bool = field(default=False, metadata={"help": "normal-prior loss"})
     consistency: bool = field(default=False, metadata={"help": "depth-normal consistency loss (needs no prior)"})
     gpdfn: bool = field(default=False, metadata={"help": "GPDFN neighbour fusion"})
-    fused_k: int = field(default=3, metadata={"help": "Gaussians fused by GPDFN, itself included (1..5)"})
     depth_weight: float = field(default=1.0, metadata={"help": "weight of the depth-prior loss (docs/esgs_acceptance.md: how it was chosen)"})
     normal_weight: float = field(default=0.05, metadata={"help": "weight of the normal-prior loss"})
     consistency_weight: float = field(default=0.05, metadata={"help": "weight of the depth-normal consistency loss"})
@@ -46,10 +48,6 @@ class ESGSConfig:
                 "mask_kind is surface: gt, ndn), Gaussians drawn nearer than the view's farthest surface are "
                 "pushed beyond it (docs/esgs.md, 'The sky loss'); needs use_masks; 0 = off"})
     max_prior_depth: float = field(default=0.0, metadata={"help": "ignore prior depths beyond this (scene units; 0 = no limit)"})
-    gpdfn_lr: float = field(default=1e-3, metadata={"help": "learning rate of the GPDFN weights"})
-    gpdfn_hidden: int = field(default=16, metadata={"help": "width of GPDFN's 1D convolutions (saved with the run)"})
-    gpdfn_every: int = field(default=1, metadata={"help": "run GPDFN every k-th step, reusing its last residuals "
-                                                          "(detached) in between; 1 = every step (docs/esgs.md)"})
 
     def validate(self) -> None:
         if (self.depth or self.normal) and not self.priors:
@@ -63,10 +61,7 @@ class ESGSConfig:
                      "max_alignment_error", "sky_weight"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
-        self.gpdfn_config().validate()
-
-    def gpdfn_config(self) -> GPDFNConfig:
-        return GPDFNConfig(fused_k=self.fused_k, lr=self.gpdfn_lr, hidden=self.gpdfn_hidden, every=self.gpdfn_every)
+        super().validate()
 
     @property
     def sky_loss_on(self) -> bool:

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from esgs.core import gpdfn
+from esgs.core.methods.esgs import gpdfn
 from esgs.core.errors import ConfigError
-from esgs.core.gpdfn import GPDFN, GPDFNConfig, VoxelTable, _FusionCore, _voxel_keys
+from esgs.core.methods.esgs.gpdfn import GPDFN, GPDFNConfig, VoxelTable, _FusionCore, _voxel_keys
 
 
 def _gaussians(count=500, seed=0):
@@ -54,7 +54,7 @@ def test_deterministic_with_a_seed():
 
 
 def test_soft_sampling_reads_the_containing_voxel_with_a_distance_kernel():
-    module = GPDFN(GPDFNConfig(fused_k=2, voxel_size=2.0))
+    module = GPDFN(GPDFNConfig(fused_k=2, gpdfn_voxel_size=2.0))
     # Gaussians in voxels (0,0,0) twice, (1,0,0) and (5,5,5)
     means = torch.tensor([[0.5, 1.0, 1.0], [1.5, 1.0, 1.0], [3.0, 1.0, 1.0], [11.0, 11.0, 11.0]], dtype=torch.float64)
     table = VoxelTable.build(means, 2.0)
@@ -99,7 +99,7 @@ def _reference_forward(module: GPDFN, means, log_scales, quats, opacity_logits, 
     counts = torch.bincount(inverse).to(means.dtype).unsqueeze(1)
     voxel_features = features.new_zeros(len(unique_keys), features.shape[1]).index_add(0, inverse, features) / counts
     centroids = means.new_zeros(len(unique_keys), 3).index_add(0, inverse, means.detach()) / counts
-    delta = torch.tanh(module.offset_head(features)).view(count, neighbours, 3) * module.config.max_shift_voxels
+    delta = torch.tanh(module.offset_head(features)).view(count, neighbours, 3) * module.config.gpdfn_max_shift_voxels
     points = (means.unsqueeze(1) + (module.base_offsets.unsqueeze(0) + delta) * voxel).reshape(-1, 3)
     point_keys = _voxel_keys(torch.floor(points.detach() / voxel).long())
     index = torch.searchsorted(unique_keys, point_keys).clamp(max=len(unique_keys) - 1)
@@ -233,8 +233,8 @@ def test_works_after_the_gaussian_set_changes():
 def test_hook_every_k_steps_reuses_detached_residuals_until_the_set_changes():
     from types import SimpleNamespace
 
-    from esgs.core.method import ESGSConfig
-    from esgs.core.method.gpdfn_hook import GPDFNHook
+    from esgs.core.methods import ESGSConfig
+    from esgs.core.methods.esgs.gpdfn_hook import GPDFNHook
     from esgs.core.train.gaussians import GaussianModel
     from esgs.core.train.hooks import StepContext
 
@@ -297,7 +297,7 @@ def test_unit_quaternions_from_the_renderer_give_the_same_outputs_and_gradients(
 
 
 def test_hook_residuals_equal_the_module_on_raw_parameters():
-    from esgs.core.method.gpdfn_hook import fused_render_params
+    from esgs.core.methods.esgs.gpdfn_hook import fused_render_params
     from esgs.core.train.gaussians import GaussianModel
 
     params = _gaussians(count=200)

@@ -7,15 +7,14 @@ import math
 import pytest
 import torch
 
-from esgs.core.baselines import BaselinesConfig, baseline_hooks
-from esgs.core.baselines.dropout_gs import DropoutHook, apply_dropout, dropout_keep_mask
-from esgs.core.baselines.mip_splatting import (MipSplattingHook, apply_3d_filter, filter_variance,
+from esgs.core.methods import DropoutGSConfig, MipSplattingConfig, get_method, make_trainer, train
+from esgs.core.methods.baselines.dropout_gs import DropoutHook, apply_dropout, dropout_keep_mask
+from esgs.core.methods.baselines.mip_splatting import (MipSplattingHook, apply_3d_filter, filter_variance,
                                                max_sampling_rate)
 from esgs.core.errors import ConfigError
 from esgs.core.train.config import TrainConfig
 from esgs.core.train.gaussians import RenderParams
 from esgs.core.train.hooks import StepContext, TrainHook
-from esgs.core.train.trainer import Trainer, train
 from tests.core.train.scene import make_scene
 
 
@@ -87,10 +86,10 @@ def test_dropout_drops_the_requested_fraction_deterministically():
 
 def test_bad_settings_raise_config_errors():
     with pytest.raises(ConfigError, match="dropout_rate"):
-        baseline_hooks(BaselinesConfig(dropout_gs=True, dropout_rate=1.0))
+        get_method("dropout-gs").build(DropoutGSConfig(dropout_rate=1.0), TrainConfig())
     with pytest.raises(ConfigError):
-        TrainConfig(baselines=BaselinesConfig(mip_filter_3d=-1.0)).validate()
-    assert baseline_hooks(BaselinesConfig()) == []
+        TrainConfig(method="mip-splatting", method_config=MipSplattingConfig(mip_filter_3d=-1.0)).validate()
+    assert get_method("dropout-gs").build(DropoutGSConfig(dropout_rate=0.0), TrainConfig()).hooks == []
 
 
 class _Recorder(TrainHook):
@@ -111,32 +110,33 @@ def scene(tmp_path_factory):
     return make_scene(tmp_path_factory.mktemp("baselines") / "scene", views=6, width=32, height=24)
 
 
-def _config(scene, out, **baselines) -> TrainConfig:
+def _config(scene, out, method, **settings) -> TrainConfig:
+    settings_class = get_method(method).settings_class
     return TrainConfig(scene=scene, out=out, iterations=12, backend="cpu", threads=1, evaluate=True, lpips=False,
                        densify_until=0, test_every=3, save_renders=False, checkpoint_every=0, progress_every=4,
-                       baselines=BaselinesConfig(**baselines))
+                       method=method, method_config=settings_class(**settings))
 
 
 def test_dropout_run_drops_in_training_only_and_evaluates_the_full_model(scene, tmp_path):
     recorder = _Recorder()
-    result = train(_config(scene, tmp_path / "dropout", dropout_gs=True, dropout_rate=0.2), hooks=[recorder])
+    result = train(_config(scene, tmp_path / "dropout", "dropout-gs", dropout_rate=0.2), hooks=[recorder])
     assert result.status == "completed" and result.metrics["psnr"] > 0
     for opacities in recorder.opacities:
         assert int((opacities == 0).sum()) == round(0.2 * len(opacities))
     # the same seed drops the same Gaussians; evaluation (and export) leave the model whole
-    trainer = Trainer(_config(scene, tmp_path / "again", dropout_gs=True, dropout_rate=0.2))
+    trainer = make_trainer(_config(scene, tmp_path / "again", "dropout-gs", dropout_rate=0.2))
     trainer.setup()
     hook = next(h for h in trainer.hooks if isinstance(h, DropoutHook))
     assert hook.export_model(trainer, trainer.gaussians) is trainer.gaussians
     config = json.loads((tmp_path / "dropout" / "config.json").read_text())
-    assert config["baselines"]["dropout_gs"] is True
+    assert config["method"] == "dropout-gs" and config["method_config"]["dropout_rate"] == 0.2
 
 
 def test_mip_splatting_run_filters_renders_and_bakes_the_filter_into_the_ply(scene, tmp_path):
     from esgs.core.ply import read_gaussians_ply
 
-    config = _config(scene, tmp_path / "mip", mip_splatting=True)
-    trainer = Trainer(config)
+    config = _config(scene, tmp_path / "mip", "mip-splatting")
+    trainer = make_trainer(config)
     trainer.setup()
     hook = next(h for h in trainer.hooks if isinstance(h, MipSplattingHook))
     params = trainer.gaussians.render_params(0)
@@ -168,9 +168,16 @@ def test_train_command_flags_reach_the_config(tmp_path):
 
     parser = argparse.ArgumentParser()
     train_command.add_arguments(parser)
-    args = parser.parse_args(["scene", "--out", str(tmp_path / "run"), "--mip-splatting", "--dropout-gs",
-                              "--dropout-rate", "0.2"])
+    args = parser.parse_args(["scene", "--out", str(tmp_path / "run"), "--dropout-gs", "--dropout-rate", "0.2"])
     config = train_command.build_config(args)
-    assert config.baselines == BaselinesConfig(mip_splatting=True, dropout_gs=True, dropout_rate=0.2)
+    assert config.method == "dropout-gs" and config.method_config == DropoutGSConfig(dropout_rate=0.2)
+    args = parser.parse_args(["scene", "--out", str(tmp_path / "run"), "--method", "mip-splatting",
+                              "--mip-filter-2d", "0.2"])
+    config = train_command.build_config(args)
+    assert config.method == "mip-splatting" and config.method_config == MipSplattingConfig(mip_filter_2d=0.2)
     args = parser.parse_args(["scene", "--out", str(tmp_path / "run")])
-    assert train_command.build_config(args).baselines == BaselinesConfig()
+    assert train_command.build_config(args).method == "3dgs"
+    # one method per run: two switches are refused with a clear error
+    args = parser.parse_args(["scene", "--out", str(tmp_path / "run"), "--mip-splatting", "--dropout-gs"])
+    with pytest.raises(ConfigError, match="one method per run"):
+        train_command.build_config(args)

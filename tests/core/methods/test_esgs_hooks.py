@@ -9,14 +9,14 @@ import torch
 
 from esgs.core.colmap import read_model
 from esgs.core.errors import ConfigError
-from esgs.core.method import ESGSConfig
-from esgs.core.method.gpdfn_hook import GPDFNHook
-from esgs.core.method.hooks import esgs_hooks
+from esgs.core.methods import ESGSConfig
+from esgs.core.methods.esgs.gpdfn_hook import GPDFNHook
+from esgs.core.methods.esgs.hooks import esgs_hooks
 from esgs.core.priors import write_prior_maps
 from esgs.core.render import rasterization
 from esgs.core.train.config import TrainConfig
 from esgs.core.train.hooks import TrainHook
-from esgs.core.train.trainer import Trainer
+from esgs.core.methods import make_trainer
 from tests.core.train.scene import ground_truth_gaussians, make_scene
 
 
@@ -53,8 +53,8 @@ def scene(tmp_path_factory):
 def _trainer(scene, out, esgs: ESGSConfig, iterations=40, progress=None, **overrides):
     config = TrainConfig(scene=scene, out=out, iterations=iterations, backend="cpu", evaluate=False, densify_until=0,
                          checkpoint_every=0, progress_every=1000, test_every=0, lpips=False, sh_degree=1,
-                         mask_source="none", esgs=esgs, **overrides)
-    trainer = Trainer(config, progress=progress)
+                         mask_source="none", method="esgs", method_config=esgs, **overrides)
+    trainer = make_trainer(config, progress=progress)
     trainer.setup()
     return trainer
 
@@ -153,7 +153,7 @@ def test_cli_runs_full_esgs_and_saves_its_settings(scene, tmp_path):
                "--priors", "gt", "--depth", "--normal", "--gpdfn", "--fused-k", "2", "--prior-start-step", "0"]
     result = subprocess.run(command, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-2000:]
-    saved = json.loads((out / "config.json").read_text())["esgs"]
+    saved = json.loads((out / "config.json").read_text())["method_config"]
     assert saved["depth"] and saved["normal"] and saved["gpdfn"] and saved["fused_k"] == 2 and saved["priors"] == "gt"
     assert len(read_gaussians_ply(out / "point_cloud.ply").means) > 0
     metrics = json.loads((out / "metrics.json").read_text())

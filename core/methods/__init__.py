@@ -1,0 +1,129 @@
+"""Training methods on top of the trainer, and the one way to run them.
+
+The trainer (:mod:`esgs.core.train`) knows no method; this package registers those that
+ship (:mod:`.registry`: ``3dgs``, ``esgs``, ``mip-splatting``, ``dropout-gs``) and gives
+every caller (CLI, demo, bench, experiments, Blender) the same entry points:
+
+- :func:`train` / :func:`make_trainer`: run ``config.method`` with ``config.method_config``;
+- :func:`full_esgs`: the full ESGS method for a prior source, defined once;
+- :func:`esgs_config`: a TrainConfig for ESGS in one call;
+- :func:`train_config_from_dict` / :func:`load_run_config`: a saved config (older layouts
+  included) with its method's settings as their dataclass;
+- :func:`render_options`, :func:`evaluate_run`, :func:`render_run`: a finished run rendered
+  the way its method renders.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Optional, Sequence
+
+from ..train.config import TrainConfig, run_config_from_dict
+from ..train.config import load_run_config as _load_saved_config
+from ..train.method import Method, MethodParts, RenderOptions
+from .baselines.config import DropoutGSConfig, MipSplattingConfig
+from .esgs.config import ESGSConfig
+from .registry import get_method, method_names, register_method, unregister_method
+
+if TYPE_CHECKING:
+    from ..progress import ProgressCallback
+    from ..train.hooks import TrainHook
+    from ..train.trainer import Trainer, TrainResult
+
+__all__ = [
+    "DropoutGSConfig", "ESGSConfig", "Method", "MethodParts", "MipSplattingConfig", "RenderOptions",
+    "esgs_config", "evaluate_run", "full_esgs", "get_method", "load_run_config", "make_trainer", "method_names",
+    "register_method", "render_options", "render_run", "resolve", "train", "train_config_from_dict",
+    "unregister_method",
+]
+
+def full_esgs(priors: str, *, scene: Optional[Path] = None, **overrides: Any) -> ESGSConfig:
+    """The full ESGS method on prior source ``priors``: the one definition every caller uses.
+
+    Depth prior, normal prior and GPDFN (K = 3, the paper's best). A source without normal
+    maps (``sfm``, or any whose ``SCENE/priors/<source>/normal`` folder is missing when
+    ``scene`` is given) trains the depth-normal consistency loss in place of the normal
+    prior. ``overrides`` are ESGSConfig fields set on top (``depth_weight=3.0``, ``gpdfn=False``).
+    """
+    from ..scene_dir import PriorSource, SceneDir
+
+    if scene is not None:
+        has_normals = SceneDir(Path(scene)).prior_maps(priors, "normal").is_dir()
+    else:
+        has_normals = PriorSource.parse(priors).has_normals
+    settings = ESGSConfig(priors=priors, depth=True, normal=has_normals, consistency=not has_normals,
+                          gpdfn=True, fused_k=3)
+    if overrides:
+        from ..config import config_from_dict, config_to_dict
+
+        settings = config_from_dict(ESGSConfig, {**config_to_dict(settings), **overrides})
+    settings.validate()
+    return settings
+
+
+def esgs_config(scene: Path, out: Path, priors: str, **train_settings: Any) -> TrainConfig:
+    """A TrainConfig running :func:`full_esgs` on ``priors`` (``train_settings``: TrainConfig fields)."""
+    return TrainConfig(scene=Path(scene), out=Path(out), method="esgs",
+                       method_config=full_esgs(priors, scene=Path(scene)), **train_settings)
+
+
+def resolve(config: TrainConfig) -> TrainConfig:
+    """``config`` with ``method_config`` as its method's settings dataclass (a dict or None
+    becomes the dataclass, defaults filled in); ConfigError for an unknown method."""
+    config.method_config = get_method(config.method).settings_of(config)
+    return config
+
+
+def train_config_from_dict(data: dict, *, source: str | Path | None = None) -> TrainConfig:
+    """A TrainConfig from a saved dict (config.json, a checkpoint, a bench task), the layout
+    of runs saved before methods were registered included, resolved (:func:`resolve`)."""
+    return resolve(run_config_from_dict(data, source=source))
+
+
+def load_run_config(path: str | Path) -> TrainConfig:
+    """A run's ``config.json``, resolved (:func:`train_config_from_dict`)."""
+    return resolve(_load_saved_config(path))
+
+
+def render_options(config: TrainConfig) -> RenderOptions:
+    """How runs of ``config`` render (Mip-Splatting's 2D filter; plain otherwise)."""
+    method = get_method(config.method)
+    return method.render_options(method.settings_of(config))
+
+
+def make_trainer(config: TrainConfig, progress: Optional["ProgressCallback"] = None,
+                 hooks: Sequence["TrainHook"] = ()) -> "Trainer":
+    """A :class:`~esgs.core.train.trainer.Trainer` for ``config.method`` (not started)."""
+    from ..train.trainer import Trainer
+
+    return Trainer(config, progress=progress, hooks=hooks, method=get_method(config.method))
+
+
+def train(config: TrainConfig, progress: Optional["ProgressCallback"] = None,
+          hooks: Sequence["TrainHook"] = ()) -> "TrainResult":
+    """Train ``config`` with its method (see :func:`esgs.core.train.trainer.train`)."""
+    return make_trainer(config, progress=progress, hooks=hooks).run()
+
+
+def evaluate_run(run_dir: str | Path, **options: Any) -> dict:
+    """Evaluate a finished run on its held-out views, rendered the way its method renders
+    (options: those of :func:`esgs.core.train.evaluate.evaluate_run`)."""
+    from ..train.evaluate import evaluate_run as evaluate
+
+    return evaluate(run_dir, render=_run_render_options(run_dir), **options)
+
+
+def render_run(run_dir: str | Path, **options: Any) -> list[Path]:
+    """Render cameras of a run the way its method renders (options: those of
+    :func:`esgs.core.train.render_views.render_run`)."""
+    from ..train.render_views import render_run as render
+
+    return render(run_dir, render=_run_render_options(run_dir), **options)
+
+
+def _run_render_options(run_dir: str | Path) -> Optional[RenderOptions]:
+    """The render options of a run folder's method (None without a config.json: the caller
+    then reports the folder as not being a run)."""
+    from ..train.run_dir import RunDir
+
+    config_path = RunDir(Path(run_dir)).config
+    return render_options(load_run_config(config_path)) if config_path.is_file() else None
