@@ -17,6 +17,7 @@ import numpy as np
 
 from ..errors import DatasetError
 from ..io_utils import atomic_directory
+from ..scene_dir import SceneDir
 from . import parse
 from .model import Camera, ColmapModel, Image, Point3D
 from .validate import check_references, check_registered
@@ -49,7 +50,8 @@ def find_model_dir(path: str | Path) -> tuple[Path, str]:
         raise DatasetError("COLMAP model folder does not exist", path=path)
     if not path.is_dir():
         raise DatasetError("expected a COLMAP model folder, got a file", path=path, hint="pass the folder holding cameras/images/points3D")
-    candidates = [path, path / "sparse" / "0", path / "sparse"]
+    folder_of = SceneDir(path)
+    candidates = [path, folder_of.model, folder_of.sparse]
     for folder in candidates:
         for extension in ("bin", "txt"):
             if all((folder / f"{name}.{extension}").is_file() for name in MODEL_FILES):
@@ -274,7 +276,7 @@ def load_scene(scene_dir: str | Path, *, check_sizes: bool = False) -> tuple[Col
 
     scene_dir = Path(scene_dir)
     model = read_model(scene_dir)
-    images_dir = scene_dir / "images"
+    images_dir = SceneDir(scene_dir).images
     validate_images(model, images_dir)
     if check_sizes:
         check_image_sizes(model, images_dir)

@@ -20,6 +20,7 @@ import numpy as np
 from ..errors import DatasetError
 from ..io_utils import atomic_directory
 from ..progress import ProgressCallback, ProgressEvent, no_progress
+from ..scene_dir import SceneDir
 from .camera_models import PINHOLE_MODELS, model_info
 from .model import Camera, ColmapModel, Image
 
@@ -156,10 +157,11 @@ def undistort_model(
     new_images: dict[int, Image] = {}
     images = model.sorted_images()
     with atomic_directory(out_dir, overwrite=overwrite) as staging:
-        (staging / "images").mkdir()
+        staged = SceneDir(staging)
+        staged.images.mkdir()
         for step, image in enumerate(images):
             camera, new_camera = model.cameras[image.camera_id], new_cameras[image.camera_id]
-            source, target = images_dir / image.name, staging / "images" / image.name
+            source, target = images_dir / image.name, staged.image(image.name)
             target.parent.mkdir(parents=True, exist_ok=True)
             if camera.model in PINHOLE_MODELS:
                 shutil.copyfile(source, target)
@@ -173,8 +175,8 @@ def undistort_model(
                 points2d = undistort_points(image.points2d, camera, new_camera)
             new_images[image.image_id] = replace(image, points2d=points2d, point3d_ids=image.point3d_ids.copy())
             progress(ProgressEvent(step + 1, len(images), stage="undistort"))
-        new_model = ColmapModel(new_cameras, new_images, model.points, source=str(Path(out_dir) / "sparse" / "0"))
-        write_model(new_model, staging / "sparse" / "0", binary=True)
+        new_model = ColmapModel(new_cameras, new_images, model.points, source=str(SceneDir(out_dir).model))
+        write_model(new_model, staged.model, binary=True)
     return new_model
 
 

@@ -51,10 +51,12 @@ def summary(model) -> dict[str, object]:
 def run(args: argparse.Namespace) -> int:
     from ..colmap import check_image_sizes, load_scene, read_model, undistort_model, validate_images, write_model
     from ..progress import ConsoleProgress
+    from ..scene_dir import SceneDir
 
     if args.action == "check":
         model = read_model(args.scene)
-        images_dir = args.images or (args.scene / "images" if (args.scene / "images").is_dir() else None)
+        scene_images = SceneDir(args.scene).images
+        images_dir = args.images or (scene_images if scene_images.is_dir() else None)
         if images_dir is not None:
             validate_images(model, images_dir)
             if args.sizes:

@@ -8,6 +8,7 @@ import numpy as np
 from ..colmap.geometry import matrix_to_quat_wxyz
 from ..colmap.model import Camera, ColmapModel, Image
 from ..errors import DatasetError
+from ..scene_dir import SceneDir
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 
@@ -79,7 +80,8 @@ def scene_provenance(source: str, images: list[str], *, units: str, points3d: in
         "units": units,
         "camera_frame": "opencv (x right, y down, z forward); poses world-to-camera as COLMAP",
         "images": sorted(images),
-        "sparse": "sparse/0" if source != "strip" else None,
+        # the model's path relative to the scene folder ("sparse/0")
+        "sparse": SceneDir(Path()).model.as_posix() if source != "strip" else None,
         "points3d": int(points3d),
         "report": report,
     }

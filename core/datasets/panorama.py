@@ -26,6 +26,7 @@ import numpy as np
 from ..colmap.model import Camera
 from ..errors import ConfigError, DatasetError
 from ..progress import ProgressCallback, ProgressEvent, no_progress
+from ..scene_dir import SceneDir
 from .common import rotation_x, rotation_y, scene_provenance, station_model
 
 
@@ -169,7 +170,8 @@ def scene_from_panorama(
     equirectangular = _is_equirectangular(width, height) if options.equirectangular is None else options.equirectangular
     report: dict[str, Any] = {"source": str(panorama_path), "panorama_size": [width, height]}
     with atomic_directory(out_dir, overwrite=options.overwrite) as staging:
-        (staging / "images").mkdir()
+        staged = SceneDir(staging)
+        staged.images.mkdir()
         if equirectangular:
             camera, views, layout = panorama_views(options)
             report.update(layout, kind="equirectangular", model="sparse/0 (rotation-only station, exact cameras)")
@@ -183,14 +185,14 @@ def scene_from_panorama(
             rays = view_rays(camera)
             names, rotations = [], []
             for step, (name, to_world) in enumerate(views):
-                write_png(staging / "images" / name, sample_equirectangular(panorama, rays @ to_world.T))
+                write_png(staged.image(name), sample_equirectangular(panorama, rays @ to_world.T))
                 names.append(name)
                 rotations.append(to_world.T)
                 progress(ProgressEvent(step + 1, len(views), stage="panorama"))
-            model = station_model(camera, names, rotations, source=str(Path(out_dir) / "sparse" / "0"))
-            write_model(model, staging / "sparse" / "0", binary=True)
+            model = station_model(camera, names, rotations, source=str(SceneDir(out_dir).model))
+            write_model(model, staged.model, binary=True)
         else:
-            report.update(_cut_strip(panorama, staging / "images", options, progress))
+            report.update(_cut_strip(panorama, staged.images, options, progress))
         report["limits"] = (
             "all views share one camera centre: no parallax, so depth cannot be triangulated; "
             "geometry must come from priors (or from images taken at other positions)"
@@ -199,8 +201,8 @@ def scene_from_panorama(
             "on them if the strip was taken from several positions"
         )
         atomic_write_json(staging / "panorama_report.json", report)
-        names = sorted(p.name for p in (staging / "images").iterdir())
-        atomic_write_json(staging / "scene.json", scene_provenance(
+        names = sorted(p.name for p in staged.images.iterdir())
+        atomic_write_json(staged.provenance, scene_provenance(
             "panorama" if equirectangular else "strip", names, units="none: one station, no scale", points3d=0,
             report="panorama_report.json", extra={"panorama": str(panorama_path)}))
     return report

@@ -23,6 +23,7 @@ import numpy as np
 from ..colmap.model import Camera
 from ..errors import ConfigError, DatasetError
 from ..progress import ProgressCallback, ProgressEvent, no_progress
+from ..scene_dir import SceneDir
 from .common import check_readable, list_images, scene_provenance, station_model
 
 
@@ -463,14 +464,15 @@ def scene_from_rotation_only(
         limits="one camera station: no parallax, no triangulated points; geometry must come from priors",
     )
     with atomic_directory(out_dir, overwrite=options.overwrite) as staging:
-        (staging / "images").mkdir()
+        staged = SceneDir(staging)
+        staged.images.mkdir()
         for k in registered:
-            shutil.copyfile(files[k], staging / "images" / files[k].name)
+            shutil.copyfile(files[k], staged.image(files[k].name))
         model = station_model(
-            camera, [files[k].name for k in registered], [estimate["rotations"][k] for k in registered], source=str(Path(out_dir) / "sparse" / "0")
+            camera, [files[k].name for k in registered], [estimate["rotations"][k] for k in registered], source=str(SceneDir(out_dir).model)
         )
-        write_model(model, staging / "sparse" / "0", binary=True)
+        write_model(model, staged.model, binary=True)
         atomic_write_json(staging / "rotation_report.json", report)
-        atomic_write_json(staging / "scene.json", scene_provenance(
+        atomic_write_json(staged.provenance, scene_provenance(
             "rotation-only", report["registered"], units="none: one station, no scale", points3d=0, report="rotation_report.json"))
     return report

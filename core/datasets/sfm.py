@@ -19,6 +19,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ..progress import ProgressCallback, ProgressEvent, no_progress
+from ..scene_dir import SceneDir
 from .common import check_readable, list_images, scene_provenance
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
@@ -204,8 +205,10 @@ def _run_sfm(files: list[Path], images_dir: Path, out_dir: Path, options: SfmOpt
             mapping.ba_refine_extra_params = False
             mapping.mapper.abs_pose_refine_focal_length = False
             mapping.mapper.abs_pose_refine_extra_params = False
-        (workspace / "sparse").mkdir()
-        reconstructions = pycolmap.incremental_mapping(database, images_dir, workspace / "sparse", mapping)
+        # pycolmap writes its models as sparse/<k>, the layout of a scene folder
+        mapped = SceneDir(workspace).sparse
+        mapped.mkdir()
+        reconstructions = pycolmap.incremental_mapping(database, images_dir, mapped, mapping)
         reconstructions = {k: r for k, r in reconstructions.items() if r.num_reg_images() >= 2}
         rotation_share = rotation_like / max(pairs["verified_pairs"], 1)
         if not reconstructions:
@@ -248,7 +251,7 @@ def _run_sfm(files: list[Path], images_dir: Path, out_dir: Path, options: SfmOpt
                 path=images_dir,
                 hint="add overlapping images, try the exhaustive matcher, or remove images of other places",
             )
-        model = from_pycolmap(reconstruction, source=str(Path(out_dir) / "sparse" / "0"))
+        model = from_pycolmap(reconstruction, source=str(SceneDir(out_dir).model))
         _, _, errors, _ = model.points_arrays()
         report = {
             "images": len(files),
@@ -266,6 +269,7 @@ def _run_sfm(files: list[Path], images_dir: Path, out_dir: Path, options: SfmOpt
         progress(ProgressEvent(3, 4, stage="sfm", message="writing"))
         distorted = any(not camera.is_pinhole for camera in model.cameras.values())
         with atomic_directory(out_dir, overwrite=options.overwrite) as staging:
+            staged = SceneDir(staging)
             if distorted:
                 # undistort_model builds its own folder atomically; build it inside ours.
                 model = undistort_model(model, images_dir, staging / "scene")
@@ -273,13 +277,13 @@ def _run_sfm(files: list[Path], images_dir: Path, out_dir: Path, options: SfmOpt
                     shutil.move(str(child), staging / child.name)
                 (staging / "scene").rmdir()
             else:
-                (staging / "images").mkdir()
+                staged.images.mkdir()
                 for name in registered:
-                    shutil.copyfile(images_dir / name, staging / "images" / name)
-                write_model(model, staging / "sparse" / "0", binary=True)
+                    shutil.copyfile(images_dir / name, staged.image(name))
+                write_model(model, staged.model, binary=True)
             report["camera_model_written"] = sorted({c.model for c in model.cameras.values()})
             atomic_write_json(staging / "sfm_report.json", report)
-            atomic_write_json(staging / "scene.json", scene_provenance(
+            atomic_write_json(staged.provenance, scene_provenance(
                 "sfm", registered, units="SfM units (arbitrary scale and frame)", points3d=len(model.points), report="sfm_report.json"))
     progress(ProgressEvent(4, 4, stage="sfm", kind="done", message="done"))
     return report
