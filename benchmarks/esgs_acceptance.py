@@ -30,9 +30,10 @@ from esgs.core.experiments.acceptance import SOURCES, plan_runs, scene_rows, ver
 from esgs.core.experiments.bench import ensure_priors
 from esgs.core.experiments.runs import RunTask, run_task
 from esgs.core.experiments.sfm_scene import make_sfm_scene
-from esgs.core.experiments.sky import SKY_FILLED, sky_figures, write_sky_filled_priors
+from esgs.core.experiments.sky import sky_figures, write_sky_filled_priors
 from esgs.core.experiments.tables import QUALITY_COLUMNS, aggregate, format_cell, markdown_table
 from esgs.core.io_utils import atomic_write_json, atomic_write_text
+from esgs.core.scene_dir import PriorSource, SceneDir
 
 SKY_KEYS = ("psnr", "psnr_sky", "psnr_surface", "alpha_sky", "horizon_depth_error", "distance_mean")
 
@@ -55,7 +56,7 @@ def sfm_variant(scene: Path, root: Path, name: str) -> Path:
 def sky_arms(prior: str, sky_weights: tuple[float, ...] = (), ignore_masks: bool = True) -> list[tuple[str, str, dict]]:
     """ESGS on the sky scene with ``prior``: masks honoured (the fix), masks honoured plus the
     sky loss at each weight of ``sky_weights`` (sky pushed beyond the far surface), masks ignored."""
-    name, key = ("gt, sky filled", "skyfilled") if prior == SKY_FILLED else (prior, prior)
+    name, key = ("gt, sky filled", "skyfilled") if prior == PriorSource.GT_SKYFILLED else (prior, prior)
     esgs = {"priors": prior, "depth": True, "normal": True, "gpdfn": True, "fused_k": 3}
     # the mask arms without the sky loss, whatever its default: they measure the masks alone
     arms = [(f"ESGS ({name}), masks honoured", f"esgs-{key}-masks", {**esgs, "use_masks": True, "sky_weight": 0.0})]
@@ -68,10 +69,10 @@ def sky_arms(prior: str, sky_weights: tuple[float, ...] = (), ignore_masks: bool
 
 
 def sky_tasks(scene: Path, out: Path, iterations: int, seeds, train: dict, baseline: bool = True,
-              priors: tuple[str, ...] = (SKY_FILLED,), sky_weights: tuple[float, ...] = (),
+              priors: tuple[str, ...] = (PriorSource.GT_SKYFILLED,), sky_weights: tuple[float, ...] = (),
               ignore_masks: bool = True) -> list[RunTask]:
     tasks = []
-    mesh = scene / "mesh" / "ground_truth.ply"
+    mesh = SceneDir(scene).ground_truth_mesh
     arms = [("3DGS", "3dgs", {})] if baseline else []
     for prior in priors:
         arms += sky_arms(prior, sky_weights, ignore_masks)
@@ -107,7 +108,7 @@ def ensure_computed_priors(scene: Path, source: str) -> None:
     """``source`` priors for ``scene`` unless it has them (the bench's rule, in a child process:
     ``esgs priors --method ndn`` with ``$ESGS_NDN_WEIGHTS`` or the shipped weights; ``esgs
     labels --reconstruct`` for labels, from the images and the triangulated poses only)."""
-    if not (scene / "priors" / source).is_dir():
+    if not SceneDir(scene).prior(source).is_dir():
         ensure_priors(scene, source)
         print(f"{scene.name}: wrote {source} priors", flush=True)
 
@@ -205,7 +206,7 @@ def main() -> int:
     parser.add_argument("--preset", action="append", default=[], help="synthetic preset (repeat)")
     parser.add_argument("--scene", action="append", default=[], help="NAME=PATH of an existing scene folder (repeat)")
     parser.add_argument("--sky-preset", default="", help="preset with sky for the sky-fix study (empty = skip)")
-    parser.add_argument("--sky-priors", nargs="+", default=[SKY_FILLED],
+    parser.add_argument("--sky-priors", nargs="+", default=[PriorSource.GT_SKYFILLED],
                         help="prior sources of the sky study's ESGS arms (gt_skyfilled emulates a dense predictor; ndn is one)")
     parser.add_argument("--sky-loss-weights", type=float, nargs="*", default=[],
                         help="sky study: also train masks + the sky loss (--sky-weight) at each of these weights")
@@ -247,7 +248,7 @@ def main() -> int:
     if args.sky_preset:
         sky_scene = sfm_variant(make_scene(args.sky_preset, root / f"{args.sky_preset}_{args.views}v_{args.resolution}",
                                            args.views, args.resolution), root, args.sky_preset)
-        if SKY_FILLED in args.sky_priors and not (sky_scene / "priors" / SKY_FILLED).is_dir():
+        if PriorSource.GT_SKYFILLED in args.sky_priors and not SceneDir(sky_scene).prior(PriorSource.GT_SKYFILLED).is_dir():
             write_sky_filled_priors(sky_scene)
         if "ndn" in args.sky_priors:
             ensure_computed_priors(sky_scene, "ndn")

@@ -23,6 +23,7 @@ from typing import Any, Optional, Sequence
 
 from ..config import config_to_dict
 from ..methods import full_esgs
+from ..scene_dir import SceneDir
 from .runs import RunTask
 from .tables import QUALITY_COLUMNS, aggregate
 
@@ -47,7 +48,7 @@ def scene_methods(scene: Path, sources: Sequence[str] = SOURCES, esgs_options: O
     ``esgs_options`` (ESGSConfig fields, e.g. ``{"depth_weight": 3.0}``) are set on every ESGS row."""
     methods = [Method("3DGS", "3dgs")]
     for source in sources:
-        kinds = {kind for kind in ("depth", "normal") if (Path(scene) / "priors" / source / kind).is_dir()}
+        kinds = {kind for kind in ("depth", "normal") if SceneDir(scene).has_prior_maps(source, kind)}
         if not kinds:
             continue
         esgs = config_to_dict(full_esgs(source, scene=Path(scene), **(esgs_options or {})))
@@ -65,7 +66,7 @@ def plan_runs(scenes: dict[str, Path], out: Path, *, iterations: int, seeds: Seq
     tasks = []
     for seed in seeds:
         for name, scene in scenes.items():
-            mesh = Path(scene) / "mesh" / "ground_truth.ply"
+            mesh = SceneDir(scene).ground_truth_mesh
             for method in scene_methods(scene, sources, esgs_options):
                 config = {**(train or {}), "iterations": iterations, "seed": seed,
                           "method": "esgs" if method.esgs else "3dgs", "method_config": dict(method.esgs) or None}

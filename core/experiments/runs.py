@@ -17,7 +17,6 @@ from pathlib import Path
 from typing import Any, Optional
 
 SUMMARY_NAME = "summary.json"
-CONFIG_NAME = "config.json"
 def effective_settings(config: dict[str, Any]) -> dict[str, Any]:
     """``config`` (a TrainConfig dict of today's layout, ``method_config`` complete) with a
     method that adds nothing counted as plain 3DGS, whose settings cannot change the result
@@ -90,15 +89,16 @@ class RunTask:
         what the task asks for now; [] when they agree or the folder has no config yet."""
         from ..config import config_to_dict
         from ..methods import train_config_from_dict
+        from ..train.run_dir import RunDir
         from ..train.trainer import RESUMABLE_SETTINGS
 
-        saved_path = Path(self.out) / CONFIG_NAME
+        saved_path = RunDir(self.out).config
         if not saved_path.is_file():
             return []
         try:
             saved = json.loads(saved_path.read_text())
         except (OSError, ValueError):
-            return [CONFIG_NAME]  # unreadable: treat as made with other settings
+            return [saved_path.name]  # unreadable: treat as made with other settings
         wanted = config_to_dict(train_config_from_dict({**self.config, "scene": str(self.scene),
                                                         "out": str(self.out), "resume": True}))
         # a setting newer than the saved run counts with the value such runs had (PREDATING_VALUES)

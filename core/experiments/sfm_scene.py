@@ -27,9 +27,12 @@ import numpy as np
 from ..colmap.triangulate import triangulate_known_poses
 from ..errors import DatasetError
 from ..progress import ProgressCallback, ProgressEvent, no_progress
+from ..scene_dir import PriorSource, SceneDir
 
-#: Folders and files copied unchanged from the source scene.
-COPIED = ("images", "mesh", Path("priors") / "gt")
+
+def copied(scene: SceneDir) -> tuple[Path, ...]:
+    """The folders of ``scene`` copied unchanged into its SfM copy (``scene.json`` is rewritten)."""
+    return scene.images, scene.mesh, scene.prior(PriorSource.GT)
 
 
 def triangulate_into(scene: str | Path, output: str | Path, *, max_features: int = 8192,
@@ -42,12 +45,11 @@ def triangulate_into(scene: str | Path, output: str | Path, *, max_features: int
     "mean_reprojection_error_px", "mean_track_length"}. Raises DatasetError when no point
     could be triangulated (images without texture or overlap).
     """
-    scene, output = Path(scene), Path(output)
-    result = triangulate_known_poses(scene / "images", scene / "sparse" / "0", max_features=max_features,
-                                     verbose=verbose)
+    folder, output = SceneDir(scene), Path(output)
+    result = triangulate_known_poses(folder.images, folder.model, max_features=max_features, verbose=verbose)
     if result.num_points3D() == 0:
         raise DatasetError("no point could be triangulated from the images with their known poses",
-                           path=scene / "images", hint="the views need overlap and texture")
+                           path=folder.images, hint="the views need overlap and texture")
     output.mkdir(parents=True)
     result.write(str(output))
     return {"points": int(result.num_points3D()), "observations": int(result.compute_num_observations()),
@@ -67,26 +69,28 @@ def make_sfm_scene(scene: str | Path, out: str | Path, *, overwrite: bool = Fals
     from ..priors.sfm import write_sfm_priors
 
     scene, out = Path(scene), Path(out)
-    if not (scene / "sparse" / "0").is_dir() or not (scene / "images").is_dir():
+    source = SceneDir(scene)
+    if not source.model.is_dir() or not source.images.is_dir():
         raise DatasetError("not a scene folder (images/ and sparse/0 needed)", path=scene,
                            hint="make one with esgs scene")
     with atomic_directory(out, overwrite=overwrite) as staging:
-        for name in COPIED:
-            if (scene / name).is_dir():
-                shutil.copytree(scene / name, staging / name)
+        staged = SceneDir(staging)
+        for folder in copied(source):
+            if folder.is_dir():
+                shutil.copytree(folder, staging / folder.relative_to(scene))
         progress(ProgressEvent(0, 2, stage="sfm scene", message="triangulating"))
-        record = triangulate_into(scene, staging / "sparse" / "0")
+        record = triangulate_into(scene, staged.model)
         record["method"] = ("pycolmap: SIFT on the rendered images, exhaustive matching, triangulation "
                             "with the known poses and intrinsics")
         record["source_scene"] = str(scene)
         model = read_model(staging)
         write_sfm_priors(staging, model)
         progress(ProgressEvent(1, 2, stage="sfm scene", message="sfm priors"))
-        provenance = json.loads((scene / "scene.json").read_text()) if (scene / "scene.json").is_file() else {}
+        provenance = json.loads(source.provenance.read_text()) if source.provenance.is_file() else {}
         provenance["sparse_points"] = record
         provenance["points3d"] = record["points"]
         provenance.setdefault("priors", {})["sfm"] = ["depth", "mask"]
-        atomic_write_json(staging / "scene.json", provenance)
+        atomic_write_json(staged.provenance, provenance)
     progress(ProgressEvent(2, 2, stage="sfm scene", message="done"))
     return record
 

@@ -23,21 +23,20 @@ from typing import Any
 import numpy as np
 
 from ..errors import DatasetError
+from ..scene_dir import PriorSource, SceneDir
 
-SKY_FILLED = "gt_skyfilled"
 
-
-def write_sky_filled_priors(scene: str | Path, source: str = SKY_FILLED) -> int:
+def write_sky_filled_priors(scene: str | Path, source: str = PriorSource.GT_SKYFILLED) -> int:
     """Write ``priors/<source>/`` from ``priors/gt/`` with the sky filled (module docstring); returns the view count."""
     from ..priors.io import load_prior_maps, write_prior_maps
 
     scene = Path(scene)
-    depth_dir = scene / "priors" / "gt" / "depth"
+    depth_dir = SceneDir(scene).prior_maps(PriorSource.GT, "depth")
     if not depth_dir.is_dir():
         raise DatasetError("the scene has no gt depth priors", path=depth_dir, hint="make the scene with esgs scene")
     stems = sorted(path.stem for path in depth_dir.glob("*.exr"))
     for stem in stems:
-        maps = load_prior_maps(scene, "gt", stem + ".png")
+        maps = load_prior_maps(scene, PriorSource.GT, stem + ".png")
         mask = maps.mask.astype(bool)
         depth = maps.depth.copy()
         normal = maps.normal.copy()
