@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
 from .errors import ConfigError
+from .train.run_dir import RunDir
 from .runtime.process import (  # noqa: F401 - the job API the add-on and scripts import from here
     ACTIVE_STATUSES,
     CANCELLED,
@@ -82,7 +83,7 @@ class TrainingJob(ChildJob):
         self.run_dir = Path(run_dir)
         self.iterations = int(iterations)
         super().__init__("train", config if config is not None else {}, workdir=self.run_dir / JOB_FOLDER,
-                         events_path=events_path or self.run_dir / "events.jsonl", command=trainer, python=python,
+                         events_path=events_path or RunDir(self.run_dir).events, command=trainer, python=python,
                          threads=threads, on_output=on_output, env=env)
 
     def check(self) -> None:

@@ -17,6 +17,8 @@ import numpy as np
 
 from .imageio import read_image, write_png
 from .io_utils import atomic_write_text
+from .scene_dir import PriorSource, SceneDir
+from .train.run_dir import RunDir
 
 _WHITE = (255, 255, 255)
 
@@ -274,7 +276,6 @@ def _esgs_terms(config: Any) -> str:
     """The ESGS switches of the run as words, from its saved config.json (what actually trained)."""
     from .errors import ConfigError
     from .methods import load_run_config
-    from .train.run_dir import RunDir
 
     try:
         saved = load_run_config(RunDir(config.out / "runs" / "esgs").config)
@@ -292,7 +293,7 @@ def _ndn_weights(scene: Path) -> str:
     from .imageio import read_depth_exr
     from .ndn.shipped import SHIPPED_WEIGHTS
 
-    maps = sorted((scene / "priors" / "ndn" / "depth").glob("*.exr"))
+    maps = sorted(SceneDir(scene).prior_maps(PriorSource.NDN, "depth").glob("*.exr"))
     try:
         weights = read_depth_exr(maps[0])[1].get("weights", "") if maps else ""
     except Exception:  # noqa: BLE001 - provenance only: an unreadable header must not sink the report
@@ -305,7 +306,7 @@ def _ndn_weights(scene: Path) -> str:
 
 def _is_synthetic(scene: Path) -> bool:
     try:
-        return json.loads((scene / "scene.json").read_text()).get("source") == "synthetic"
+        return json.loads(SceneDir(scene).provenance.read_text()).get("source") == "synthetic"
     except (OSError, json.JSONDecodeError):
         return False
 
@@ -313,7 +314,7 @@ def _is_synthetic(scene: Path) -> bool:
 def _sparse_points_record(scene: Path) -> Optional[dict]:
     """``scene.json``'s record of triangulated SfM points (None for the generator's exact points)."""
     try:
-        record = json.loads((scene / "scene.json").read_text()).get("sparse_points")
+        record = json.loads(SceneDir(scene).provenance.read_text()).get("sparse_points")
     except (OSError, ValueError):
         return None
     return record if isinstance(record, dict) and "points" in record else None
@@ -362,12 +363,12 @@ def write_report(config: Any, scene: Path, runs: dict[str, dict], distances: dic
               "weights could not be obtained).", ""]
 
     # held-out renders beside the ground truth, with a magnified crop
-    test_dir = config.out / "runs" / "esgs" / "renders" / "test"
+    test_dir = RunDir(config.out / "runs" / "esgs").test_renders
     for ground_truth_path in sorted(test_dir.glob("*_gt.png"))[:3]:
         stem = ground_truth_path.name[: -len("_gt.png")]
         images = [("ground truth", read_image(ground_truth_path))]
         for name, folder in (("ESGS", "esgs"), ("3DGS", "3dgs")):
-            path = config.out / "runs" / folder / "renders" / "test" / f"{stem}.png"
+            path = RunDir(config.out / "runs" / folder).test_render(stem)
             if path.is_file():
                 images.append((name, read_image(path)))
         height, width = images[0][1].shape[:2]
@@ -406,7 +407,7 @@ def write_report(config: Any, scene: Path, runs: dict[str, dict], distances: dic
 
     curve_images = []
     for key, log_y in (("loss", True), ("psnr", False)):
-        series = {name: read_curves(config.out / "runs" / folder / "events.jsonl")[key]
+        series = {name: read_curves(RunDir(config.out / "runs" / folder).events)[key]
                   for name, folder in (("ESGS", "esgs"), ("3DGS", "3dgs"))
                   if (config.out / "runs" / folder).is_dir()}
         curve_images.append(plot_curves(series, f"training {key} (smoothed)", log_y=log_y))

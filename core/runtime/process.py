@@ -45,6 +45,10 @@ _PACKAGE_ROOT = Path(__file__).resolve().parents[2]
 
 #: the file names of one job's exchange folder (besides the events file, which may live elsewhere)
 CONFIG_NAME, RESULT_NAME, STOP_NAME = "job_config.json", "job_result.json", "job_stop"
+#: the events file's name when it lives in the exchange folder (a training job's lives in its run
+#: folder, RunDir.events: the same name, but this folder is its own layout and the runtime sits
+#: below the training layer)
+EVENTS_NAME = "events.jsonl"
 
 
 @dataclasses.dataclass
@@ -206,7 +210,7 @@ class ChildJob:
         self.job = job
         self.config = config
         self.workdir = Path(workdir)
-        self.events_path = Path(events_path) if events_path else self.workdir / "events.jsonl"
+        self.events_path = Path(events_path) if events_path else self.workdir / EVENTS_NAME
         self.trainer = list(command) if command else child_command(python)
         self.threads = int(threads)
         self.on_output = on_output
