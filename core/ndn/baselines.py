@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DatasetError
+from ..scene_dir import SceneDir
 
 
 @dataclass
@@ -47,20 +48,23 @@ def triangulate_known_poses(scene_dir: str | Path, *, upscale: float = 2.0, peak
     from ..imageio import read_image, write_png
 
     scene_dir = Path(scene_dir)
+    scene = SceneDir(scene_dir)
     model = read_model(scene_dir, use_pycolmap=False)
     if len(model.cameras) != 1:
-        raise DatasetError("the SfM baseline expects one camera per scene", path=scene_dir / "sparse" / "0")
+        raise DatasetError("the SfM baseline expects one camera per scene", path=scene.model)
     camera = next(iter(model.cameras.values()))
     if camera.model != "PINHOLE":
         raise DatasetError(f"the SfM baseline expects a PINHOLE camera, got {camera.model}", path=scene_dir)
     work = Path(tempfile.mkdtemp(prefix="esgs-sfm-baseline-", dir=work_dir))
     try:
-        (work / "images").mkdir()
+        # the upscaled images, laid out as a scene folder's images/ (the poses stay the scene's)
+        upscaled = SceneDir(work)
+        upscaled.images.mkdir()
         for image in model.images.values():
-            rgb = read_image(scene_dir / "images" / image.name)
-            write_png(work / "images" / image.name,
+            rgb = read_image(scene.image(image.name))
+            write_png(upscaled.image(image.name),
                       cv2.resize(rgb, None, fx=upscale, fy=upscale, interpolation=cv2.INTER_CUBIC))
-        result = triangulate_model(work / "images", scene_dir / "sparse" / "0",
+        result = triangulate_model(upscaled.images, scene.model,
                                    camera_params=np.asarray(camera.params, float) * upscale,
                                    peak_threshold=peak_threshold, num_threads=1)
         observations: dict[str, tuple[list, list]] = {image.name: ([], []) for image in model.images.values()}

@@ -31,6 +31,7 @@ import numpy as np
 from ..errors import ConfigError, DatasetError, ESGSError
 from ..io_utils import atomic_path, atomic_write_json
 from ..progress import ProgressCallback, ProgressEvent, no_progress
+from ..scene_dir import SceneDir
 from .config import DEPTH_STATES, NDNDataConfig
 
 SHARD_FORMAT = "esgs-ndn-shard-1"
@@ -167,16 +168,17 @@ def scene_triples(scene_dir: str | Path, working_size: int, multiple: int, *, wi
     from ..priors import load_prior_maps
 
     scene_dir = Path(scene_dir)
+    scene = SceneDir(scene_dir)
     model = read_model(scene_dir, use_pycolmap=False)
     images = sorted(model.images.values(), key=lambda image: image.name)
     if not images:
-        raise DatasetError("the COLMAP model has no images", path=scene_dir / "sparse" / "0")
+        raise DatasetError("the COLMAP model has no images", path=scene.model)
     centres = np.stack([image.camera_center() for image in images])
     directions = np.stack([image.rotation_matrix()[2] for image in images])  # camera z axis in the world
     neighbours = neighbour_indices(centres, directions)
     rgb_small, sizes, depth, normal, mask = [], [], [], [], []
     for image in images:
-        path = scene_dir / "images" / image.name
+        path = scene.image(image.name)
         if not path.exists():
             raise DatasetError(f"image {image.name!r} of the COLMAP model is missing", path=path)
         rgb = _rgb(read_image(path))
@@ -188,7 +190,7 @@ def scene_triples(scene_dir: str | Path, working_size: int, multiple: int, *, wi
             maps = load_prior_maps(scene_dir, target_source, image.name, size=(width, height))
             if maps.depth is None or maps.normal is None:
                 raise DatasetError(f"{target_source} priors of {image.name!r} lack depth or normals",
-                                   path=scene_dir / "priors" / target_source)
+                                   path=scene.prior(target_source))
             valid = maps.mask & (maps.depth > 0)
             small_depth, coverage = _resize_masked(maps.depth, valid, small_width, small_height)
             small_normal, _ = _resize_masked(maps.normal, valid, small_width, small_height)
@@ -201,7 +203,7 @@ def scene_triples(scene_dir: str | Path, working_size: int, multiple: int, *, wi
     shapes = {array.shape for array in rgb_small}
     if len(shapes) != 1:
         raise DatasetError(f"the scene's images have different sizes {sorted(shapes)}; NDN needs one size per scene",
-                           path=scene_dir / "images")
+                           path=scene.images)
     views = np.stack([np.concatenate([rgb_small[i], rgb_small[neighbours[i, 0]], rgb_small[neighbours[i, 1]]],
                                      axis=-1).transpose(2, 0, 1) for i in range(len(images))])
     result = SceneTriples(names=[image.name for image in images], image_sizes=sizes, views=views)

@@ -190,8 +190,7 @@ ALLOWED = {
 #: spellings still to route through SceneDir/RunDir (issue #21 item 4, left by the first pass;
 #: most of these files were being edited by other sessions at the time)
 TO_CONVERT: dict[str, str] = {name: "not converted yet" for name in (
-    "core/ndn/baselines.py",
-    "core/ndn/data.py", "esgs_addon/colmap_scene.py",
+    "esgs_addon/colmap_scene.py",
     "esgs_addon/render_dataset.py", "esgs_addon/results_scene.py", "esgs_addon/training_job.py",
     "benchmarks/bench_labels.py", "benchmarks/bench_scene.py", "benchmarks/bench_vs_opensplat.py",
     "benchmarks/ndn_navcam_figures.py")}
