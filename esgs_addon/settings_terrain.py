@@ -11,8 +11,7 @@ import dataclasses
 import bpy
 
 from ..core.commands.scene import SceneJob
-from .properties import settings_group
-from .settings_colmap_import import property_annotations
+from .properties import property_annotations, settings_group
 
 _EXTRA = {
     "seed": {"min": -1},
