@@ -25,9 +25,11 @@ import numpy as np
 from ..core import jobs
 from ..core.errors import DatasetError
 from ..core.jobs import JobState, TrainingJob
-from ..core.methods.esgs.config import ESGSConfig
+from ..core.scene_dir import PriorSource
 from ..core.train.config import TrainConfig
 from . import gaussians_import, preferences
+from .properties import property_values
+from .settings_training import chosen_method, method_settings
 
 #: collection property naming the scene folder a collection was imported from
 PROP_SCENE_DIR = "esgs_scene_dir"
@@ -101,20 +103,26 @@ def collection_of_scene_dir(scene: bpy.types.Scene, scene_dir: Path) -> Optional
 # --------------------------------------------------------------------------- settings
 
 
-#: the ESGS switches of the panel (ESGSConfig fields)
-SWITCHES = ("depth", "normal", "consistency", "gpdfn")
-
-
 def training_config(settings: Any) -> TrainConfig:
-    """The TrainConfig of the panel's settings (``scene.esgs.training``): the image width, and
-    the ESGS method with the switched-on losses and prior source when any is set, else 3DGS.
+    """The TrainConfig of the panel's settings (``scene.esgs.training``).
+
+    One loop over the dataclasses: the TrainConfig fields the panel holds, the chosen method
+    (:func:`~.settings_training.chosen_method`: plain 3DGS unless ESGS, another method, an
+    ESGS part or a prior source is chosen) and that method's settings from their properties.
     The child fills in every other setting's default and validates it (a ConfigError comes
-    back as the job's error)."""
-    switches = {name: bool(getattr(settings, name)) for name in SWITCHES}
-    priors = str(getattr(settings, "priors", "") or "")
-    if any(switches.values()) or priors:
-        return TrainConfig(width=int(settings.width), method="esgs", method_config=ESGSConfig(priors=priors, **switches))
-    return TrainConfig(width=int(settings.width))
+    back as the job's error).
+
+    Raises:
+        ConfigError: the prior source is not one of :class:`~esgs.core.scene_dir.PriorSource`.
+    """
+    values = property_values(settings, TrainConfig)
+    method = chosen_method(settings)
+    method_config = method_settings(settings, method)
+    if getattr(method_config, "priors", ""):
+        # a typo in the (free-text) source would otherwise surface as a missing folder deep in the child
+        PriorSource.parse(method_config.priors, tuple(PriorSource))
+    values.update(method=method, method_config=method_config)
+    return TrainConfig(**values)
 
 
 def new_run_dir(scene_dir: Path) -> Path:

@@ -3,11 +3,12 @@ from __future__ import annotations
 
 import bpy
 
-from ._section import ESGSSection
-
 from ..core.errors import ESGSError
 from ..core.jobs import format_duration
-from ..esgs_addon import interrupted_jobs, training_job
+from ..core.methods import get_method
+from ..esgs_addon import interrupted_jobs, settings_training, training_job
+from ..esgs_addon.properties import property_values
+from ._section import ESGSSection
 
 ORDER = 110  # after the import panel
 
@@ -33,14 +34,24 @@ class ESGS_PT_training(ESGSSection, bpy.types.Panel):
             except ESGSError:
                 column.label(text="Import a COLMAP scene or choose its folder", icon="INFO")
         column.prop(settings, "run_dir")
+        column.prop(settings, "method")
         column.prop(settings, "iterations")
         column.prop(settings, "width")
-        box = column.box()
-        box.label(text="ESGS")
-        for name in training_job.SWITCHES:
-            box.prop(settings, name)
-        box.prop(settings, "priors")
-        _draw_priors(box, context.scene.esgs.priors)
+        method = settings_training.chosen_method(settings)
+        if method == settings_training.ESGS_METHOD:
+            _draw_esgs(column.box(), settings, context.scene.esgs.priors)
+        else:
+            _draw_method_settings(column, settings, method)
+            # prior maps also give plain runs their sky masks (TrainConfig.mask_source), so
+            # computing them stays at hand whatever the method
+            box = column.box()
+            box.label(text="Priors")
+            _draw_priors(box, context.scene.esgs.priors)
+        run = column.box()
+        run.label(text="Run")
+        for name in settings_training.TRAIN_FIELDS:
+            if name not in ("iterations", "width"):
+                run.prop(settings, name)
         column.prop(settings, "import_result")
 
         if running:
@@ -70,6 +81,32 @@ class ESGS_PT_training(ESGSSection, bpy.types.Panel):
             box = layout.box()
             for index, line in enumerate(_wrap(settings.error, 48)):
                 box.label(text=line, icon="ERROR" if index == 0 else "NONE")
+
+
+def _draw_esgs(layout: bpy.types.UILayout, settings, priors) -> None:
+    """ESGS's parts: the prior source (and its computation), each part's switch and weight."""
+    layout.label(text="ESGS")
+    layout.prop(settings, "priors")
+    if not settings.priors:
+        layout.label(text="Choose a prior source for the full method", icon="INFO")
+    _draw_priors(layout, priors)
+    for part in settings_training.ESGS_PARTS:
+        row = layout.row(align=True)
+        row.prop(settings, part)
+        weight = f"{part}_weight"
+        if getattr(settings, part) and hasattr(settings, weight):
+            row.prop(settings, weight, text="Weight")
+
+
+def _draw_method_settings(layout: bpy.types.UILayout, settings, method: str) -> None:
+    """Every setting of a method other than ESGS (none for plain 3DGS)."""
+    settings_class = get_method(method).settings_class
+    if settings_class is None:
+        return
+    box = layout.box()
+    box.label(text=get_method(method).label)
+    for name in property_values(settings, settings_class):
+        box.prop(settings, name)
 
 
 def _draw_priors(layout: bpy.types.UILayout, priors) -> None:

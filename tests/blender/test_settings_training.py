@@ -1,0 +1,128 @@
+"""The training settings (esgs_addon/settings_training.py) derived from the engine's dataclasses,
+read back by training_job.training_config, and drawn by the training panel."""
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+from esgs.core.errors import ConfigError
+from esgs.core.methods import ESGSConfig, full_esgs, get_method, method_names
+from esgs.core.train.config import TrainConfig
+from esgs.esgs_addon import settings_training, training_job
+
+from .test_panels import draw
+
+
+def _properties():
+    return bpy.context.scene.esgs.training.bl_rna.properties
+
+
+def _derived_fields():
+    """(dataclass field, its property) of every option derived from a dataclass."""
+    fields = [fld for fld in dataclasses.fields(TrainConfig) if fld.name in settings_training.TRAIN_FIELDS]
+    for _, settings_class in settings_training.method_settings_classes():
+        fields += [fld for fld in dataclasses.fields(settings_class) if fld.type in ("bool", "int", "float", "str")]
+    return [(fld, _properties()[fld.name]) for fld in fields]
+
+
+def test_every_option_has_its_dataclass_fields_default_and_help():
+    derived = _derived_fields()
+    assert {fld.name for fld, _ in derived} >= {"iterations", "width", "seed", "backend", "priors", "depth", "normal",
+                                               "consistency", "gpdfn", "depth_weight", "fused_k", "mip_filter_3d",
+                                               "dropout_rate"}
+    for fld, prop in derived:
+        assert prop.description == fld.metadata["help"], fld.name
+        default = prop.default
+        if prop.type == "FLOAT":
+            assert default == pytest.approx(fld.default, rel=1e-6), fld.name
+        else:
+            assert default == fld.default, fld.name
+        if "choices" in fld.metadata:
+            assert prop.type == "ENUM" and [item.identifier for item in prop.enum_items] == list(fld.metadata["choices"])
+    method = _properties()["method"]
+    assert [item.identifier for item in method.enum_items] == list(method_names())
+    assert [item.name for item in method.enum_items] == [get_method(name).label for name in method_names()]
+    assert method.description == next(f for f in dataclasses.fields(TrainConfig) if f.name == "method").metadata["help"]
+
+
+def test_a_fresh_scene_trains_plain_3dgs_with_the_trainers_defaults():
+    config = training_job.training_config(bpy.context.scene.esgs.training)
+    assert (config.method, config.method_config) == ("3dgs", None)
+    for name in settings_training.TRAIN_FIELDS:
+        assert getattr(config, name) == getattr(TrainConfig(), name), name  # floats come back exactly
+
+
+def _other_value(fld: dataclasses.Field, prop):
+    if prop.type == "BOOLEAN":
+        return not fld.default
+    if prop.type == "ENUM":
+        return next(item.identifier for item in prop.enum_items if item.identifier != fld.default)
+    if prop.type == "STRING":
+        return "sfm"  # the one string option: ESGS's prior source
+    return fld.default + (2 if fld.name == "fused_k" else 1) if prop.type == "INT" else fld.default + 0.25
+
+
+@pytest.mark.parametrize("method", [name for name, _ in settings_training.method_settings_classes()])
+def test_options_round_trip_through_training_config(method):
+    settings = bpy.context.scene.esgs.training
+    settings.method = method
+    settings_class = get_method(method).settings_class
+    expected = {}
+    # the prior source first: choosing one with every ESGS part off fills in the full method
+    for fld, prop in sorted(_derived_fields(), key=lambda pair: pair[0].name != "priors"):
+        if fld.name in settings_training.TRAIN_FIELDS or any(f.name == fld.name for f in
+                                                             dataclasses.fields(settings_class)):
+            expected[fld.name] = _other_value(fld, prop)
+            setattr(settings, fld.name, expected[fld.name])
+    config = training_job.training_config(settings)
+    assert config.method == method and isinstance(config.method_config, settings_class)
+    for name, value in expected.items():
+        holder = config if name in settings_training.TRAIN_FIELDS else config.method_config
+        assert getattr(holder, name) == value, name  # exact: the float32 storage is rounded back
+
+
+def test_esgs_with_a_prior_source_is_the_full_method():
+    settings = bpy.context.scene.esgs.training
+    settings.method = "esgs"
+    config = training_job.training_config(settings)
+    assert config.method_config == ESGSConfig()  # no source yet: nothing switched on
+    settings.priors = "sfm"
+    assert training_job.training_config(settings).method_config == full_esgs("sfm")
+    # once a part is chosen by hand, another source does not reset the parts
+    settings.gpdfn = False
+    settings.priors = "gt"
+    config = training_job.training_config(settings)
+    assert (config.method_config.gpdfn, config.method_config.priors) == (False, "gt")
+
+
+def test_an_unknown_prior_source_is_a_config_error():
+    settings = bpy.context.scene.esgs.training
+    settings.depth, settings.priors = True, "gtt"
+    with pytest.raises(ConfigError, match="unknown prior source 'gtt'"):
+        training_job.training_config(settings)
+
+
+def test_the_panel_draws_the_chosen_methods_settings():
+    from esgs.panels.training_panel import ESGS_PT_training
+
+    settings = bpy.context.scene.esgs.training
+    props = lambda record: [entry[1] for entry in record if entry[0] == "prop"]
+    shown = props(draw(ESGS_PT_training))
+    assert {"method", "iterations", "width", "seed", "backend"} <= set(shown)
+    assert not {"priors", "depth", "gpdfn", "mip_filter_3d"} & set(shown)  # plain 3DGS: no method settings
+    assert ("operator", "esgs.compute_priors") in draw(ESGS_PT_training)  # priors also give plain runs sky masks
+
+    settings.method = "esgs"
+    record = draw(ESGS_PT_training)
+    assert {"priors", *settings_training.ESGS_PARTS} <= set(props(record))
+    assert "depth_weight" not in props(record)  # a weight shows beside its switched-on part
+    assert ("label", "Choose a prior source for the full method") in record
+    settings.priors = "gt"
+    assert {"depth_weight", "normal_weight"} <= set(props(draw(ESGS_PT_training)))
+
+    settings.method = "mip-splatting"
+    shown = props(draw(ESGS_PT_training))
+    assert {"mip_filter_3d", "mip_filter_2d", "mip_frustum_margin"} <= set(shown) and "depth" not in shown
