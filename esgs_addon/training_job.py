@@ -52,11 +52,14 @@ def scene_dir_of_collection(collection: bpy.types.Collection) -> Optional[Path]:
     if PROP_SCENE_DIR in collection:
         return Path(collection[PROP_SCENE_DIR])
     if PROP_COLMAP_SOURCE in collection:
+        from ..core.scene_dir import SceneDir
+
         model = Path(collection[PROP_COLMAP_SOURCE])
         # SCENE/sparse/0 -> SCENE, SCENE/sparse -> SCENE, SCENE/<model folder> -> SCENE
-        if model.parent.name == "sparse":
-            return model.parent.parent
-        return model.parent if model.name == "sparse" or (model.parent / "images").is_dir() else model
+        above, beside = SceneDir(model.parent.parent), SceneDir(model.parent)
+        if model.parent == above.sparse:
+            return above.root
+        return beside.root if model == beside.sparse or beside.images.is_dir() else model
     return None
 
 
@@ -186,6 +189,8 @@ def wait_for_training(job: TrainingJob, *, report: Callable[[str], None] = print
 def import_run_result(run_dir: str | Path, scene: Optional[bpy.types.Scene] = None,
                       scene_dir: str | Path | None = None, **import_options: Any) -> bpy.types.Object:
     """Import ``RUN/point_cloud.ply``, placed like the COLMAP scene it was trained on."""
+    from ..core.train.run_dir import RunDir
+
     scene = scene or bpy.context.scene
     run_dir = Path(run_dir)
     collection = collection_of_scene_dir(scene, Path(scene_dir)) if scene_dir else None
@@ -194,7 +199,7 @@ def import_run_result(run_dir: str | Path, scene: Optional[bpy.types.Scene] = No
         # the trainer works in COLMAP's frame; the imported scene may have been re-oriented
         matrix = np.array([float(v) for v in collection[PROP_COLMAP_TRANSFORM]]).reshape(4, 4)
     obj = gaussians_import.import_gaussians(
-        run_dir / "point_cloud.ply", name=f"Gaussians {run_dir.name}", collection=collection or scene.collection,
+        RunDir(run_dir).point_cloud, name=f"Gaussians {run_dir.name}", collection=collection or scene.collection,
         matrix_world=matrix, **import_options)
     obj[PROP_RUN_DIR] = str(run_dir)
     return obj
