@@ -26,6 +26,7 @@ from ..core.colmap.geometry import matrix_to_quat_wxyz
 from ..core.colmap.model import Camera, ColmapModel, Image
 from ..core.errors import ConfigError, DatasetError
 from ..core.progress import ProgressCallback, ProgressEvent, no_progress
+from ..core.scene_dir import SceneDir
 from . import cameras, image_planes, orient, pointcloud
 
 #: Collection custom property: [16] row-major "Blender world from COLMAP world" transform
@@ -92,7 +93,8 @@ def locate_scene(path: str | Path) -> tuple[Path, Path | None, str]:
     path = Path(path).expanduser()
     if not path.is_dir():
         raise DatasetError("folder not found", path=path, hint="choose a scene folder holding images/ and sparse/0")
-    candidates = [path, path / "sparse" / "0", path / "sparse"]
+    scene = SceneDir(path)
+    candidates = [path, scene.model, scene.sparse]
     model_dir = next((folder for folder in candidates if _has_model(folder)), None)
     if model_dir is None:
         raise DatasetError(
@@ -102,10 +104,11 @@ def locate_scene(path: str | Path) -> tuple[Path, Path | None, str]:
         )
     if model_dir == path:
         # a model folder: SCENE/sparse/0 -> SCENE, SCENE/sparse_txt -> SCENE
-        root = path.parent.parent if path.parent.name == "sparse" else path.parent
+        above = SceneDir(path.parent.parent)
+        root = above.root if path.parent == above.sparse else path.parent
     else:
         root = path
-    image_candidates = [root / "images", path / "images", model_dir.parent / "images"]
+    image_candidates = [SceneDir(root).images, scene.images, SceneDir(model_dir.parent).images]
     images_dir = next((folder for folder in image_candidates if folder.is_dir()), None)
     name = root.name or path.name or "COLMAP"
     return model_dir, images_dir, name

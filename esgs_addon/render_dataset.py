@@ -31,6 +31,7 @@ import numpy as np
 
 from ..core.errors import ConfigError, DatasetError
 from ..core.progress import ProgressEvent
+from ..core.scene_dir import PriorSource, SceneDir
 
 #: Cycles writes this depth where a pixel sees no surface.
 _BACKGROUND_DEPTH = 1e9
@@ -365,6 +366,7 @@ def render_dataset(objects: dict[str, Any], out_dir: str | Path, *, progress: Ca
                 "seed": str(config.seed)}
     start = time.perf_counter()
     with atomic_directory(out_dir, overwrite=overwrite) as staging:
+        staged = SceneDir(staging)
         scratch = staging / ".render_scratch"
         scratch.mkdir()
         passes = _PassOutputs(scene, scratch)
@@ -374,8 +376,9 @@ def render_dataset(objects: dict[str, Any], out_dir: str | Path, *, progress: Ca
             for index, (camera, (K, world_to_camera, width, height)) in enumerate(zip(cameras, opencv)):
                 view_start = time.perf_counter()
                 stem = camera.name
+                image_name = f"{stem}.png"
                 scene.camera = camera
-                image_path = staging / "images" / f"{stem}.png"
+                image_path = staged.image(image_name)
                 image_path.parent.mkdir(parents=True, exist_ok=True)
                 scene.render.filepath = str(image_path)
                 pass_files = passes.set_prefix(f"{stem}_")
@@ -390,13 +393,13 @@ def render_dataset(objects: dict[str, Any], out_dir: str | Path, *, progress: Ca
                 valid = depth > 0
                 world_normals = _read_vector(pass_files["Normal"])
                 normals = camera_normals_from_pass(world_normals, world_to_camera, valid)
-                write_depth_exr(staging / "priors" / "gt" / "depth" / f"{stem}.exr", depth, units="m",
+                write_depth_exr(staged.depth_map(PriorSource.GT, image_name), depth, units="m",
                                 frame="camera_opencv", metadata={**metadata, "invalid": "0", "mask_kind": "surface"})
-                write_normal_exr(staging / "priors" / "gt" / "normal" / f"{stem}.exr", normals,
+                write_normal_exr(staged.normal_map(PriorSource.GT, image_name), normals,
                                  frame="camera_opencv",
                                  metadata={**metadata, "axes": "x right, y down, z forward (OpenCV)",
                                            "invalid": "0 0 0", "mask_kind": "surface"})
-                write_png(staging / "priors" / "gt" / "mask" / f"{stem}.png", np.where(valid, 255, 0).astype(np.uint8))
+                write_png(staged.mask_map(PriorSource.GT, image_name), np.where(valid, 255, 0).astype(np.uint8))
                 for path in pass_files.values():
                     path.unlink()
                 depths.append(depth)
@@ -411,7 +414,7 @@ def render_dataset(objects: dict[str, Any], out_dir: str | Path, *, progress: Ca
             scene.camera, scene.render.filepath = previous_camera, previous_path
 
         vertices, triangles, vertex_normals = world_mesh_arrays(objects)
-        mesh_path = staging / "mesh" / "ground_truth.ply"
+        mesh_path = staged.ground_truth_mesh
         mesh_path.parent.mkdir()
         trimesh.Trimesh(vertices, triangles, vertex_normals=vertex_normals, process=False).export(
             mesh_path, encoding="binary", vertex_normal=True)
@@ -420,7 +423,7 @@ def render_dataset(objects: dict[str, Any], out_dir: str | Path, *, progress: Ca
 
         points = sample_surface_points(depths, images, opencv, points_per_view, int(config.seed))
         model = build_colmap_model(names, opencv, points)
-        write_model(model, staging / "sparse" / "0", binary=True)
+        write_model(model, staged.model, binary=True)
         report(ProgressEvent(len(cameras) + 2, total, "export", message="COLMAP model written",
                              metrics={"points3d": float(len(points["xyz"]))}))
 
@@ -428,14 +431,15 @@ def render_dataset(objects: dict[str, Any], out_dir: str | Path, *, progress: Ca
         if sfm:
             shared_intrinsics = {tuple(np.round(K[[0, 1, 0, 1], [0, 1, 2, 2]], 9)) for K, _, _, _ in opencv}
             pinhole = tuple(opencv[0][0][[0, 1, 0, 1], [0, 1, 2, 2]]) if len(shared_intrinsics) == 1 else None
-            sfm_summary = run_sfm(staging / "images", staging / "sparse_sfm" / "0", scratch, pinhole)
+            sfm_summary = run_sfm(staged.images, staged.sfm_model, scratch, pinhole)
             report(ProgressEvent(len(cameras) + 3, total, "sfm", metrics={"registration_ratio": sfm_summary["ratio"]},
                                  message=f"SfM registered {sfm_summary['registered']}/{sfm_summary['total']} views"))
 
         import shutil
 
         shutil.rmtree(scratch)
-        atomic_write_json(staging / "scene.json", {
+        relative = SceneDir(Path())  # the paths scene.json names, relative to the scene folder
+        atomic_write_json(staged.provenance, {
             "format": "esgs-scene",
             "format_version": 1,
             "source": "synthetic",
@@ -454,8 +458,8 @@ def render_dataset(objects: dict[str, Any], out_dir: str | Path, *, progress: Ca
             "priors": {"gt": ["depth", "normal", "mask"]},
             "images": [f"{name}.png" for name in names],
             "grayscale": bool(config.render.grayscale),
-            "mesh": "mesh/ground_truth.ply",
-            "sparse": "sparse/0",
+            "mesh": relative.ground_truth_mesh.as_posix(),
+            "sparse": relative.model.as_posix(),
             "points3d": int(len(points["xyz"])),
             "sfm": sfm_summary,
             "render": {"engine": "CYCLES", "device": "CPU", "samples": int(config.render.samples),

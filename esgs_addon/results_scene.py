@@ -16,6 +16,8 @@ from typing import Any
 import bpy
 
 from ..core.errors import DatasetError, ESGSError
+from ..core.scene_dir import SceneDir
+from ..core.train.run_dir import RunDir
 from . import compare_mesh, gaussian_nodes
 from .colmap_scene import ColmapImportOptions, import_colmap_scene
 from .gaussians_import import import_gaussians
@@ -69,8 +71,8 @@ def build_results_blend(scene_dir: str | Path, run_dir: str | Path, out_dir: str
     the scene has no ground-truth mesh or the run no point cloud.
     """
     scene_dir, run_dir, out_dir = Path(scene_dir), Path(run_dir), Path(out_dir)
-    mesh_path = scene_dir / "mesh" / "ground_truth.ply"
-    ply_path = run_dir / "point_cloud.ply"
+    mesh_path = SceneDir(scene_dir).ground_truth_mesh
+    ply_path = RunDir(run_dir).point_cloud
     if not mesh_path.is_file():
         raise DatasetError("the scene has no ground-truth mesh", path=mesh_path, hint="make one with esgs scene")
     if not ply_path.is_file():
