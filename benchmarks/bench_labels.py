@@ -19,6 +19,8 @@ import sys
 import time
 from pathlib import Path
 
+from esgs.core.scene_dir import SceneDir
+
 
 def _esgs(*arguments: str) -> None:
     subprocess.run([sys.executable, "-m", "esgs.core", *arguments], check=True)
@@ -40,16 +42,17 @@ def main() -> None:
                             "samples": args.samples}, "scenes": {}}
     for preset in args.presets:
         scene = args.work / f"{preset}_s{args.seed}_v{args.views}_{args.resolution}"
+        folder = SceneDir(scene)
         start = time.perf_counter()
-        if not (scene / "scene.json").is_file():
+        if not folder.provenance.is_file():
             _esgs("scene", "--preset", preset, "--seed", str(args.seed), "--views", str(args.views),
                   "--resolution", args.resolution, "--samples", str(args.samples), "--out", str(scene))
         scene_seconds = time.perf_counter() - start
         start = time.perf_counter()
         _esgs("labels", str(scene), "--reconstruct", "--report")
         label_seconds = time.perf_counter() - start
-        accuracy = json.loads((scene / "priors" / "labels" / "accuracy.json").read_text())
-        reconstruction = json.loads((scene / "mesh" / "reconstructed.json").read_text())
+        accuracy = json.loads(folder.labels_accuracy.read_text())
+        reconstruction = json.loads(folder.reconstruction_report.read_text())
         accuracy.pop("views", None)
         results["scenes"][preset] = {"accuracy": accuracy, "reconstruction": {
             key: reconstruction[key] for key in ("fused_points", "triangles", "cell_size", "stereo_fraction",

@@ -21,6 +21,7 @@ from pathlib import Path
 
 def main() -> None:
     from esgs.core.commands.scene import parse_resolution
+    from esgs.core.scene_dir import SceneDir
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="cratered_plain")
@@ -55,7 +56,7 @@ def main() -> None:
     try:
         out = render_dataset(objects, workdir / "scene", progress=progress, sfm=args.sfm)
         done = time.perf_counter()
-        info = json.loads((out / "scene.json").read_text())
+        info = json.loads(SceneDir(out).provenance.read_text())
         if args.keep:
             shutil.copytree(out, args.keep, dirs_exist_ok=False)
     finally:

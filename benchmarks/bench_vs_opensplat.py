@@ -61,6 +61,9 @@ from typing import Optional
 
 import numpy as np
 
+from esgs.core.scene_dir import SceneDir
+from esgs.core.train.run_dir import RunDir
+
 #: OpenSplat composites its renders onto this colour (nerfstudio's default, fixed in its Model).
 OPENSPLAT_BACKGROUND = (0.6130, 0.0101, 0.3984)
 #: Steps in one window of the cost-model fit.
@@ -142,15 +145,16 @@ def training_only_scene(scene: Path, out: Path, test_every: int) -> list[str]:
         raise SystemExit(f"{model_dir}: OpenSplat reads binary COLMAP models (cameras.bin, points3D.bin)")
     if out.exists():
         shutil.rmtree(out)
-    (out / "images").mkdir(parents=True)
-    sparse = out / "sparse" / "0"
+    folder = SceneDir(out)
+    folder.images.mkdir(parents=True)
+    sparse = folder.model
     sparse.mkdir(parents=True)
     shutil.copyfile(model_dir / "cameras.bin", sparse / "cameras.bin")
     shutil.copyfile(model_dir / "points3D.bin", sparse / "points3D.bin")
     train_images = [images[i] for i in train_idx]
     _write_images_bin(sparse / "images.bin", train_images)
     for image in train_images:
-        (out / "images" / image.name).symlink_to((scene / "images" / image.name).resolve())
+        folder.image(image.name).symlink_to(SceneDir(scene).image(image.name).resolve())
     return [images[i].name for i in test_idx]
 
 
@@ -258,7 +262,7 @@ def run_trainers(args: argparse.Namespace, scene: Path, opensplat_scene: Path, w
                  "--iterations", str(args.iterations), "--width", str(args.width), "--threads", str(args.threads),
                  "--seed", str(args.seed), "--backend", "cpu", "--checkpoint-every", "0", "--progress-every", "1",
                  "--no-evaluate", "--quiet"],
-        log=work / "ours.log", ply=ours_dir / "point_cloud.ply")
+        log=work / "ours.log", ply=RunDir(ours_dir).point_cloud)
     opensplat_dir = work / "opensplat"
     opensplat_dir.mkdir(parents=True, exist_ok=True)
     theirs = ChildRun(
@@ -315,7 +319,7 @@ def run_trainers(args: argparse.Namespace, scene: Path, opensplat_scene: Path, w
         raise SystemExit(f"OpenSplat failed (exit {theirs.returncode}); see {theirs.log}")
     stop.set()
     sampler.join()
-    _read_our_events(ours, ours_dir / "events.jsonl")
+    _read_our_events(ours, RunDir(ours_dir).events)
     _cpu_at_steps(ours, our_samples)
     _cpu_at_steps(theirs, their_samples)
     return ours, theirs
@@ -486,7 +490,7 @@ def main(argv: list[str] | None = None) -> int:
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_vs_opensplat_"))
     work.mkdir(parents=True, exist_ok=True)
     scene = args.scene or work / "scene"
-    if not (scene / "sparse").is_dir():
+    if not SceneDir(scene).has_model():
         make_scene(scene)
     scene = scene.resolve()
     version = subprocess.run([str(binary), "--version"], capture_output=True, text=True).stdout.strip()

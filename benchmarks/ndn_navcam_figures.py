@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+#: where the documentation keeps its figures (a docs folder, not a scene folder's images/)
+DOC_FIGURES = REPO.joinpath("docs", "images")
 PANEL = 192
 
 
@@ -31,6 +33,7 @@ def navcam_figures(scene_dir: Path, out_dir: Path, weights=None, frames: int = 4
     from esgs.core.ndn.infer import maps_from_states
     from esgs.core.ndn.shipped import resolve_default_weights
     from esgs.core.ndn.train import load_checkpoint
+    from esgs.core.scene_dir import SceneDir
 
     model, diffusion, config, _ = load_checkpoint(resolve_default_weights(weights))
     triples = scene_triples(scene_dir, config.model.working_size, 2 ** (config.model.levels - 1), with_targets=False)
@@ -40,7 +43,7 @@ def navcam_figures(scene_dir: Path, out_dir: Path, weights=None, frames: int = 4
     paths = []
     for row, index in enumerate(picks):
         name = triples.names[index]
-        image = read_image(scene_dir / "images" / name)
+        image = read_image(SceneDir(scene_dir).image(name))
         rgb = np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
         small = cv2.resize(rgb, (PANEL, round(PANEL * rgb.shape[0] / rgb.shape[1])), interpolation=cv2.INTER_AREA)
         relative, normal, mask = maps_from_states(depth_states[row, 0].numpy(), normal_states[row].numpy(), small,
@@ -62,7 +65,7 @@ def navcam_figures(scene_dir: Path, out_dir: Path, weights=None, frames: int = 4
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("scene", type=Path, help="the registered Navcam station (esgs dataset rotation-only)")
-    parser.add_argument("--out", type=Path, default=REPO / "docs" / "images")
+    parser.add_argument("--out", type=Path, default=DOC_FIGURES)
     parser.add_argument("--weights", default=None, help="default: the shipped weights")
     parser.add_argument("--frames", type=int, default=4)
     parser.add_argument("--threads", type=int, default=1)

@@ -187,13 +187,9 @@ ALLOWED = {
     "core/runtime/process.py": "a job's exchange folder (job_config.json, job_result.json, job_stop, events.jsonl) "
                                "is its own layout, and the runtime sits below the training layer (RunDir)",
 }
-#: spellings still to route through SceneDir/RunDir (issue #21 item 4, left by the first pass;
-#: most of these files were being edited by other sessions at the time)
-TO_CONVERT: dict[str, str] = {name: "not converted yet" for name in (
-    "esgs_addon/colmap_scene.py",
-    "esgs_addon/render_dataset.py", "esgs_addon/results_scene.py", "esgs_addon/training_job.py",
-    "benchmarks/bench_labels.py", "benchmarks/bench_scene.py", "benchmarks/bench_vs_opensplat.py",
-    "benchmarks/ndn_navcam_figures.py")}
+#: spellings still to route through SceneDir/RunDir (issue #21 item 4): none left; a file that
+#: cannot be converted yet goes here with the reason
+TO_CONVERT: dict[str, str] = {}
 
 
 def _spellings(path: Path) -> list[str]:
