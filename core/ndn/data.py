@@ -312,7 +312,7 @@ def check_disjoint_splits(data_dir: str | Path, splits: tuple[str, ...] = SPLITS
 
 def render_scene(preset: str, seed: int, *, views: int, width: int, height: int, samples: int, out: Path) -> Path:
     """Render one synthetic scene folder (``esgs scene``'s job, in a Blender child process)."""
-    from ..commands.scene import SceneJob, render_scene as render
+    from ..terrain.scene_job import SceneJob, render_scene as render
 
     job = SceneJob(preset=preset, seed=seed, views=views, width=width, height=height, samples=samples)
     return render(job, out)

@@ -22,7 +22,7 @@ from .data import (LOG_DEPTH_RANGE, SceneTriples, load_shards, relative_depth_bo
                    state_to_relative_depth)
 from .diffusion import GaussianDiffusion
 from .model import NDNUNet
-from .train import load_checkpoint
+from .checkpoint import load_checkpoint
 
 SURFACE_NORMAL_LENGTH = 0.5  # predicted normals shorter than this are "no surface"
 

@@ -51,7 +51,7 @@ def export_weights(checkpoint: str | Path, out_path: str | Path = SHIPPED_WEIGHT
     """
     from ..config import config_from_dict
     from .config import NDNConfig
-    from .train import CHECKPOINT_FORMAT, load_checkpoint
+    from .checkpoint import CHECKPOINT_FORMAT, load_checkpoint
 
     _, _, _, payload = load_checkpoint(checkpoint)
     config = {**payload["config"], "diffusion": {**payload["config"]["diffusion"]}}

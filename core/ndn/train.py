@@ -31,69 +31,9 @@ from ..progress import ProgressCallback, ProgressEvent, no_progress
 from .config import NDNConfig, NDNTrainConfig
 from .data import LOG_DEPTH_RANGE, check_disjoint_splits, depth_to_state, load_shards
 from .diffusion import GaussianDiffusion
+from .checkpoint import (CHECKPOINT_FORMAT, _read_checkpoint, build_model, checkpoint_config,  # noqa: F401
+                         latest_checkpoint, load_checkpoint, resolve_weights, save_checkpoint)
 from .model import NDNUNet
-
-CHECKPOINT_FORMAT = "esgs-ndn-1"
-
-
-def build_model(config: NDNConfig) -> tuple[NDNUNet, GaussianDiffusion]:
-    """The network and diffusion process a config describes."""
-    config.validate()
-    return NDNUNet(config.model, refine_below=config.diffusion.refine_below), GaussianDiffusion(config.diffusion)
-
-
-def save_checkpoint(path: str | Path, model: NDNUNet, config: NDNConfig, *, step: int = 0,
-                    optimizer: torch.optim.Optimizer | None = None, generator: torch.Generator | None = None,
-                    average: "WeightAverage | None" = None, extra: dict | None = None) -> Path:
-    """Write weights (plus optimiser, random state and weight average when given) to ``path`` atomically."""
-    payload = {"format": CHECKPOINT_FORMAT, "config": asdict(config), "step": int(step),
-               "model": model.state_dict(), **(extra or {})}
-    if optimizer is not None:
-        payload["optimizer"] = optimizer.state_dict()
-    if generator is not None:
-        payload["generator"] = generator.get_state()
-    if average is not None:
-        payload["ema"] = average.state_dict()
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
-    return Path(path)
-
-
-def _read_checkpoint(path: str | Path) -> tuple[Path, dict, NDNConfig]:
-    """(file, raw payload, saved config) of a checkpoint, weights file or model folder."""
-    path = Path(path)
-    if path.is_dir():
-        path = resolve_weights(path)
-    if not path.exists():
-        raise CheckpointError("NDN weights file not found", path=path,
-                              hint="train weights with `esgs ndn train DATA --out MODEL_DIR`")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # torch raises several types for corrupt or foreign files
-        raise CheckpointError(f"cannot read NDN weights: {error}", path=path) from error
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointError("not an NDN checkpoint (missing or unknown format tag)", path=path)
-    # settings added later (e.g. depth_state) take their defaults in older files: affine
-    return path, payload, config_from_dict(NDNConfig, payload["config"])
-
-
-def load_checkpoint(path: str | Path, *, ema: bool = True) -> tuple[NDNUNet, GaussianDiffusion, NDNConfig, dict]:
-    """Read a checkpoint or weights file: (model in eval mode, diffusion, config, raw payload).
-
-    With ``ema`` (the default, what evaluation and inference want) the model holds the
-    checkpoint's moving average of the weights when it has one, else its raw weights; the
-    trainer resumes with ``ema=False`` (raw weights; the average is in ``payload["ema"]``).
-    """
-    path, payload, config = _read_checkpoint(path)
-    model, diffusion = build_model(config)
-    state = payload["ema"]["weights"] if ema and "ema" in payload else payload["model"]
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as error:
-        raise CheckpointError(f"weights do not match the saved model config: {error}", path=path) from error
-    model.eval()
-    return model, diffusion, config, payload
-
 
 def learning_rate_at(step: int, config: NDNTrainConfig, start_step: int = 0) -> float:
     """The learning rate of optimiser step ``step`` (1-based, counted over the whole training
@@ -192,24 +132,6 @@ def best_checkpoint(model_dir: str | Path) -> Path | None:
     return Path(model_dir) / "checkpoints" / best["checkpoint"] if best else None
 
 
-def resolve_weights(model_dir: str | Path) -> Path:
-    """``MODEL_DIR/weights.pt``, else the latest checkpoint in ``MODEL_DIR/checkpoints``."""
-    model_dir = Path(model_dir)
-    if (model_dir / "weights.pt").exists():
-        return model_dir / "weights.pt"
-    latest = latest_checkpoint(model_dir)
-    if latest is None:
-        raise CheckpointError("no NDN weights in this folder", path=model_dir,
-                              hint="expected weights.pt or checkpoints/step_*.pt; train with `esgs ndn train`")
-    return latest
-
-
-def checkpoint_config(path: str | Path) -> NDNConfig:
-    """The model and diffusion settings saved in a checkpoint or weights file (no model built).
-    Files written before ``depth_state`` existed read as the affine state."""
-    return _read_checkpoint(path)[2]
-
-
 def depth_state_of(config: NDNConfig) -> tuple[str, float | None]:
     """What a model's depth state means: (kind, c) for the log state, (kind, None) for affine."""
     kind = config.diffusion.depth_state
@@ -240,12 +162,6 @@ def resume_source(model_dir: str | Path) -> Path | None:
     if checkpoint is None and (Path(model_dir) / "weights.pt").exists():
         checkpoint = Path(model_dir) / "weights.pt"
     return checkpoint
-
-
-def latest_checkpoint(model_dir: str | Path) -> Path | None:
-    """The checkpoint with the highest step in ``MODEL_DIR/checkpoints``, or None."""
-    paths = sorted(Path(model_dir, "checkpoints").glob("step_*.pt"))
-    return paths[-1] if paths else None
 
 
 def training_tensors(arrays: dict[str, np.ndarray], depth_state: str = "affine",
@@ -345,7 +261,7 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
     checkpoint, ``OUT/validation.json`` and the progress events. Writes ``OUT/weights.pt``
     (the averaged weights) at the end. Returns a summary dict.
     """
-    from .infer import evaluate_arrays, mean_scores  # infer imports this module
+    from .infer import evaluate_arrays, mean_scores  # deferred: inference loads torch models this module trains
 
     train_config = train_config or NDNTrainConfig()
     train_config.validate()

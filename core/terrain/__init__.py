@@ -13,7 +13,8 @@ docs/terrain.md.
 from __future__ import annotations
 
 from ..config import config_to_dict
-from .config import CAMERA_PRESETS, RIG_KINDS, RenderConfig, RigConfig, SceneConfig, TerrainConfig, camera_preset
+from .config import CAMERA_PRESETS, RIG_KINDS, RenderConfig, RigConfig, TerrainConfig, camera_preset
+from .scene_config import SceneConfig
 from .heightfield import Terrain, generate_terrain, load_terrain, save_terrain
 from .mesh import heightfield_mesh, rock_mesh, rocks_mesh, terrain_mesh
 from .presets import list_presets, load_preset, load_scene_config, save_scene_config, scene_config_from_dict

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..errors import ConfigError
+from .rock_sizes import expected_rock_count
 
 RIG_KINDS = ("rover_traverse", "station_panorama", "orbit", "aerial_oblique", "aerial_nadir")
 
@@ -149,8 +150,6 @@ class TerrainConfig:
         _require(self.rock_embed_fraction < 1, s + "rock_embed_fraction", "must be below 1", self.rock_embed_fraction)
         _require(self.rock_max_count > 0, s + "rock_max_count", "must be positive", self.rock_max_count)
         if self.rock_abundance > 0:
-            from .rocks import expected_rock_count
-
             expected = expected_rock_count(self.rock_abundance, self.rock_min_diameter_m,
                                            self.rock_max_diameter_m, self.extent_m ** 2)
             _require(expected <= self.rock_max_count, s + "rock_min_diameter_m",
@@ -267,41 +266,3 @@ def camera_preset(name: str, **overrides: Any) -> RenderConfig:
     config = RenderConfig(**values)
     config.validate()
     return config
-
-
-@dataclass
-class SceneConfig:
-    """Everything that defines one synthetic scene; with ``seed`` it reproduces it exactly."""
-
-    name: str = field(default="custom", metadata=_help("scene (preset) name"))
-    seed: int = field(default=0, metadata=_help("random seed (non-negative); same seed + config = same scene"))
-    description: str = field(default="", metadata=_help("what the scene is meant to show"))
-    terrain: TerrainConfig = field(default_factory=TerrainConfig)
-    rig: RigConfig = field(default_factory=RigConfig)
-    render: RenderConfig = field(default_factory=RenderConfig)
-    sun_elevation_deg: float = field(default=35.0, metadata=_help("sun height above the horizon, degrees"))
-    sun_azimuth_deg: float = field(default=135.0, metadata=_help("direction toward the sun (ccw from +x), degrees"))
-    sky: bool = field(default=False, metadata=_help("the views show the horizon and sky (else every pixel sees terrain)"))
-
-    def validate(self) -> None:
-        _check_types(self, "")
-        _require(self.seed >= 0, "seed", "must be a non-negative integer", self.seed)
-        _require(0.0 < self.sun_elevation_deg <= 90.0, "sun_elevation_deg", "must be in (0, 90]", self.sun_elevation_deg)
-        self.terrain.validate()
-        self.rig.validate()
-        self.render.validate()
-        if not self.sky:
-            from .rigs import horizon_problem
-
-            problem = horizon_problem(self.rig, self.render, self.terrain, seed=self.seed)
-            if problem:
-                raise ConfigError(f"sky is false but {problem}",
-                                  hint="set sky = true, or look further down (rig.pitch_deg; for an orbit raise "
-                                       "rig.height_m), or shrink rig.radius_m / rig.spacing_m, or enlarge "
-                                       "terrain.extent_m")
-
-    def sun_direction(self) -> tuple[float, float, float]:
-        """Unit vector from the ground toward the sun, world frame ``[3]``."""
-        elevation = math.radians(self.sun_elevation_deg)
-        azimuth = math.radians(self.sun_azimuth_deg)
-        return (math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation))

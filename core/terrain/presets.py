@@ -18,7 +18,8 @@ from typing import Any
 from ..config import config_from_dict, config_to_dict
 from ..errors import ConfigError
 from ..io_utils import atomic_write_json
-from .config import CAMERA_PRESETS, SceneConfig
+from .config import CAMERA_PRESETS
+from .scene_config import SceneConfig
 
 PRESET_DIR = Path(__file__).resolve().parent / "presets"
 
