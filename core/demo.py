@@ -162,7 +162,7 @@ def make_scene(config: DemoConfig, progress: ProgressCallback) -> Path:
         return scene
     rendered = scene if config.sparse_points == "exact" else config.out / "scene_rendered"
     if not SceneDir(rendered).provenance.is_file():
-        from .commands.scene import SceneJob, check_request
+        from .terrain.scene_job import SceneJob, check_request
 
         job = SceneJob(preset=config.preset, seed=config.seed, views=config.views, width=config.width,
                        height=config.height, samples=config.samples)

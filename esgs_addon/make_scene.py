@@ -81,8 +81,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def child_job(data: dict, context) -> dict:
     """The ``"scene"`` job of the child-process runtime: ``data`` is ``{"job": SceneJob as a
-    dict, "out": folder}`` (see :func:`esgs.core.commands.scene.render_scene`); returns ``{"out": folder}``."""
-    from ..core.commands.scene import SceneJob
+    dict, "out": folder}`` (see :func:`esgs.core.terrain.scene_job.render_scene`); returns ``{"out": folder}``."""
+    from ..core.terrain.scene_job import SceneJob
     from ..core.config import config_from_dict
 
     job = config_from_dict(SceneJob, data["job"], source=context.config_path)

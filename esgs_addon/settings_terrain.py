@@ -1,6 +1,6 @@
 """Settings of the synthetic Mars scene generator, read as ``scene.esgs.terrain``.
 
-The properties are derived from :class:`~esgs.core.commands.scene.SceneJob` (the same
+The properties are derived from :class:`~esgs.core.terrain.scene_job.SceneJob` (the same
 options as ``esgs scene``), plus the output folder; the preset is a drop-down of the
 bundled presets.
 """
@@ -10,7 +10,7 @@ import dataclasses
 
 import bpy
 
-from ..core.commands.scene import SceneJob
+from ..core.terrain.scene_job import SceneJob
 from .properties import property_annotations, settings_group
 
 _EXTRA = {

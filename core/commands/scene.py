@@ -5,101 +5,17 @@ imports. This command checks the request here (bad settings fail at once, before
 work), then runs the ``"scene"`` job of the child-process runtime (:mod:`esgs.core.runtime`,
 the add-on's ``make_scene``) with the SceneJob as its config file and relays its progress
 events to the console. The child's own output (Blender's log) is shown only with ``--verbose``.
-:func:`render_scene` is the same for scripts (the demo, the bench, the NDN data builder).
+:func:`esgs.core.terrain.scene_job.render_scene` is the same for scripts (the demo, the bench,
+the NDN data builder).
 """
 from __future__ import annotations
 
 import argparse
-import re
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+
+from ..terrain.scene_job import SceneJob, check_request, parse_resolution, render_scene  # noqa: F401 - the command's API
 
 HELP = "generate a synthetic Mars scene (terrain, rocks, cameras), render it with Cycles and export a scene folder"
-
-
-@dataclass
-class SceneJob:
-    """What to generate and where. Zero for views/width/height/samples keeps the preset's value."""
-
-    preset: str = field(default="cratered_plain", metadata={"help": "scene preset (see --list-presets)"})
-    config: str = field(default="", metadata={"help": "scene config file (.toml preset format or saved .json) instead of a preset"})
-    seed: int = field(default=-1, metadata={"help": "random seed; the same seed and settings give the same scene (-1 = the preset's or file's)"})
-    views: int = field(default=0, metadata={"help": "number of camera views (0 = the preset's)"})
-    width: int = field(default=0, metadata={"help": "image width in pixels (0 = the preset's)"})
-    height: int = field(default=0, metadata={"help": "image height in pixels (0 = the preset's)"})
-    samples: int = field(default=0, metadata={"help": "Cycles samples per pixel (0 = the preset's)"})
-    points_per_view: int = field(default=2000, metadata={"help": "surface pixels per view lifted to COLMAP points3D"})
-    sfm: bool = field(default=False, metadata={"help": "also run pycolmap SfM on the renders into sparse_sfm/0"})
-    overwrite: bool = field(default=False, metadata={"help": "replace an existing output folder (only once the new one is complete)"})
-    mesh: str = field(default="", metadata={"help": "render this textured mesh (.glb/.gltf/.obj/.ply) instead of a synthetic preset (docs/mesh_scenes.md)"})
-    rig: str = field(default="traverse", metadata={"help": "with --mesh: camera layout", "choices": ("traverse", "orbit")})
-    mast_height_m: float = field(default=2.0, metadata={"help": "with --mesh --rig traverse: camera height above the surface, metres"})
-
-    def validate(self) -> None:
-        from ..errors import ConfigError
-
-        for name in ("views", "width", "height", "samples"):
-            if getattr(self, name) < 0:
-                raise ConfigError(f"{name} must not be negative (0 keeps the preset's), got {getattr(self, name)}")
-        if self.seed < -1:
-            raise ConfigError(f"seed must be a non-negative integer (or -1 for the preset's), got {self.seed}")
-        if (self.width == 0) != (self.height == 0):
-            raise ConfigError(f"set both width and height (or neither), got {self.width}x{self.height}")
-        if self.points_per_view < 1:
-            raise ConfigError(f"points_per_view must be positive, got {self.points_per_view}")
-        if self.mesh and self.config:
-            raise ConfigError("--mesh and --config exclude each other", hint="a mesh scene takes its settings from the flags")
-
-    def mesh_scene_config(self) -> Any:
-        """The validated MeshSceneConfig of a ``--mesh`` job (DatasetError for a missing mesh file)."""
-        import dataclasses
-        from pathlib import Path
-
-        from ..mesh_scene import MeshRigConfig, MeshSceneConfig
-
-        base = MeshSceneConfig()
-        render = dataclasses.replace(base.render)
-        if self.width:
-            render.width, render.height = self.width, self.height
-        if self.samples:
-            render.samples = self.samples
-        rig = MeshRigConfig(kind=self.rig, views=self.views or base.rig.views, mast_height_m=self.mast_height_m)
-        config = MeshSceneConfig(mesh=str(Path(self.mesh).expanduser().resolve()), name=Path(self.mesh).stem,
-                                 seed=self.seed if self.seed >= 0 else 0, rig=rig, render=render)
-        config.validate()
-        return config
-
-    def scene_config(self) -> Any:
-        """The validated SceneConfig this job renders (raises ConfigError for bad settings)."""
-        from ..config import config_to_dict
-        from ..terrain import load_preset, load_scene_config, scene_config_from_dict
-
-        self.validate()
-        if self.mesh:
-            return self.mesh_scene_config()
-        if not self.config:
-            return load_preset(self.preset, seed=self.seed if self.seed >= 0 else None, views=self.views or None,
-                               resolution=(self.width, self.height) if self.width else None,
-                               samples=self.samples or None)
-        data = config_to_dict(load_scene_config(self.config))
-        if self.seed >= 0:
-            data["seed"] = self.seed
-        if self.views:
-            data["rig"]["views"] = self.views
-        if self.width:
-            data["render"]["width"], data["render"]["height"] = self.width, self.height
-        if self.samples:
-            data["render"]["samples"] = self.samples
-        return scene_config_from_dict(data, source=self.config)
-
-
-def parse_resolution(text: str) -> tuple[int, int]:
-    """``"480x270"`` -> (480, 270)."""
-    match = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
-    if not match:
-        raise argparse.ArgumentTypeError(f"resolution must look like 480x270, got {text!r}")
-    return int(match.group(1)), int(match.group(2))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -123,42 +39,6 @@ def job_from_args(args: argparse.Namespace) -> SceneJob:
         job.width, job.height = args.resolution
     job.validate()
     return job
-
-
-def render_scene(job: SceneJob, out: str | Path, progress: Any = None, *, verbose: bool = False) -> Path:
-    """Generate, render and export the scene of ``job`` into ``out`` in a Blender child process.
-
-    Bad settings, an existing ``out`` (without ``job.overwrite``) and a Python without the
-    bpy module fail here, before Blender starts. Returns ``out``.
-
-    Raises:
-        ConfigError, DatasetError: here or from the child (the same type).
-    """
-    from ..progress import no_progress
-    from ..runtime import run_job
-
-    out = Path(out)
-    check_request(job, out)
-    run_job("scene", {"job": job, "out": str(out)}, progress or no_progress, task="scene generation",
-            verbose=verbose)
-    return out
-
-
-def check_request(job: SceneJob, out: Path) -> Any:
-    """Fail before Blender starts: bad settings, an existing ``out`` (without overwrite), no
-    bpy module. Returns the job's validated scene config."""
-    import importlib.util
-
-    from ..errors import ConfigError
-
-    config = job.scene_config()
-    if out.exists() and not job.overwrite:
-        raise ConfigError("output folder already exists", path=out, hint="choose another folder or pass --overwrite")
-    if importlib.util.find_spec("bpy") is None:
-        raise ConfigError("rendering needs Blender's bpy module, which this Python does not have",
-                          hint="pip install bpy==5.0.1, or run: blender -b --python examples/make_mars_scene.py -- "
-                               "--preset ... --out DIR")
-    return config
 
 
 def run(args: argparse.Namespace) -> int:

@@ -167,7 +167,7 @@ def ensure_priors(scene: Path, source: str) -> Path:
 
 def make_scene(preset: str, seed: int, suite: BenchSuite, scenes_dir: Path) -> Path:
     """``esgs scene`` into ``scenes_dir/<preset>_s<seed>`` unless it is there (the folder appears complete)."""
-    from ..commands.scene import SceneJob, parse_resolution, render_scene
+    from ..terrain.scene_job import SceneJob, parse_resolution, render_scene
 
     folder = Path(scenes_dir) / suite.scene_folder_name(preset, seed)
     if SceneDir(folder).has_model():
