@@ -100,7 +100,7 @@ def build_config(args: argparse.Namespace):
             data = json.loads(Path(args.config_file).read_text(encoding="utf-8"))
         except (OSError, ValueError) as err:
             raise ConfigError(f"cannot read the settings file: {err}", path=args.config_file) from err
-        base = train_config_from_dict(data, source=args.config_file)
+        base = train_config_from_dict(data, source=args.config_file, saved=False)
     config = dataclass_from_args(TrainConfig, args, base=base)
     name = _chosen_method(args, base.method if base is not None else "3dgs")
     method = get_method(name)
@@ -114,7 +114,7 @@ def build_config(args: argparse.Namespace):
         settings = dataclass_from_args(method.settings_class, args, base=settings)
     values = {**config_to_dict(config), "scene": str(args.scene), "method": name,
               "method_config": config_to_dict(settings) if settings is not None else None}
-    return train_config_from_dict(values)
+    return train_config_from_dict(values, saved=False)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -100,7 +100,7 @@ class RunTask:
         except (OSError, ValueError):
             return [saved_path.name]  # unreadable: treat as made with other settings
         wanted = config_to_dict(train_config_from_dict({**self.config, "scene": str(self.scene),
-                                                        "out": str(self.out), "resume": True}))
+                                                        "out": str(self.out), "resume": True}, saved=False))
         # a setting newer than the saved run counts with the value such runs had (PREDATING_VALUES)
         saved = effective_settings({**{name: None for name in wanted}, **_complete(saved)})
         wanted = effective_settings(json.loads(json.dumps(wanted)))
@@ -182,7 +182,7 @@ def run_task(task: RunTask) -> dict[str, Any]:
     if task.finished():
         return {**task.load_summary(), "skipped": True}
     values = {**task.config, "scene": str(task.scene), "out": str(task.out), "resume": True}
-    config = train_config_from_dict(values)
+    config = train_config_from_dict(values, saved=False)
     started = time.perf_counter()
     result = train(config)
     wall_s = time.perf_counter() - started

@@ -73,10 +73,20 @@ def resolve(config: TrainConfig) -> TrainConfig:
     return config
 
 
-def train_config_from_dict(data: dict, *, source: str | Path | None = None) -> TrainConfig:
-    """A TrainConfig from a saved dict (config.json, a checkpoint, a bench task), the layout
-    of runs saved before methods were registered included, resolved (:func:`resolve`)."""
-    return resolve(run_config_from_dict(data, source=source))
+def train_config_from_dict(data: dict, *, source: str | Path | None = None, saved: bool = True) -> TrainConfig:
+    """A TrainConfig from a dict, the layout of runs saved before methods were registered
+    included, resolved (:func:`resolve`).
+
+    ``saved``: ``data`` is what a run saved (config.json, a checkpoint), so a setting it lacks
+    takes the value runs had before that setting existed (:data:`~esgs.core.train.config.PREDATING_VALUES`);
+    False for a request (a bench task, a --config file), where a missing setting takes its default.
+    """
+    from ..config import config_from_dict
+    from ..train.config import from_legacy_layout
+
+    if saved:
+        return resolve(run_config_from_dict(data, source=source))
+    return resolve(config_from_dict(TrainConfig, from_legacy_layout(data), source=source))
 
 
 def load_run_config(path: str | Path) -> TrainConfig:

@@ -190,8 +190,11 @@ def _legacy_esgs_on(esgs: dict) -> bool:
     return any(esgs.get(name) for name in _LEGACY_ESGS_SWITCHES) or gpdfn or sky
 
 
-def _from_legacy_layout(data: dict) -> dict:
-    """A saved config of the legacy layout in today's (``method`` + ``method_config``)."""
+def from_legacy_layout(data: dict) -> dict:
+    """A TrainConfig dict of the legacy layout in today's (``method`` + ``method_config``);
+    a dict of today's layout is returned as it is."""
+    if "esgs" not in data and "baselines" not in data:
+        return data
     converted = dict(data)
     esgs = converted.pop("esgs", None) or {}
     baselines = converted.pop("baselines", None) or {}
@@ -219,9 +222,7 @@ def with_predating_values(data: dict) -> dict:
             filled.setdefault(key, value)
         elif isinstance(filled.get(section), dict) and key not in filled[section]:
             filled[section] = {**filled[section], key: value}
-    if "esgs" in filled or "baselines" in filled:
-        filled = _from_legacy_layout(filled)
-    return filled
+    return from_legacy_layout(filled)
 
 
 def run_config_from_dict(data: dict, *, source: str | Path | None = None) -> TrainConfig:

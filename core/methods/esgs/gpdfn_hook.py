@@ -49,6 +49,10 @@ def apply_residuals(gaussians: Any, params: Any, residual: dict[str, torch.Tenso
     return replace(params, scales=scales, opacities=opacities, colors=colors)
 
 
+#: Mixed into the run seed for GPDFN's initial weights, so they differ from torch's global stream.
+_SEED_SALT = 0x6DF2
+
+
 class GPDFNHook(TrainHook):
     """Owns the GPDFN module: optimiser group, residuals before render, checkpoint state."""
 
@@ -62,6 +66,12 @@ class GPDFNHook(TrainHook):
         self._cached: Optional[dict[str, torch.Tensor]] = None
 
     def setup(self, run: RunView) -> None:
+        # initial weights from the run's seed, not from whatever the global generator holds when
+        # the hook is built (that made ESGS runs differ with what ran before in the process);
+        # fork_rng leaves the run's own random stream untouched
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed((int(run.seed) * 1_000_003 + _SEED_SALT) % (2 ** 63))
+            self.module = GPDFN(self.config)
         self.module.to(run.device)
         if self.module.enabled:
             run.add_parameter_group("gpdfn", list(self.module.parameters()), self.config.gpdfn_lr)

@@ -93,9 +93,12 @@ def test_the_bench_computes_missing_sfm_priors_and_plans_its_rows_on_them(tmp_pa
     assert ensure_priors(copy, "sfm") == folder  # present: reused, not recomputed
     tasks, notes = plan_bench({"tiny": (copy, 0)}, tmp_path / "out", iterations=5, priors="sfm")
     sources = {t.name.split("/")[1]: (t.config["method_config"] or {}).get("priors") for t in tasks}
-    # sfm priors are depth only: the normal rows are left out with a note, the depth row uses sfm
-    assert sources["esgs_depth"] == "sfm" and sources[UPPER_BOUND_KEY] == "gt" and "esgs_full" not in sources
-    assert len(notes) == 3 and all("normal" in note and "no sfm" in note for note in notes)
+    # sfm priors are depth only: the normal-prior rows are left out with a note, the depth row uses
+    # sfm, and full ESGS (esgs.core.methods.full_esgs) trains depth + consistency + GPDFN on them
+    assert sources["esgs_depth"] == "sfm" and sources[UPPER_BOUND_KEY] == "gt" and sources["esgs_full"] == "sfm"
+    full = next(t for t in tasks if t.name == "tiny/esgs_full").config["method_config"]
+    assert full["depth"] and full["consistency"] and not full["normal"] and full["gpdfn"]
+    assert len(notes) == 2 and all("normal" in note and "no sfm" in note for note in notes)
     bare = tmp_path / "bare"
     (bare / "sparse").mkdir(parents=True)
     with pytest.raises(ConfigError, match="gt priors"):

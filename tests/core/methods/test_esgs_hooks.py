@@ -303,3 +303,18 @@ def test_the_sky_loss_pushes_what_covers_sky_pixels_beyond_the_far_surface(scene
     assert "sky" not in {term.name for term in unmasked.loss_terms}
     with pytest.raises(ConfigError, match="sky_weight"):
         ESGSConfig(sky_weight=-1.0).validate()
+
+
+def test_gpdfn_starts_from_the_run_seed_whatever_ran_before(scene, tmp_path):
+    """Same seed, same initial fusion weights, even after other draws from torch's global stream."""
+    def initial_weights(out, seed):
+        trainer = _trainer(scene, out, ESGSConfig(gpdfn=True), seed=seed)
+        hook = next(h for h in trainer.hooks if isinstance(h, GPDFNHook))
+        return [p.detach().clone() for p in hook.module.parameters()], torch.get_rng_state()
+
+    first, _ = initial_weights(tmp_path / "a", 5)
+    torch.rand(1000)  # what another run in the same process would leave behind
+    again, _ = initial_weights(tmp_path / "b", 5)
+    other, _ = initial_weights(tmp_path / "c", 6)
+    assert all(torch.equal(a, b) for a, b in zip(first, again))
+    assert not all(torch.equal(a, b) for a, b in zip(first, other))
