@@ -1,6 +1,7 @@
 """Trainer hook that adds the ESGS geometry losses (depth prior, normal prior, consistency)."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Optional
 
 import torch
@@ -11,6 +12,24 @@ from ...priors.losses import depth_loss, depth_normal_consistency_loss, edge_awa
 from ...train.hooks import RunView, TrainHook
 from ...train.losses import LossContext, LossTerm
 from .config import ESGSConfig
+
+
+@dataclass
+class ViewPriors:
+    """The priors of one training view, on the run's device, at the view's resolution.
+
+    depth: [H, W] scene units (``relative``: known up to scale and shift) or None; normal:
+    [H, W, 3] unit normals, camera frame (OpenCV axes) or None; mask: [H, W] bool, where the
+    prior losses act; sky: [H, W] bool, pixels with no surface (the sky loss), or None;
+    far: the view's far surface distance (scene units; a 0-dim tensor) or None.
+    """
+
+    depth: Optional[torch.Tensor]
+    normal: Optional[torch.Tensor]
+    mask: torch.Tensor
+    relative: bool = False
+    sky: Optional[torch.Tensor] = None
+    far: Optional[torch.Tensor] = None
 
 
 class PriorLossHook(TrainHook):
@@ -24,7 +43,7 @@ class PriorLossHook(TrainHook):
 
     def __init__(self, config: ESGSConfig):
         self.config = config
-        self.priors: dict[str, dict[str, Optional[torch.Tensor]]] = {}
+        self.priors: dict[str, ViewPriors] = {}
         self._weights: dict[str, torch.Tensor] = {}
 
     # ------------------------------------------------------------------------------
@@ -36,20 +55,20 @@ class PriorLossHook(TrainHook):
             self._load(run)
         if config.depth:
             run.add_loss_term(LossTerm("depth_prior", config.depth_weight, self._depth_term, start_step=start,
-                                           needs=frozenset({"depth"})))
+                                       needs=frozenset({"depth"})))
         if config.normal:
             run.add_loss_term(LossTerm("normal_prior", config.normal_weight, self._normal_term, start_step=start,
-                                           needs=frozenset({"normals"})))
-        if wants_sky and any(p["sky"] is not None for p in self.priors.values()):
+                                       needs=frozenset({"normals"})))
+        if wants_sky and any(p.sky is not None for p in self.priors.values()):
             run.add_loss_term(LossTerm("sky", config.sky_weight, self._sky_term, start_step=start,
-                                           needs=frozenset({"depth"})))
+                                       needs=frozenset({"depth"})))
         elif wants_sky:
             run.message(f"note: prior source {config.priors!r} marks no sky pixels (mask_kind coverage, or no "
-                            "sky in view); the sky loss is off")
+                        "sky in view); the sky loss is off")
         if config.consistency:
             run.add_loss_term(LossTerm("depth_normal", config.consistency_weight, self._consistency_term,
-                                           start_step=run.scaled_step(config.consistency_start_step),
-                                           needs=frozenset({"depth", "normals"})))
+                                       start_step=run.scaled_step(config.consistency_start_step),
+                                       needs=frozenset({"depth", "normals"})))
 
     def _load(self, run: RunView) -> None:
         source = self.config.priors
@@ -80,19 +99,19 @@ class PriorLossHook(TrainHook):
             if depth is not None and not relative and self.config.max_prior_depth > 0:
                 mask = mask & (depth <= self.config.max_prior_depth)
             sky = self._sky_pixels(maps.sky, view, failed=depth is None and normal is None)
-            self.priors[view.name] = {
-                "depth": depth.to(device) if depth is not None else None,
-                "normal": normal.to(device) if normal is not None else None,
-                "mask": mask.to(device),
-                "relative": torch.tensor(relative),
-                "sky": sky.to(device) if sky is not None else None,
-                "far": _far_depth(depth, mask) if depth is not None and not relative else None,
-            }
+            self.priors[view.name] = ViewPriors(
+                depth=depth.to(device) if depth is not None else None,
+                normal=normal.to(device) if normal is not None else None,
+                mask=mask.to(device),
+                relative=relative,
+                sky=sky.to(device) if sky is not None else None,
+                far=_far_depth(depth, mask) if depth is not None and not relative else None,
+            )
         if alignments:
             run.message(_alignment_summary(alignments, self.config.max_alignment_error))
-        if self.config.depth and all(p["depth"] is None for p in self.priors.values()):
+        if self.config.depth and all(p.depth is None for p in self.priors.values()):
             run.message(f"warning: prior source {source!r} has no depth maps; the depth loss stays at zero")
-        if self.config.normal and all(p["normal"] is None for p in self.priors.values()):
+        if self.config.normal and all(p.normal is None for p in self.priors.values()):
             run.message(f"warning: prior source {source!r} has no normal maps; the normal loss stays at zero")
 
     def _sky_pixels(self, sky: Any, view: Any, *, failed: bool) -> Optional[torch.Tensor]:
@@ -117,33 +136,33 @@ class PriorLossHook(TrainHook):
     # --- loss terms ------------------------------------------------------------------
     def _depth_term(self, context: LossContext) -> torch.Tensor:
         prior = self.priors.get(context.view.name)
-        if prior is None or prior["depth"] is None or context.depth is None:
+        if prior is None or prior.depth is None or context.depth is None:
             return context.image.sum() * 0.0
-        return depth_loss(context.depth[..., 0], prior["depth"], prior["mask"], self._edge_weights(context),
-                          mode=self.config.depth_mode, relative=bool(prior["relative"]), alpha=context.alpha[..., 0])
+        return depth_loss(context.depth[..., 0], prior.depth, prior.mask, self._edge_weights(context),
+                          mode=self.config.depth_mode, relative=prior.relative, alpha=context.alpha[..., 0])
 
     def _normal_term(self, context: LossContext) -> torch.Tensor:
         prior = self.priors.get(context.view.name)
-        if prior is None or prior["normal"] is None or context.normals is None:
+        if prior is None or prior.normal is None or context.normals is None:
             return context.image.sum() * 0.0
-        return normal_loss(context.normals, prior["normal"], prior["mask"], self._edge_weights(context),
+        return normal_loss(context.normals, prior.normal, prior.mask, self._edge_weights(context),
                            alpha=context.alpha[..., 0])
 
     def _sky_term(self, context: LossContext) -> torch.Tensor:
         prior = self.priors.get(context.view.name)
-        if prior is None or prior["sky"] is None or context.depth is None:
+        if prior is None or prior.sky is None or context.depth is None:
             return context.image.sum() * 0.0
         depth, alpha = context.depth[..., 0], context.alpha[..., 0]
-        far = prior["far"]
+        far = prior.far
         if far is None:
             # relative prior left unpinned: the farthest surface the Gaussians draw now
-            surface = prior["mask"] & (alpha.detach() > 0.5) & (depth.detach() > 0)
+            surface = prior.mask & (alpha.detach() > 0.5) & (depth.detach() > 0)
             if not bool(surface.any()):
                 return context.image.sum() * 0.0
             far = _far_depth(depth.detach(), surface)
         if far is None:
             return context.image.sum() * 0.0
-        return sky_loss(depth, alpha, prior["sky"], far)
+        return sky_loss(depth, alpha, prior.sky, far)
 
     def _consistency_term(self, context: LossContext) -> torch.Tensor:
         if context.depth is None or context.normals is None:

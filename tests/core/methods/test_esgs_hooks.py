@@ -1,7 +1,6 @@
 """ESGS hooks in real (tiny) training runs: prior losses act, masks hold, GPDFN trains and bakes."""
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest
@@ -85,8 +84,8 @@ def _depth_error(trainer, priors) -> float:
         for view in trainer.data.train:
             output = trainer.render(params, view, render_depth=True)
             prior = priors[view.name]
-            valid = prior["mask"] & (output.depth[..., 0] > 0) & (output.alpha[..., 0] > 0.5)
-            errors.append((output.depth[..., 0][valid].log() - prior["depth"][valid].log()).abs().mean())
+            valid = prior.mask & (output.depth[..., 0] > 0) & (output.alpha[..., 0] > 0.5)
+            errors.append((output.depth[..., 0][valid].log() - prior.depth[valid].log()).abs().mean())
     return float(torch.stack(errors).mean())
 
 
@@ -114,10 +113,10 @@ def test_sky_pixels_never_reach_the_loss(scene, tmp_path):
     trainer = _trainer(scene, tmp_path / "run", esgs)
     hook = trainer.hooks[0]
     prior = hook.priors[trainer.data.train[0].name]
-    assert not prior["mask"][:4].any()  # the corrupt rows are masked
+    assert not prior.mask[:4].any()  # the corrupt rows are masked
     unmasked = _trainer(scene, tmp_path / "run2", ESGSConfig(priors="gt", depth=True, prior_start_step=0,
                                                               use_masks=False))
-    assert unmasked.hooks[0].priors[trainer.data.train[0].name]["mask"][:4].all()
+    assert unmasked.hooks[0].priors[trainer.data.train[0].name].mask[:4].all()
 
 
 def test_gpdfn_hook_trains_its_module_and_bakes_residuals(scene, tmp_path):
@@ -145,7 +144,7 @@ def test_cli_runs_full_esgs_and_saves_its_settings(scene, tmp_path):
     import subprocess
     import sys
 
-    from esgs.core.ply import read_gaussians_ply
+    from esgs.core.formats.ply import read_gaussians_ply
 
     out = tmp_path / "run"
     command = [sys.executable, "-m", "esgs.core", "train", str(scene), "--out", str(out), "--iterations", "12",
@@ -203,9 +202,9 @@ def test_relative_priors_are_pinned_to_the_sfm_points(tmp_path):
     assert any("aligned to SfM points in 6/6 views" in str(m) for m in messages), messages
     for view in pinned.data.train:
         prior, gt = pinned.hooks[0].priors[view.name], load_prior_maps(root, "gt", view.name)
-        assert not bool(prior["relative"]) and bool(shaped.hooks[0].priors[view.name]["relative"])
-        valid = prior["mask"].numpy() & (gt.depth > 0)
-        error = np.abs(prior["depth"].numpy()[valid] - gt.depth[valid]) / gt.depth[valid]
+        assert not bool(prior.relative) and bool(shaped.hooks[0].priors[view.name].relative)
+        valid = prior.mask.numpy() & (gt.depth > 0)
+        error = np.abs(prior.depth.numpy()[valid] - gt.depth[valid]) / gt.depth[valid]
         assert np.median(error) < 0.03, np.median(error)  # the points are jittered centres, not the surface
 
 
@@ -238,13 +237,13 @@ def test_a_view_whose_pinned_prior_contradicts_its_sfm_points_trains_without_pri
     assert any("3 view(s) train without priors" in str(m) and "inverted" in str(m) for m in messages), messages
     for view in gated.data.train:
         prior, everything = gated.hooks[0].priors[view.name], kept.hooks[0].priors[view.name]
-        assert everything["depth"] is not None and everything["normal"] is not None
+        assert everything.depth is not None and everything.normal is not None
         # without the gate the inverted view falls back to the per-step fit (stays relative)
-        assert bool(everything["relative"]) == (view.name == names[2])
+        assert bool(everything.relative) == (view.name == names[2])
         if view.name in failed:
-            assert prior["depth"] is None and prior["normal"] is None
+            assert prior.depth is None and prior.normal is None
         else:
-            assert prior["depth"] is not None and torch.equal(prior["normal"], everything["normal"])
+            assert prior.depth is not None and torch.equal(prior.normal, everything.normal)
     with pytest.raises(ConfigError, match="max_alignment_error"):
         ESGSConfig(max_alignment_error=-1.0, **config).validate()
 
@@ -259,7 +258,7 @@ def _sky_shortfall(trainer, priors) -> float:
         for view in trainer.data.train:
             output = trainer.render(params, view, render_depth=True)
             prior = priors[view.name]
-            values.append(sky_loss(output.depth[..., 0], output.alpha[..., 0], prior["sky"], prior["far"]))
+            values.append(sky_loss(output.depth[..., 0], output.alpha[..., 0], prior.sky, prior.far))
     return float(torch.stack(values).mean())
 
 
@@ -283,9 +282,9 @@ def test_the_sky_loss_pushes_what_covers_sky_pixels_beyond_the_far_surface(scene
     for view in trainer.data.train:
         prior = priors[view.name]
         # the fixture's sky rows, and wherever the known Gaussians leave the view uncovered
-        assert prior["sky"][:4].all() and torch.equal(prior["sky"], ~prior["mask"])
-        valid = prior["depth"][prior["mask"]]
-        assert float(prior["far"]) == pytest.approx(float(torch.quantile(valid, 0.99)), rel=1e-6)
+        assert prior.sky[:4].all() and torch.equal(prior.sky, ~prior.mask)
+        valid = prior.depth[prior.mask]
+        assert float(prior.far) == pytest.approx(float(torch.quantile(valid, 0.99)), rel=1e-6)
     start = _sky_shortfall(trainer, priors)
     assert start > 0.003  # the scene's Gaussians do cover the rows called sky, at surface depth
     for step in range(1, 41):
