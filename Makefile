@@ -6,7 +6,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.esgs-installed
 PYTEST_ARGS ?=
 
-.PHONY: setup test demo bench clean-venv
+.PHONY: setup lint test demo bench clean-venv
 
 setup: $(STAMP)
 
@@ -21,7 +21,11 @@ $(STAMP): requirements.txt pyproject.toml setup.py
 	-$(PY) -m esgs.core.metrics.lpips --fetch
 	@touch $(STAMP)
 
-test: setup
+# ruff's configuration is in pyproject.toml; the layer rules are a test (tests/core/test_layers.py)
+lint: setup
+	$(PY) -m ruff check .
+
+test: lint
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 demo: setup

@@ -15,11 +15,13 @@ import argparse
 import sys
 from pathlib import Path
 
+from esgs.core.config import config_to_dict
 from esgs.core.experiments.ablate import available_priors
 from esgs.core.experiments.runs import RunTask, run_task
+from esgs.core.methods import full_esgs
 from esgs.core.experiments.tables import COST_COLUMNS, QUALITY_COLUMNS, aggregate, markdown_table
 from esgs.core.io_utils import atomic_write_json, atomic_write_text
-from esgs.core.scene_dir import SceneDir
+from esgs.core.formats.scene_dir import SceneDir
 
 
 def main(argv=None) -> int:
@@ -42,10 +44,10 @@ def main(argv=None) -> int:
     summaries = []
     for seed in args.seeds:
         for every in args.every:
-            esgs = {"priors": args.priors, "depth": "depth" in kinds, "normal": "normal" in kinds, "gpdfn": True,
-                    "fused_k": args.fused_k, "gpdfn_every": every}
+            esgs = config_to_dict(full_esgs(args.priors, scene=args.scene, depth="depth" in kinds,
+                                            fused_k=args.fused_k, gpdfn_every=every))
             config = {"iterations": args.iterations, "seed": seed, "width": args.width, "threads": args.threads,
-                      "esgs": esgs}
+                      "method": "esgs", "method_config": esgs}
             task = RunTask(name=f"k{every}/seed{seed}", scene=args.scene, out=args.out / "runs" / f"k{every}" /
                            f"seed{seed}", config=config, variant=f"GPDFN every {every}", seed=seed,
                            scene_name=args.scene.name, mesh=mesh if mesh.is_file() else None, measure_render=False)

@@ -1,4 +1,4 @@
-"""Time the Gaussian centres -> mesh comparison (core/compare.py) on a terrain-like case.
+"""Time the Gaussian centres -> mesh comparison (core/metrics/geometry.py) on a terrain-like case.
 
     .venv/bin/python benchmarks/bench_compare.py [--points 1000000] [--grid 512]
 
@@ -32,7 +32,7 @@ def main() -> None:
     parser.add_argument("--grid", type=int, default=512)
     args = parser.parse_args()
 
-    from esgs.core.compare import compare_points_to_mesh, point_to_mesh_distances
+    from esgs.core.metrics.geometry import compare_points_to_mesh, point_to_mesh_distances
 
     vertices, faces = heightfield(args.grid)
     rng = np.random.default_rng(0)

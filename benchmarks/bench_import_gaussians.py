@@ -26,7 +26,7 @@ def main() -> None:
     import bpy
 
     import esgs
-    from esgs.core.ply import GaussianPly, write_gaussians_ply
+    from esgs.core.formats.ply import GaussianPly, write_gaussians_ply
     from esgs.esgs_addon.gaussians_import import import_gaussians, remove_object
 
     bpy.ops.wm.read_factory_settings(use_empty=True)

@@ -19,7 +19,7 @@ import sys
 import time
 from pathlib import Path
 
-from esgs.core.scene_dir import SceneDir
+from esgs.core.formats.scene_dir import SceneDir
 
 
 def _esgs(*arguments: str) -> None:

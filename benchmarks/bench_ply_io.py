@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from esgs.core.ply import GaussianPly, read_gaussians_ply, write_gaussians_ply
+from esgs.core.formats.ply import GaussianPly, read_gaussians_ply, write_gaussians_ply
 
 
 def main() -> None:

@@ -21,7 +21,7 @@ from pathlib import Path
 
 def main() -> None:
     from esgs.core.commands.scene import parse_resolution
-    from esgs.core.scene_dir import SceneDir
+    from esgs.core.formats.scene_dir import SceneDir
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="cratered_plain")

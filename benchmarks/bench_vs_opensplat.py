@@ -61,8 +61,8 @@ from typing import Optional
 
 import numpy as np
 
-from esgs.core.scene_dir import SceneDir
-from esgs.core.train.run_dir import RunDir
+from esgs.core.formats.scene_dir import SceneDir
+from esgs.core.formats.run_dir import RunDir
 
 #: OpenSplat composites its renders onto this colour (nerfstudio's default, fixed in its Model).
 OPENSPLAT_BACKGROUND = (0.6130, 0.0101, 0.3984)
@@ -364,7 +364,7 @@ def evaluate(run: ChildRun, scene: Path, width: int, background: tuple[float, fl
     """Our PSNR/SSIM(/LPIPS) of ``run.ply`` on the scene's held-out views, rendered by our CPU rasterizer."""
     import torch
 
-    from esgs.core.ply import read_gaussians_ply
+    from esgs.core.formats.ply import read_gaussians_ply
     from esgs.core.train.dataset import load_scene_data
     from esgs.core.train.evaluate import evaluate_model
     from esgs.core.train.gaussians import GaussianModel

@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 
 from esgs.core.colmap.io import read_model
-from esgs.core.compare import point_to_mesh_distances
+from esgs.core.metrics.geometry import point_to_mesh_distances
 from esgs.core.labels.mesh_io import load_mesh
-from esgs.core.ply import read_gaussians_ply
-from esgs.core.scene_dir import SceneDir
-from esgs.core.train.run_dir import RunDir
+from esgs.core.formats.ply import read_gaussians_ply
+from esgs.core.formats.scene_dir import SceneDir
+from esgs.core.formats.run_dir import RunDir
 
 GROUPS = ((0, 0), (1, 1), (2, 3), (4, 10**6))
 

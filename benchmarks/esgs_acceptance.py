@@ -28,12 +28,14 @@ from pathlib import Path
 
 from esgs.core.experiments.acceptance import SOURCES, plan_runs, scene_rows, verdict
 from esgs.core.experiments.bench import ensure_priors
+from esgs.core.config import config_to_dict
 from esgs.core.experiments.runs import RunTask, run_task
+from esgs.core.methods import full_esgs
 from esgs.core.experiments.sfm_scene import make_sfm_scene
 from esgs.core.experiments.sky import sky_figures, write_sky_filled_priors
 from esgs.core.experiments.tables import QUALITY_COLUMNS, aggregate, format_cell, markdown_table
 from esgs.core.io_utils import atomic_write_json, atomic_write_text
-from esgs.core.scene_dir import PriorSource, SceneDir
+from esgs.core.formats.scene_dir import PriorSource, SceneDir
 
 SKY_KEYS = ("psnr", "psnr_sky", "psnr_surface", "alpha_sky", "horizon_depth_error", "distance_mean")
 
@@ -57,7 +59,7 @@ def sky_arms(prior: str, sky_weights: tuple[float, ...] = (), ignore_masks: bool
     """ESGS on the sky scene with ``prior``: masks honoured (the fix), masks honoured plus the
     sky loss at each weight of ``sky_weights`` (sky pushed beyond the far surface), masks ignored."""
     name, key = ("gt, sky filled", "skyfilled") if prior == PriorSource.GT_SKYFILLED else (prior, prior)
-    esgs = {"priors": prior, "depth": True, "normal": True, "gpdfn": True, "fused_k": 3}
+    esgs = config_to_dict(full_esgs(prior, normal=True, consistency=False))  # every source here has normals
     # the mask arms without the sky loss, whatever its default: they measure the masks alone
     arms = [(f"ESGS ({name}), masks honoured", f"esgs-{key}-masks", {**esgs, "use_masks": True, "sky_weight": 0.0})]
     arms += [(f"ESGS ({name}), masks + sky loss {weight:g}", f"esgs-{key}-masks-sky{weight:g}",
@@ -78,7 +80,8 @@ def sky_tasks(scene: Path, out: Path, iterations: int, seeds, train: dict, basel
         arms += sky_arms(prior, sky_weights, ignore_masks)
     for seed in seeds:
         for label, key, esgs in arms:
-            config = {**train, "iterations": iterations, "seed": seed, "esgs": esgs}
+            config = {**train, "iterations": iterations, "seed": seed,
+                      "method": "esgs" if esgs else "3dgs", "method_config": esgs or None}
             tasks.append(RunTask(name=f"sky/{key}/seed{seed}", scene=scene, out=out / "runs" / "sky" / key / f"seed{seed}",
                                  config=config, variant=label, seed=seed, scene_name="sky", mesh=mesh,
                                  measure_render=False))

@@ -28,12 +28,12 @@ def navcam_figures(scene_dir: Path, out_dir: Path, weights=None, frames: int = 4
     import cv2
     import torch
 
-    from esgs.core.imageio import read_image, write_png
+    from esgs.core.formats.imageio import read_image, write_png
     from esgs.core.ndn.data import scene_triples
     from esgs.core.ndn.infer import maps_from_states
     from esgs.core.ndn.shipped import resolve_default_weights
     from esgs.core.ndn.train import load_checkpoint
-    from esgs.core.scene_dir import SceneDir
+    from esgs.core.formats.scene_dir import SceneDir
 
     model, diffusion, config, _ = load_checkpoint(resolve_default_weights(weights))
     triples = scene_triples(scene_dir, config.model.working_size, 2 ** (config.model.levels - 1), with_targets=False)

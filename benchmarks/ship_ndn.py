@@ -231,7 +231,6 @@ def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | 
          baselines: dict, data_dir: Path, landform_dir: Path, seconds: float, note: str,
          validation: dict | None = None, extra: dict | None = None) -> str:
     config = facts.get("config", {})
-    train = config.get("train", {})
     ndn = config.get("ndn", {})
     hours = facts.get("train_seconds")
     shipped_diffusion = torch_config(weights)

@@ -1,9 +1,8 @@
-"""The ESGS engine. Importable without ``bpy`` (a test enforces it).
+"""The ESGS engine. Importable without ``bpy`` (a test enforces it), and importing it changes
+nothing in the process (no environment variables, no threads).
 
-Subpackages and modules each do one job; see docs/architecture.md.
+Layers, lowest first (docs/architecture.md; tests/core/test_layers.py enforces them):
+foundation (errors, config, io_utils, progress, runtime) -> formats (formats, colmap,
+datasets, terrain, metrics) -> render -> train -> priors (priors, ndn, labels) -> methods ->
+applications (apps, experiments) -> cli (commands, cli).
 """
-import os as _os
-
-# Idle OpenMP threads spin by default; on a busy 2-core machine that tripled the CPU time of
-# torch + Numba steps (measured in benchmarks/bench_rasterizer.py). Set before torch loads.
-_os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

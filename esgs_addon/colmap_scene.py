@@ -26,7 +26,7 @@ from ..core.colmap.geometry import matrix_to_quat_wxyz
 from ..core.colmap.model import Camera, ColmapModel, Image
 from ..core.errors import ConfigError, DatasetError
 from ..core.progress import ProgressCallback, ProgressEvent, no_progress
-from ..core.scene_dir import SceneDir
+from ..core.formats.scene_dir import SceneDir
 from . import cameras, image_planes, orient, pointcloud
 
 #: Collection custom property: [16] row-major "Blender world from COLMAP world" transform

@@ -1,7 +1,7 @@
 """Measure imported Gaussians against a ground-truth mesh inside Blender.
 
 Public entry point: :func:`compare_to_mesh`. The numbers come from
-:func:`esgs.core.compare.compare_points_to_mesh`; this module feeds it the objects'
+:func:`esgs.core.metrics.geometry.compare_points_to_mesh`; this module feeds it the objects'
 geometry, stores each Gaussian's distance as the point attribute ``distance``, switches
 the display to a blue -> red heat map (range adjustable on the modifier: ``Distance Min``
 / ``Distance Max``) and keeps the summary on the object for the panel.
@@ -15,7 +15,7 @@ from typing import Any, Optional
 import bpy
 import numpy as np
 
-from ..core.compare import compare_points_to_mesh, load_mesh
+from ..core.metrics.geometry import compare_points_to_mesh, load_mesh
 from ..core.errors import ConfigError
 from ..core.io_utils import atomic_write_json
 from . import gaussian_nodes, gaussians_import

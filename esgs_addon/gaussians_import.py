@@ -29,7 +29,7 @@ import bpy
 import numpy as np
 
 from ..core.errors import ConfigError
-from ..core.ply import GaussianPly, read_gaussians_ply
+from ..core.formats.ply import GaussianPly, read_gaussians_ply
 from . import gaussian_nodes, pointcloud
 
 #: degree-0 spherical-harmonic basis constant, 1 / (2 sqrt(pi))

@@ -20,7 +20,7 @@ from typing import Any, Iterable, Optional
 import bpy
 from bpy.app.handlers import persistent
 
-from ..core import jobs
+from ..core.apps import jobs
 from . import priors_job, training_job
 
 #: status of a job whose saved state said it ran, but which this Blender session never started

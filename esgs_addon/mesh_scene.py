@@ -12,7 +12,7 @@ importer (glTF's +Y up becomes Blender's +Z up), then, in one new collection:
   Emission shader of strength 1, the world is black and there are no lamps, so with the
   Standard view transform a pixel shows the photograph's value (the landform's textures
   are photographs with the light already in them);
-* places the cameras of :func:`esgs.core.mesh_scene.make_mesh_rig`, ray casting the mesh
+* places the cameras of :func:`esgs.core.terrain.mesh_scene.make_mesh_rig`, ray casting the mesh
   with a BVH tree.
 
 The returned dict has the keys :func:`~.render_dataset.render_dataset` reads, so the scene
@@ -21,7 +21,6 @@ folder is exactly the synthetic presets' one (docs/mesh_scenes.md).
 from __future__ import annotations
 
 import hashlib
-import math
 from pathlib import Path
 from typing import Any, Callable
 
@@ -30,7 +29,7 @@ import numpy as np
 
 from ..core.config import config_to_dict
 from ..core.errors import DatasetError
-from ..core.mesh_scene import MeshSceneConfig, check_mesh_file, make_mesh_rig
+from ..core.terrain.mesh_scene import MeshSceneConfig, check_mesh_file, make_mesh_rig
 from ..core.progress import ProgressEvent
 
 GENERATOR_VERSION = "1.0"

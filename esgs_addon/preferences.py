@@ -12,7 +12,7 @@ from typing import Optional
 import bpy
 
 from ..core.errors import ESGSError
-from ..core.jobs import find_python
+from ..core.apps.jobs import find_python
 
 #: the add-on's root package (``__package__`` is ``<root>.esgs_addon``)
 ADDON_ID = __package__.rsplit(".", 1)[0]
@@ -55,7 +55,7 @@ def get_preferences(context: Optional[bpy.types.Context] = None) -> Optional[ESG
 
 
 def trainer_python(context: Optional[bpy.types.Context] = None) -> str:
-    """The interpreter for the trainer (see :func:`esgs.core.jobs.find_python`)."""
+    """The interpreter for the trainer (see :func:`esgs.core.apps.jobs.find_python`)."""
     prefs = get_preferences(context)
     preferred = bpy.path.abspath(prefs.python_path) if prefs is not None and prefs.python_path else None
     return find_python(preferred)

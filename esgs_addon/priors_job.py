@@ -23,14 +23,13 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Optional
 
-import bpy
 
-from ..core import jobs
+from ..core.apps import jobs
 from ..core.colmap.io import find_model_dir
 from ..core.errors import CheckpointError, ConfigError, DatasetError, ESGSError
 from ..core.commands.priors import PriorsSettings
-from ..core.jobs import ChildJob, JobState
-from ..core.scene_dir import PriorSource, SceneDir, names
+from ..core.apps.jobs import ChildJob, JobState
+from ..core.formats.scene_dir import PriorSource, SceneDir, names
 from . import preferences
 
 METHODS = names(PriorSource.computed())
@@ -132,7 +131,7 @@ def start_priors(scene_dir: str | Path, method: str = "ndn", *, weights: str | P
         scene_dir: the COLMAP scene folder (images/ + sparse/0); priors go to ``priors/<method>``.
         method: ``ndn`` (dense relative depth and normals) or ``sfm`` (sparse depth).
         weights: ndn weights file or model folder (default: ``$ESGS_NDN_WEIGHTS``, else shipped).
-        python: interpreter (default: the add-on preference, then :func:`esgs.core.jobs.find_python`).
+        python: interpreter (default: the add-on preference, then :func:`esgs.core.apps.jobs.find_python`).
         threads: CPU threads for the child (default: the preference).
 
     Raises:

@@ -21,7 +21,6 @@ EXR): in headless Blender 5.0 a multilayer EXR keeps only the combined image.
 """
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -31,7 +30,7 @@ import numpy as np
 
 from ..core.errors import ConfigError, DatasetError
 from ..core.progress import ProgressEvent
-from ..core.scene_dir import PriorSource, SceneDir
+from ..core.formats.scene_dir import PriorSource, SceneDir
 
 #: Cycles writes this depth where a pixel sees no surface.
 _BACKGROUND_DEPTH = 1e9
@@ -335,7 +334,7 @@ def render_dataset(objects: dict[str, Any], out_dir: str | Path, *, progress: Ca
     from .. import __version__
     from ..core.colmap import write_model
     from ..core.config import config_to_dict
-    from ..core.imageio import read_image, write_depth_exr, write_normal_exr, write_png
+    from ..core.formats.imageio import read_image, write_depth_exr, write_normal_exr, write_png
     from ..core.io_utils import atomic_directory, atomic_write_json
     from .terrain_scene import GENERATOR_VERSION, apply_render_settings
 
@@ -488,7 +487,7 @@ def _hide_other_objects(scene: bpy.types.Scene, objects: dict[str, Any]) -> list
 
 
 def _read_single_channel(path: Path) -> np.ndarray:
-    from ..core.imageio import read_exr
+    from ..core.formats.imageio import read_exr
 
     channels, _ = read_exr(path)
     if len(channels) != 1:
@@ -497,7 +496,7 @@ def _read_single_channel(path: Path) -> np.ndarray:
 
 
 def _read_vector(path: Path) -> np.ndarray:
-    from ..core.imageio import read_exr
+    from ..core.formats.imageio import read_exr
 
     channels, _ = read_exr(path)
     if not {"X", "Y", "Z"} <= set(channels):

@@ -81,7 +81,7 @@ def render_labels(scene_dir: str | Path, mesh_path: str | Path, *, method: str =
     from ..core.labels.mesh_io import load_mesh
     from ..core.labels.pipeline import check_pinhole
     from ..core.labels.writer import LabelWriter
-    from ..core.scene_dir import PriorSource, SceneDir
+    from ..core.formats.scene_dir import PriorSource, SceneDir
     from .cameras import opencv_from_camera_object, use_camera
     from .colmap_scene import PROP_IMAGE_NAME, ColmapImportOptions, import_colmap_scene
     from .render_dataset import _PassOutputs, _read_single_channel, _read_vector, camera_normals_from_pass, depth_from_pass

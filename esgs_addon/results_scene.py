@@ -16,8 +16,8 @@ from typing import Any
 import bpy
 
 from ..core.errors import DatasetError, ESGSError
-from ..core.scene_dir import SceneDir
-from ..core.train.run_dir import RunDir
+from ..core.formats.scene_dir import SceneDir
+from ..core.formats.run_dir import RunDir
 from . import compare_mesh, gaussian_nodes
 from .colmap_scene import ColmapImportOptions, import_colmap_scene
 from .gaussians_import import import_gaussians

@@ -19,7 +19,7 @@ import bpy
 
 from ..core.errors import ConfigError
 from ..core.methods import full_esgs, get_method, method_names
-from ..core.scene_dir import PriorSource
+from ..core.formats.scene_dir import PriorSource
 from ..core.train.config import TrainConfig
 from .properties import property_annotations, property_values, settings_group
 

@@ -22,10 +22,10 @@ from typing import Any, Callable, Optional, Sequence
 import bpy
 import numpy as np
 
-from ..core import jobs
+from ..core.apps import jobs
 from ..core.errors import DatasetError
-from ..core.jobs import JobState, TrainingJob
-from ..core.scene_dir import PriorSource
+from ..core.apps.jobs import JobState, TrainingJob
+from ..core.formats.scene_dir import PriorSource
 from ..core.train.config import TrainConfig
 from . import gaussians_import, preferences
 from .properties import property_values
@@ -52,7 +52,7 @@ def scene_dir_of_collection(collection: bpy.types.Collection) -> Optional[Path]:
     if PROP_SCENE_DIR in collection:
         return Path(collection[PROP_SCENE_DIR])
     if PROP_COLMAP_SOURCE in collection:
-        from ..core.scene_dir import SceneDir
+        from ..core.formats.scene_dir import SceneDir
 
         model = Path(collection[PROP_COLMAP_SOURCE])
         # SCENE/sparse/0 -> SCENE, SCENE/sparse -> SCENE, SCENE/<model folder> -> SCENE
@@ -116,7 +116,7 @@ def training_config(settings: Any) -> TrainConfig:
     back as the job's error).
 
     Raises:
-        ConfigError: the prior source is not one of :class:`~esgs.core.scene_dir.PriorSource`.
+        ConfigError: the prior source is not one of :class:`~esgs.core.formats.scene_dir.PriorSource`.
     """
     values = property_values(settings, TrainConfig)
     method = chosen_method(settings)
@@ -157,7 +157,7 @@ def start_training(scene_dir: str | Path, run_dir: str | Path | None = None, ite
         iterations: training steps.
         config: the training settings (e.g. :func:`training_config`); its scene, run folder and
             steps are this call's. None: the trainer's defaults (a resumed run keeps its own).
-        python: interpreter (default: preferences, then :func:`esgs.core.jobs.find_python`).
+        python: interpreter (default: preferences, then :func:`esgs.core.apps.jobs.find_python`).
         threads: CPU threads for the child (default: the preference).
 
     Raises:
@@ -189,7 +189,7 @@ def wait_for_training(job: TrainingJob, *, report: Callable[[str], None] = print
 def import_run_result(run_dir: str | Path, scene: Optional[bpy.types.Scene] = None,
                       scene_dir: str | Path | None = None, **import_options: Any) -> bpy.types.Object:
     """Import ``RUN/point_cloud.ply``, placed like the COLMAP scene it was trained on."""
-    from ..core.train.run_dir import RunDir
+    from ..core.formats.run_dir import RunDir
 
     scene = scene or bpy.context.scene
     run_dir = Path(run_dir)

@@ -11,9 +11,9 @@ from typing import Any, Callable, Optional
 
 import bpy
 
-from ..core import jobs
+from ..core.apps import jobs
 from ..core.errors import ESGSError
-from ..core.jobs import JobState
+from ..core.apps.jobs import JobState
 from ..core.progress import ProgressCallback, ProgressEvent
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import bpy
 
 from ..core.errors import ESGSError
-from ..core.scene_dir import SceneDir
+from ..core.formats.scene_dir import SceneDir
 from ..esgs_addon import priors_job, training_job
 from ._blocking import finish_headless_job
 

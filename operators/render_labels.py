@@ -4,7 +4,7 @@ from __future__ import annotations
 import bpy
 
 from ..core.errors import ConfigError
-from ..core.scene_dir import PriorSource, SceneDir
+from ..core.formats.scene_dir import PriorSource, SceneDir
 from ._blocking import BlockingJobOperator
 
 

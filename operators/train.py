@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from ..core import jobs
+from ..core.apps import jobs
 from ..core.errors import ESGSError
 from ..esgs_addon import training_job
 from ._blocking import finish_headless_job

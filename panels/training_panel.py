@@ -4,7 +4,7 @@ from __future__ import annotations
 import bpy
 
 from ..core.errors import ESGSError
-from ..core.jobs import format_duration
+from ..core.apps.jobs import format_duration
 from ..core.methods import get_method
 from ..esgs_addon import interrupted_jobs, settings_training, training_job
 from ..esgs_addon.properties import property_values

@@ -55,7 +55,7 @@ def test_terrain_preview_writes_its_overview_picture(tmp_path):
     result = subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     assert "dune_field seed 3" in result.stdout
-    from esgs.core.imageio import read_image
+    from esgs.core.formats.imageio import read_image
 
     image = read_image(out)
     assert image.ndim == 3 and image.shape[2] == 3 and image.std() > 5  # a shaded relief, not a blank

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from esgs.core import packaging
+from esgs.core.apps import packaging
 
 pytest.importorskip("bpy", reason="Blender's extension tool ships with the bpy module")
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import DatasetError
 from ..io_utils import atomic_directory
-from ..scene_dir import SceneDir
+from ..formats.scene_dir import SceneDir
 from . import parse
 from .model import Camera, ColmapModel, Image, Point3D
 from .validate import check_references, check_registered

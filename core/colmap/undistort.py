@@ -20,7 +20,7 @@ import numpy as np
 from ..errors import DatasetError
 from ..io_utils import atomic_directory
 from ..progress import ProgressCallback, ProgressEvent, no_progress
-from ..scene_dir import SceneDir
+from ..formats.scene_dir import SceneDir
 from .camera_models import PINHOLE_MODELS, model_info
 from .model import Camera, ColmapModel, Image
 
@@ -142,7 +142,7 @@ def undistort_model(
     pinhole cameras are copied unchanged) and 2D observations are moved accordingly.
     Poses and 3D points are unchanged. The folder is built atomically. Returns the new model.
     """
-    from ..imageio import read_image
+    from ..formats.imageio import read_image
     from ..io_utils import atomic_write_bytes
     from .io import write_model
     from .validate import validate_images

@@ -151,7 +151,7 @@ def validate_images(model: ColmapModel, images_dir: str | Path) -> list[Path]:
 
 def image_size(path: str | Path) -> tuple[int, int]:
     """(width, height) of an image file; DatasetError when it cannot be decoded."""
-    from ..imageio import read_image
+    from ..formats.imageio import read_image
 
     array = read_image(path)
     return int(array.shape[1]), int(array.shape[0])

@@ -16,7 +16,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..packaging import build_extension
+    from ..apps.packaging import build_extension
 
     platform = None if args.platform == "all" else args.platform
     for path in build_extension(args.out, platform=platform, wheel_cache=args.wheel_cache):

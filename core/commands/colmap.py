@@ -51,7 +51,7 @@ def summary(model) -> dict[str, object]:
 def run(args: argparse.Namespace) -> int:
     from ..colmap import check_image_sizes, load_scene, read_model, undistort_model, validate_images, write_model
     from ..progress import ConsoleProgress
-    from ..scene_dir import SceneDir
+    from ..formats.scene_dir import SceneDir
 
     if args.action == "check":
         model = read_model(args.scene)

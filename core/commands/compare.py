@@ -22,7 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from ..compare import compare_ply_to_mesh
+    from ..metrics.geometry import compare_ply_to_mesh
     from ..io_utils import atomic_write_json
 
     result = compare_ply_to_mesh(args.gaussians, args.mesh, opacity_min=args.opacity_min,

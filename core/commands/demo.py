@@ -8,7 +8,7 @@ HELP = "run the main job end to end: synthetic scene, NDN priors, ESGS vs 3DGS t
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ..config import add_dataclass_arguments
-    from ..demo import DemoConfig
+    from ..apps.demo import DemoConfig
 
     add_dataclass_arguments(parser, DemoConfig)
     parser.add_argument("--quick", action="store_true", help="a tiny run (minutes) to check the set-up")
@@ -16,7 +16,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..config import dataclass_from_args
-    from ..demo import DemoConfig, run_demo
+    from ..apps.demo import DemoConfig, run_demo
     from ..progress import ConsoleProgress
 
     base = DemoConfig(views=6, width=160, height=90, iterations=150, samples=8, snapshots=3) if args.quick else None

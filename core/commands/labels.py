@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     from ..labels.reconstruct import ReconstructOptions
     from ..labels.stereo import StereoOptions
     from ..progress import ConsoleProgress, JsonLinesProgress, combine
-    from ..scene_dir import PriorSource, SceneDir
+    from ..formats.scene_dir import PriorSource, SceneDir
 
     reconstruct_options = dataclass_from_args(ReconstructOptions, args)
     reconstruct_options.stereo = dataclass_from_args(StereoOptions, args, prefix="stereo_")

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Optional
 
-from ..scene_dir import PriorSource, SceneDir, names
+from ..formats.scene_dir import PriorSource, SceneDir, names
 
 HELP = "compute depth/normal prior maps for a scene (priors/<method>/)"
 

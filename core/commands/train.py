@@ -83,7 +83,7 @@ def build_config(args: argparse.Namespace):
     from ..errors import ConfigError
     from ..methods import full_esgs, get_method, load_run_config, train_config_from_dict
     from ..train.config import TrainConfig
-    from ..train.run_dir import RunDir
+    from ..formats.run_dir import RunDir
 
     if args.scene is None:
         raise ConfigError("the scene folder is required", hint="esgs train SCENE --out RUN_DIR")

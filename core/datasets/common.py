@@ -8,7 +8,7 @@ import numpy as np
 from ..colmap.geometry import matrix_to_quat_wxyz
 from ..colmap.model import Camera, ColmapModel, Image
 from ..errors import DatasetError
-from ..scene_dir import SceneDir
+from ..formats.scene_dir import SceneDir
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 
@@ -26,7 +26,7 @@ def list_images(images_dir: str | Path) -> list[Path]:
 
 def check_readable(files: list[Path]) -> list[tuple[int, int]]:
     """Decode every image once; raise one DatasetError naming all unreadable files. Returns (width, height)s."""
-    from ..imageio import read_image
+    from ..formats.imageio import read_image
 
     sizes, bad = [], []
     for path in files:

@@ -26,7 +26,7 @@ import numpy as np
 from ..colmap.model import Camera
 from ..errors import ConfigError, DatasetError
 from ..progress import ProgressCallback, ProgressEvent, no_progress
-from ..scene_dir import SceneDir
+from ..formats.scene_dir import SceneDir
 from .common import rotation_x, rotation_y, scene_provenance, station_model
 
 
@@ -159,7 +159,7 @@ def scene_from_panorama(
     strip was taken from several places). Built atomically.
     """
     from ..colmap.io import write_model
-    from ..imageio import read_image, write_png
+    from ..formats.imageio import read_image, write_png
     from ..io_utils import atomic_directory, atomic_write_json
 
     options = options or PanoramaOptions()
@@ -210,7 +210,7 @@ def scene_from_panorama(
 
 def _cut_strip(strip: np.ndarray, images_dir: Path, options: PanoramaOptions, progress: ProgressCallback) -> dict[str, Any]:
     """Overlapping crops of the requested aspect across a flat strip (and down it, when taller)."""
-    from ..imageio import write_png
+    from ..formats.imageio import write_png
 
     height, width = strip.shape[:2]
     scale = min(1.0, height / options.height, width / options.width)

@@ -23,7 +23,7 @@ import numpy as np
 from ..colmap.model import Camera
 from ..errors import ConfigError, DatasetError
 from ..progress import ProgressCallback, ProgressEvent, no_progress
-from ..scene_dir import SceneDir
+from ..formats.scene_dir import SceneDir
 from .common import check_readable, list_images, scene_provenance, station_model
 
 
@@ -436,7 +436,7 @@ def scene_from_rotation_only(
     import shutil
 
     from ..colmap.io import write_model
-    from ..imageio import read_image
+    from ..formats.imageio import read_image
     from ..io_utils import atomic_directory, atomic_write_json
 
     options = options or RotationOnlyOptions()

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ..progress import ProgressCallback, ProgressEvent, no_progress
-from ..scene_dir import SceneDir
+from ..formats.scene_dir import SceneDir
 from .common import check_readable, list_images, scene_provenance
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")

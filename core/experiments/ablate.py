@@ -14,12 +14,12 @@ PSNR, LPIPS and the mean and std of centre-to-mesh distances, opacity >= 0.5).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
 from ..errors import ConfigError, DatasetError
-from ..scene_dir import PriorSource, SceneDir, names
+from ..formats.scene_dir import PriorSource, SceneDir, names
 from .runs import RunTask
 from .tables import QUALITY_COLUMNS, aggregate, markdown_table
 

@@ -23,7 +23,7 @@ from typing import Any, Optional, Sequence
 
 from ..config import config_to_dict
 from ..methods import full_esgs
-from ..scene_dir import SceneDir
+from ..formats.scene_dir import SceneDir
 from .runs import RunTask
 from .tables import QUALITY_COLUMNS, aggregate
 

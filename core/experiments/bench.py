@@ -19,13 +19,13 @@ from __future__ import annotations
 
 import datetime
 import platform
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
 from ..errors import ConfigError, ESGSError
 from ..runtime import run_job
-from ..scene_dir import PriorSource, SceneDir, names
+from ..formats.scene_dir import PriorSource, SceneDir, names
 from .ablate import available_priors
 from .runs import RunTask
 from .tables import COST_COLUMNS, QUALITY_COLUMNS, aggregate, markdown_table
@@ -304,7 +304,7 @@ def bench_markdown(report: dict) -> str:
 def _prior_description(source: str, scenes: dict[str, tuple[Path, int]]) -> dict[str, Any]:
     """The prior source of the bench and, for NDN, the weights its maps were computed with
     (the ``weights`` header of each scene's first depth map)."""
-    from ..imageio import read_exr
+    from ..formats.imageio import read_exr
 
     weights = set()
     if source == "ndn":

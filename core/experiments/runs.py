@@ -12,7 +12,7 @@ import json
 import resource
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
 
@@ -89,7 +89,7 @@ class RunTask:
         what the task asks for now; [] when they agree or the folder has no config yet."""
         from ..config import config_to_dict
         from ..methods import train_config_from_dict
-        from ..train.run_dir import RunDir
+        from ..formats.run_dir import RunDir
         from ..train.trainer import RESUMABLE_SETTINGS
 
         saved_path = RunDir(self.out).config
@@ -134,7 +134,7 @@ def peak_memory_mib() -> float:
 def geometry_figures(point_cloud: Path, mesh: Path, *, opacity_min: float = 0.5,
                      surface_samples: int = 20_000) -> dict[str, Any]:
     """Mean and std of the distances from the centres (opacity >= ``opacity_min``) to ``mesh``."""
-    from ..compare import compare_ply_to_mesh
+    from ..metrics.geometry import compare_ply_to_mesh
 
     summary = compare_ply_to_mesh(point_cloud, mesh, opacity_min=opacity_min, n_surface_samples=surface_samples).summary
     filtered = summary["gaussians_to_mesh_filtered"]

@@ -27,7 +27,7 @@ import numpy as np
 from ..colmap.triangulate import triangulate_known_poses
 from ..errors import DatasetError
 from ..progress import ProgressCallback, ProgressEvent, no_progress
-from ..scene_dir import PriorSource, SceneDir
+from ..formats.scene_dir import PriorSource, SceneDir
 
 
 def copied(scene: SceneDir) -> tuple[Path, ...]:

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import DatasetError
-from ..scene_dir import PriorSource, SceneDir
+from ..formats.scene_dir import PriorSource, SceneDir
 
 
 def write_sky_filled_priors(scene: str | Path, source: str = PriorSource.GT_SKYFILLED) -> int:

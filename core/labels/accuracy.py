@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import DatasetError
-from ..scene_dir import PriorSource, SceneDir
+from ..formats.scene_dir import PriorSource, SceneDir
 
 DELTA1 = 1.25
 
@@ -41,7 +41,7 @@ def label_accuracy(scene_dir: str | Path, source: str = PriorSource.LABELS.value
     Returns ``{"overall": {...}, "rendered": {...}, "filled": {...}, "baseline": {...},
     "coverage": float, "views": [{"image", "abs_rel", "delta1", "coverage"}, ...]}``.
     """
-    from ..imageio import read_depth_exr, read_image
+    from ..formats.imageio import read_depth_exr, read_image
 
     scene_dir = Path(scene_dir)
     folder = SceneDir(scene_dir)

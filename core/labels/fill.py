@@ -90,7 +90,6 @@ def fill_missing(depth: np.ndarray, normal: np.ndarray, valid: np.ndarray,
     Returns (depth [H, W] float32, normal [H, W, 3] float32, mask [H, W] uint8 with
     255 rendered / 128 filled / 0 empty). Rendered pixels are returned unchanged.
     """
-    import cv2
 
     options = options or FillOptions()
     options.validate()
@@ -103,7 +102,6 @@ def fill_missing(depth: np.ndarray, normal: np.ndarray, valid: np.ndarray,
     out_normal = np.where(valid[..., None], normal, 0.0).astype(np.float32)
     if not region.any():
         return out_depth, out_normal, mask
-    holes = region.astype(np.uint8)
     inverse = np.where(valid, 1.0 / np.maximum(out_depth, 1e-12), 0.0)
     known = np.concatenate([inverse[..., None], out_normal.astype(np.float64)], axis=-1)  # [H, W, 4]
     filled = membrane_fill(known, valid, region)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..scene_dir import gap_mesh_path
+from ..formats.scene_dir import gap_mesh_path
 
 __all__ = ["gap_mesh_path", "through_gap", "zbuffer_depth"]
 

@@ -16,7 +16,7 @@ from ..errors import ConfigError, DatasetError
 from ..progress import ProgressCallback, no_progress
 from ..runtime import run_job
 from .fill import FillOptions
-from ..scene_dir import PriorSource, SceneDir
+from ..formats.scene_dir import PriorSource, SceneDir
 from .reconstruct import ReconstructOptions
 
 

@@ -35,7 +35,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ..progress import ProgressCallback, ProgressEvent, no_progress
-from ..scene_dir import SceneDir, gap_mesh_path
+from ..formats.scene_dir import SceneDir, gap_mesh_path
 from .stereo import StereoOptions, View, consistent_depths, depth_maps
 
 
@@ -92,7 +92,7 @@ def load_views(scene_dir: str | Path, margin: float, ground_normal: np.ndarray |
     (pixel coordinates scale about the top-left corner, COLMAP's origin); 0 keeps them.
     """
     from ..colmap.io import load_scene
-    from ..imageio import read_image
+    from ..formats.imageio import read_image
 
     model, images_dir = load_scene(scene_dir)
     if not model.images:

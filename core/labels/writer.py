@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import DatasetError
 from ..io_utils import atomic_write_json
 from ..priors.io import write_prior_maps
-from ..scene_dir import PriorSource, SceneDir
+from ..formats.scene_dir import PriorSource, SceneDir
 from .fill import EMPTY, FILLED, RENDERED, FillOptions, fill_missing
 
 SOURCE = PriorSource.LABELS
@@ -85,7 +85,7 @@ class LabelWriter:
                          metadata={**self.metadata, "mask_values": MASK_VALUES,
                                    "filled_pixels": str(int((mask == FILLED).sum()))})
         # the mask keeps three values (write_prior_maps would binarise it)
-        from ..imageio import write_png
+        from ..formats.imageio import write_png
 
         write_png(SceneDir(self._staging).mask_map(SOURCE, image_name), mask)
         self.views.append(stats)

@@ -44,7 +44,7 @@ def full_esgs(priors: str, *, scene: Optional[Path] = None, **overrides: Any) ->
     ``scene`` is given) trains the depth-normal consistency loss in place of the normal
     prior. ``overrides`` are ESGSConfig fields set on top (``depth_weight=3.0``, ``gpdfn=False``).
     """
-    from ..scene_dir import PriorSource, SceneDir
+    from ..formats.scene_dir import PriorSource, SceneDir
 
     if scene is not None:
         has_normals = SceneDir(Path(scene)).prior_maps(priors, "normal").is_dir()
@@ -133,7 +133,7 @@ def render_run(run_dir: str | Path, **options: Any) -> list[Path]:
 def _run_render_options(run_dir: str | Path) -> Optional[RenderOptions]:
     """The render options of a run folder's method (None without a config.json: the caller
     then reports the folder as not being a run)."""
-    from ..train.run_dir import RunDir
+    from ..formats.run_dir import RunDir
 
     config_path = RunDir(Path(run_dir)).config
     return render_options(load_run_config(config_path)) if config_path.is_file() else None

@@ -34,7 +34,6 @@ from ..errors import ESGSError
 from .weights import (
     CHANNELS,
     CONV_SHAPES,
-    FETCH_COMMAND,
     LPIPSUnavailableError,
     ensure_lpips_weights,
     load_weights,

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DatasetError
-from ..scene_dir import SceneDir
+from ..formats.scene_dir import SceneDir
 
 
 @dataclass
@@ -45,7 +45,7 @@ def triangulate_known_poses(scene_dir: str | Path, *, upscale: float = 2.0, peak
 
     from ..colmap import read_model
     from ..colmap.triangulate import triangulate_known_poses as triangulate_model
-    from ..imageio import read_image, write_png
+    from ..formats.imageio import read_image, write_png
 
     scene_dir = Path(scene_dir)
     scene = SceneDir(scene_dir)

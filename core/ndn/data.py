@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import ConfigError, DatasetError, ESGSError
 from ..io_utils import atomic_path, atomic_write_json
 from ..progress import ProgressCallback, ProgressEvent, no_progress
-from ..scene_dir import SceneDir
+from ..formats.scene_dir import SceneDir
 from .config import DEPTH_STATES, NDNDataConfig
 
 SHARD_FORMAT = "esgs-ndn-shard-1"
@@ -164,7 +164,7 @@ def scene_triples(scene_dir: str | Path, working_size: int, multiple: int, *, wi
     import cv2
 
     from ..colmap import read_model
-    from ..imageio import read_image
+    from ..formats.imageio import read_image
     from ..priors import load_prior_maps
 
     scene_dir = Path(scene_dir)

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ..progress import ProgressCallback, ProgressEvent, no_progress
-from ..scene_dir import SceneDir
+from ..formats.scene_dir import SceneDir
 from .data import (LOG_DEPTH_RANGE, SceneTriples, load_shards, relative_depth_bounds, scene_triples,
                    state_to_relative_depth)
 from .diffusion import GaussianDiffusion
@@ -96,7 +96,7 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
     import shutil
     import tempfile
 
-    from ..imageio import read_image
+    from ..formats.imageio import read_image
     from ..io_utils import atomic_directory
     from ..priors import prior_dir, write_prior_maps
 

@@ -24,13 +24,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..config import config_from_dict
 from ..errors import CheckpointError, ConfigError
-from ..io_utils import atomic_path, atomic_write_json
+from ..io_utils import atomic_write_json
 from ..progress import ProgressCallback, ProgressEvent, no_progress
 from .config import NDNConfig, NDNTrainConfig
 from .data import LOG_DEPTH_RANGE, check_disjoint_splits, depth_to_state, load_shards
-from .diffusion import GaussianDiffusion
 from .checkpoint import (CHECKPOINT_FORMAT, _read_checkpoint, build_model, checkpoint_config,  # noqa: F401
                          latest_checkpoint, load_checkpoint, resolve_weights, save_checkpoint)
 from .model import NDNUNet

@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DatasetError
-from ..imageio import read_depth_exr, read_image, read_normal_exr, write_depth_exr, write_normal_exr, write_png
-from ..scene_dir import PriorSource, SceneDir
+from ..formats.imageio import read_depth_exr, read_image, read_normal_exr, write_depth_exr, write_normal_exr, write_png
+from ..formats.scene_dir import PriorSource, SceneDir
 
 CAMERA_FRAME = "camera_opencv"
 MASK_KINDS = ("surface", "coverage")

@@ -11,7 +11,7 @@ import numpy as np
 from ..colmap import ColmapModel
 from ..progress import ProgressCallback, ProgressEvent, no_progress
 from ..io_utils import atomic_directory
-from ..scene_dir import SceneDir
+from ..formats.scene_dir import SceneDir
 from .io import prior_dir, write_prior_maps
 
 

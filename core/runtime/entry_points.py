@@ -55,7 +55,7 @@ class EntryPoint:
 
 #: Every job a parent may start in a child process, by name.
 ENTRY_POINTS: dict[str, EntryPoint] = {
-    "train": EntryPoint("core.commands._train_job", "child_job", watches_stop_file=True),
+    "train": EntryPoint("core.methods.train_job", "child_job", watches_stop_file=True),
     "priors": EntryPoint("core.commands.priors", "child_job"),
     "labels": EntryPoint("core.commands.labels", "child_job"),
     "scene": EntryPoint("esgs_addon.make_scene", "child_job", needs_bpy=True),

@@ -155,6 +155,10 @@ def child_environment(extra: Optional[dict[str, str]] = None, threads: int = 0) 
     env = dict(os.environ)
     env.update(extra or {})
     env["PYTHONUNBUFFERED"] = "1"
+    # idle OpenMP threads spin by default; on a busy 2-core machine that tripled the CPU time
+    # of torch + Numba steps (benchmarks/bench_rasterizer.py). Set for the child only: the
+    # parent may be Blender, whose own threads are not ours to change
+    env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     if threads > 0:
         for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS", "ESGS_THREADS"):
             env[name] = str(threads)

@@ -12,18 +12,29 @@ docs/terrain.md.
 """
 from __future__ import annotations
 
-from ..config import config_to_dict
-from .config import CAMERA_PRESETS, RIG_KINDS, RenderConfig, RigConfig, TerrainConfig, camera_preset
-from .scene_config import SceneConfig
-from .heightfield import Terrain, generate_terrain, load_terrain, save_terrain
-from .mesh import heightfield_mesh, rock_mesh, rocks_mesh, terrain_mesh
-from .presets import list_presets, load_preset, load_scene_config, save_scene_config, scene_config_from_dict
-from .rigs import CameraPose, ground_depth, intrinsics, make_camera_rig, views_beyond_terrain
+from typing import Any
 
-__all__ = [
-    "CAMERA_PRESETS", "RIG_KINDS", "CameraPose", "RenderConfig", "RigConfig", "SceneConfig", "Terrain",
-    "TerrainConfig", "camera_preset", "config_to_dict", "generate_terrain", "ground_depth", "heightfield_mesh", "intrinsics",
-    "list_presets", "load_terrain", "rock_mesh", "rocks_mesh", "save_terrain", "terrain_mesh",
-    "load_preset", "load_scene_config", "make_camera_rig", "save_scene_config", "scene_config_from_dict",
-    "views_beyond_terrain",
-]
+# names -> the submodule that defines them, imported on first use: `esgs scene --help` and
+# the add-on's settings read SceneJob (terrain.scene_job) without loading scipy and numpy
+_LAZY = {
+    "config_to_dict": "..config",
+    **dict.fromkeys(("CAMERA_PRESETS", "RIG_KINDS", "RenderConfig", "RigConfig", "TerrainConfig", "camera_preset"),
+                    ".config"),
+    "SceneConfig": ".scene_config",
+    **dict.fromkeys(("Terrain", "generate_terrain", "load_terrain", "save_terrain"), ".heightfield"),
+    **dict.fromkeys(("heightfield_mesh", "rock_mesh", "rocks_mesh", "terrain_mesh"), ".mesh"),
+    **dict.fromkeys(("list_presets", "load_preset", "load_scene_config", "save_scene_config",
+                     "scene_config_from_dict"), ".presets"),
+    **dict.fromkeys(("CameraPose", "ground_depth", "intrinsics", "make_camera_rig", "views_beyond_terrain"), ".rigs"),
+}
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(name)
+    import importlib
+
+    return getattr(importlib.import_module(module, __name__), name)

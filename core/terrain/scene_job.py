@@ -51,7 +51,7 @@ class SceneJob:
         import dataclasses
         from pathlib import Path
 
-        from ..mesh_scene import MeshRigConfig, MeshSceneConfig  # moved into terrain by the layout change
+        from .mesh_scene import MeshRigConfig, MeshSceneConfig  # moved into terrain by the layout change
 
         base = MeshSceneConfig()
         render = dataclasses.replace(base.render)

@@ -1,11 +1,14 @@
-"""Training: a 3DGS baseline on a COLMAP scene that the ESGS modules extend through hooks.
+"""Training: the 3DGS loop on a COLMAP scene, which methods extend with hooks and a
+densification strategy (they are registered above this layer, in :mod:`esgs.core.methods`).
 
 Public API:
 
-- ``train(config: TrainConfig, progress=None, hooks=()) -> TrainResult``
+- ``train(config: TrainConfig, progress=None, hooks=(), method=PLAIN_3DGS) -> TrainResult``
+  (:func:`esgs.core.methods.train` looks ``config.method`` up and calls it)
 - ``evaluate_run(run_dir) -> dict`` (metrics.json content)
-- ``TrainConfig``, ``TrainHook``, ``StepContext``, ``LossTerm``, ``LossContext``,
-  ``GaussianModel``, ``RenderParams``, ``DensifyReport``, ``RunDir``
+- ``TrainConfig``, ``TrainHook``, ``RunView``, ``StepContext``, ``LossTerm``, ``LossContext``,
+  ``GaussianModel``, ``RenderParams``, ``DensifyReport``, ``Strategy``, ``DefaultStrategy``,
+  ``Method``, ``MethodParts``, ``RunDir``
 
 Submodules import torch; this package's ``__init__`` imports them lazily so that
 ``esgs train --help`` and the Blender UI stay fast.
@@ -20,7 +23,8 @@ _LAZY = {
     "train": ".trainer", "Trainer": ".trainer", "TrainResult": ".trainer", "TrainingDivergedError": ".trainer",
     "evaluate_run": ".evaluate", "TrainHook": ".hooks", "StepContext": ".hooks", "LossTerm": ".losses",
     "LossContext": ".losses", "GaussianModel": ".gaussians", "RenderParams": ".gaussians",
-    "DensifyReport": ".densify", "RunDir": ".run_dir",
+    "DensifyReport": ".densify", "RunDir": "..formats.run_dir", "Strategy": ".strategy",
+    "DefaultStrategy": ".strategy", "RunView": ".hooks", "Method": ".method", "MethodParts": ".method",
 }
 
 __all__ = ["TrainConfig", *_LAZY]

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from ..errors import DatasetError
-from ..scene_dir import PriorSource, SceneDir
+from ..formats.scene_dir import PriorSource, SceneDir
 
 
 @dataclass
@@ -95,8 +95,8 @@ def target_size(width: int, height: int, resolution: int, target_width: int) -> 
 
 
 def _read_rgb(path: Path) -> np.ndarray:
-    """[H, W, 3] uint8 RGB (grey images expanded; see :func:`esgs.core.imageio.read_image`)."""
-    from ..imageio import read_image
+    """[H, W, 3] uint8 RGB (grey images expanded; see :func:`esgs.core.formats.imageio.read_image`)."""
+    from ..formats.imageio import read_image
 
     image = read_image(path)
     if image.ndim == 2:

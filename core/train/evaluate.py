@@ -50,7 +50,7 @@ def evaluate_model(model: GaussianModel, data: Any, *, backend: str, background:
 
     ``antialiased``/``eps2d``: render with the rasterizer's 2D filter (runs trained with Mip-Splatting).
     """
-    from ..imageio import write_png
+    from ..formats.imageio import write_png
     from ..metrics.image import psnr, ssim
     from .rendering import render_view
 
@@ -105,9 +105,9 @@ def evaluate_model(model: GaussianModel, data: Any, *, backend: str, background:
 
 def load_run_model(run_dir: str | Path) -> GaussianModel:
     """The trained Gaussians of a run: ``point_cloud.ply``, or the newest checkpoint if no PLY yet."""
-    from ..ply import read_gaussians_ply
+    from ..formats.ply import read_gaussians_ply
     from .checkpoint import latest_checkpoint, load_checkpoint
-    from .run_dir import RunDir
+    from ..formats.run_dir import RunDir
 
     run = RunDir(Path(run_dir))
     if run.point_cloud.is_file():
@@ -127,7 +127,7 @@ def load_run(run_dir: str | Path, *, backend: Optional[str] = None):
     from .config import load_run_config
     from .dataset import load_scene_data
     from .rendering import backend_device, resolve_backend
-    from .run_dir import RunDir
+    from ..formats.run_dir import RunDir
 
     run = RunDir(Path(run_dir))
     if not run.config.is_file():
@@ -149,7 +149,7 @@ def evaluate_run(run_dir: str | Path, *, backend: Optional[str] = None, save_ren
     ``render``: the run's method's render options (default: plain 3DGS rendering);
     :func:`esgs.core.methods.evaluate_run` passes the right ones for any method."""
     from ..io_utils import atomic_write_json
-    from .run_dir import RunDir
+    from ..formats.run_dir import RunDir
 
     run = RunDir(Path(run_dir))
     render = render or RenderOptions()

@@ -191,8 +191,8 @@ class GaussianModel:
         return GaussianModel.from_tensors(**state["params"], max_sh_degree=int(state["max_sh_degree"]))
 
     def to_ply(self):
-        """The model as :class:`esgs.core.ply.GaussianPly` (standard 3DGS PLY fields)."""
-        from ..ply import GaussianPly
+        """The model as :class:`esgs.core.formats.ply.GaussianPly` (standard 3DGS PLY fields)."""
+        from ..formats.ply import GaussianPly
 
         def array(name: str) -> np.ndarray:
             return self.params[name].detach().cpu().numpy().astype(np.float32)
@@ -206,7 +206,7 @@ class GaussianModel:
 
     @staticmethod
     def from_ply(ply) -> "GaussianModel":
-        """Build a model from a :class:`esgs.core.ply.GaussianPly`."""
+        """Build a model from a :class:`esgs.core.formats.ply.GaussianPly`."""
         sh_rest = np.asarray(ply.sh_rest, dtype=np.float32)
         count = np.asarray(ply.means).shape[0]
         if sh_rest.ndim != 3:

@@ -20,10 +20,10 @@ def render_run(run_dir: str | Path, *, cameras: Optional[Sequence[str]] = None, 
     Colour goes to ``<output>/<stem>.png`` and, with ``depth``, the expected camera-z depth
     to ``<stem>_depth.exr`` (0 where nothing was hit).
     """
-    from ..imageio import write_depth_exr, write_png
+    from ..formats.imageio import write_depth_exr, write_png
     from .evaluate import _to_uint8, load_run
     from .rendering import render_view
-    from .run_dir import RunDir
+    from ..formats.run_dir import RunDir
 
     run = RunDir(Path(run_dir))
     render = render or RenderOptions()

@@ -46,7 +46,7 @@ from .losses import LossContext, LossTerm, needed_channels, photometric_terms, t
 from .method import PLAIN_3DGS, Method, MethodParts
 from .optim import ExponentialDecay, TrainOptimizer
 from .rendering import RenderOutput, backend_device, render_view, resolve_backend
-from .run_dir import RunDir
+from ..formats.run_dir import RunDir
 from .strategy import DefaultStrategy, Strategy, StrategyContext
 
 #: Settings that may change when a run is resumed (they do not change what is computed).
@@ -505,7 +505,7 @@ class Trainer:
         return result
 
     def _finish(self, status: str) -> TrainResult:
-        from ..ply import write_gaussians_ply
+        from ..formats.ply import write_gaussians_ply
 
         config = self.config
         model = self.gaussians

@@ -8,9 +8,9 @@ from types import SimpleNamespace
 import bpy
 import pytest
 
-from esgs.core import jobs
+from esgs.core.apps import jobs
 from esgs.core.errors import ConfigError
-from esgs.core.jobs import JobState
+from esgs.core.apps.jobs import JobState
 from esgs.core.progress import ProgressEvent
 from esgs.operators._blocking import BlockingJobOperator, finish_headless_job
 

@@ -13,7 +13,7 @@ import trimesh  # noqa: E402
 from mathutils import Matrix  # noqa: E402
 
 from esgs.core.errors import ConfigError  # noqa: E402
-from esgs.core.ply import GaussianPly, write_gaussians_ply  # noqa: E402
+from esgs.core.formats.ply import GaussianPly, write_gaussians_ply  # noqa: E402
 from esgs.esgs_addon import compare_mesh, gaussian_nodes, gaussians_import  # noqa: E402
 from esgs.esgs_addon.pointcloud import read_point_attribute  # noqa: E402
 

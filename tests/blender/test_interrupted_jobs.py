@@ -10,7 +10,7 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-from esgs.core import jobs  # noqa: E402
+from esgs.core.apps import jobs  # noqa: E402
 from esgs.esgs_addon import interrupted_jobs, training_job  # noqa: E402
 from esgs.panels.training_panel import ESGS_PT_training  # noqa: E402
 from tests.blender.test_training_operator import draw_panel, fake_trainer, scene_dir  # noqa: E402,F401

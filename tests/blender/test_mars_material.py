@@ -2,7 +2,6 @@
 shading normal is never touched (the Normal pass is exported as ground truth)."""
 from __future__ import annotations
 
-import bpy
 import pytest
 
 from esgs.esgs_addon.mars_material import SAND_ATTRIBUTE, make_rock_material, make_terrain_material

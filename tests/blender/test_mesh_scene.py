@@ -13,8 +13,8 @@ trimesh = pytest.importorskip("trimesh")
 from esgs.core.colmap import read_model  # noqa: E402
 from esgs.core.commands.scene import SceneJob  # noqa: E402
 from esgs.core.errors import DatasetError  # noqa: E402
-from esgs.core.imageio import read_depth_exr, read_image  # noqa: E402
-from esgs.core.mesh_scene import MeshRigConfig, MeshSceneConfig  # noqa: E402
+from esgs.core.formats.imageio import read_depth_exr, read_image  # noqa: E402
+from esgs.core.terrain.mesh_scene import MeshRigConfig, MeshSceneConfig  # noqa: E402
 from esgs.core.terrain import RenderConfig  # noqa: E402
 from tests.conftest import require_shared  # noqa: E402
 

@@ -13,7 +13,7 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-from esgs.core import jobs  # noqa: E402
+from esgs.core.apps import jobs  # noqa: E402
 from esgs.core.colmap import read_model  # noqa: E402
 from esgs.core.priors import load_prior_maps  # noqa: E402
 from esgs.core.priors.sfm import sparse_depth_map  # noqa: E402

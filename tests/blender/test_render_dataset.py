@@ -13,7 +13,7 @@ trimesh = pytest.importorskip("trimesh")
 from esgs.core.colmap import read_model  # noqa: E402
 from esgs.core.config import config_to_dict  # noqa: E402
 from esgs.core.errors import ConfigError  # noqa: E402
-from esgs.core.imageio import read_depth_exr, read_image, read_normal_exr  # noqa: E402
+from esgs.core.formats.imageio import read_depth_exr, read_image, read_normal_exr  # noqa: E402
 from esgs.core.terrain import RenderConfig, RigConfig, SceneConfig, TerrainConfig  # noqa: E402
 
 
@@ -174,7 +174,7 @@ def test_existing_output_is_refused_before_rendering(rendered):
 
 
 def test_failure_mid_render_leaves_no_output(tmp_path, monkeypatch):
-    import esgs.core.imageio as imageio
+    import esgs.core.formats.imageio as imageio
     from esgs.esgs_addon.render_dataset import render_dataset
     from esgs.esgs_addon.terrain_scene import build_terrain_scene
 

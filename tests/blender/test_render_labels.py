@@ -13,7 +13,7 @@ bpy = pytest.importorskip("bpy")
 trimesh = pytest.importorskip("trimesh")
 
 from esgs.core.errors import DatasetError  # noqa: E402
-from esgs.core.imageio import read_depth_exr, read_image, read_normal_exr  # noqa: E402
+from esgs.core.formats.imageio import read_depth_exr, read_image, read_normal_exr  # noqa: E402
 from esgs.core.labels.fill import FILLED, RENDERED  # noqa: E402
 from esgs.core.terrain import RenderConfig, RigConfig, SceneConfig, TerrainConfig  # noqa: E402
 

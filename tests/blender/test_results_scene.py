@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from esgs.core.errors import DatasetError
-from esgs.core.ply import GaussianPly, write_gaussians_ply
+from esgs.core.formats.ply import GaussianPly, write_gaussians_ply
 from tests.core.train.scene import make_scene
 
 

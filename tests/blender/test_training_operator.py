@@ -16,7 +16,7 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-from esgs.core import jobs  # noqa: E402
+from esgs.core.apps import jobs  # noqa: E402
 from esgs.core.errors import DatasetError  # noqa: E402
 from esgs.esgs_addon import compare_mesh, gaussians_import, training_job  # noqa: E402
 
@@ -25,7 +25,7 @@ FAKE_TRAINER = textwrap.dedent(
     import argparse, json, sys, time
     from pathlib import Path
     import numpy as np
-    from esgs.core.ply import GaussianPly, write_gaussians_ply
+    from esgs.core.formats.ply import GaussianPly, write_gaussians_ply
 
     parser = argparse.ArgumentParser()
     parser.add_argument("job")
@@ -247,7 +247,7 @@ def test_panels_draw_progress_and_results(tmp_path):
     assert ("operator", "esgs.train_resume") in record
     assert ("label", "boom: out of memory") in record
 
-    from esgs.core.ply import GaussianPly, write_gaussians_ply
+    from esgs.core.formats.ply import GaussianPly, write_gaussians_ply
 
     write_gaussians_ply(tmp_path / "g.ply", GaussianPly(
         means=np.array([[0.0, 0.0, 0.02]]), normals=np.zeros((1, 3)), sh_dc=np.zeros((1, 3)),

@@ -9,7 +9,7 @@ import pytest
 from esgs.core.colmap import Camera, ColmapModel, read_model, write_model
 from esgs.core.colmap.triangulate import triangulate_known_poses
 from esgs.core.errors import DatasetError
-from esgs.core.imageio import read_image, write_png
+from esgs.core.formats.imageio import read_image, write_png
 
 from .experiments.test_acceptance import _textured_plane_scene
 

@@ -19,7 +19,7 @@ from esgs.core.colmap.undistort import (
     undistortion_maps,
 )
 from esgs.core.errors import DatasetError
-from esgs.core.imageio import read_image, write_png
+from esgs.core.formats.imageio import read_image, write_png
 
 WIDTH, HEIGHT = 320, 240
 

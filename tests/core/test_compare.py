@@ -1,4 +1,4 @@
-"""Gaussian centres <-> mesh distances and scores (core/compare.py) against analytic values."""
+"""Gaussian centres <-> mesh distances and scores (core/metrics/geometry.py) against analytic values."""
 from __future__ import annotations
 
 import json
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from esgs.core import compare
+from esgs.core.metrics import geometry as compare
 from esgs.core.errors import ConfigError, DatasetError
 
 
@@ -155,7 +155,7 @@ def test_load_mesh_reads_back_a_written_mesh(tmp_path):
 
 def test_cli_reports_and_writes_json(tmp_path, capsys):
     from esgs.core.cli import main
-    from esgs.core.ply import GaussianPly, write_gaussians_ply
+    from esgs.core.formats.ply import GaussianPly, write_gaussians_ply
 
     vertices, faces = grid_plane(cells=2)
     mesh_path = tmp_path / "gt.ply"

@@ -11,9 +11,9 @@ import sys
 import numpy as np
 import pytest
 
-from esgs.core import demo, report
+from esgs.core.apps import demo, report
 from esgs.core.config import config_from_dict
-from esgs.core.demo import DemoConfig, esgs_settings
+from esgs.core.apps.demo import DemoConfig, esgs_settings
 from esgs.core.errors import ConfigError
 from esgs.core.methods import ESGSConfig
 from esgs.core.priors import PriorMaps, load_prior_maps, write_prior_maps

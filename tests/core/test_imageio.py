@@ -12,7 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from esgs.core.errors import DatasetError, ESGSError, FormatError
-from esgs.core.imageio import (
+from esgs.core.formats.imageio import (
     read_depth_exr,
     read_exr,
     read_image,

@@ -1,4 +1,4 @@
-"""The training job runner (core/jobs.py) against small fake trainers with the CLI's interface."""
+"""The training job runner (core/apps/jobs.py) against small fake trainers with the CLI's interface."""
 from __future__ import annotations
 
 import json
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from esgs.core import jobs
+from esgs.core.apps import jobs
 from esgs.core.errors import ConfigError, DatasetError, ESGSError
 
 # A stand-in for `esgs train` with the same arguments and event protocol. It checkpoints
@@ -258,7 +258,7 @@ def test_sigterm_while_waiting_stops_the_child_too(tmp_path, fake_trainer, scene
     script = tmp_path / "parent.py"
     script.write_text(textwrap.dedent(f"""
         import sys
-        from esgs.core import jobs
+        from esgs.core.apps import jobs
         job = jobs.TrainingJob({str(scene)!r}, {str(tmp_path / 'run')!r}, iterations=100000,
                                trainer={fake_trainer + ['--step-s', '0.01']!r})
         job.start()

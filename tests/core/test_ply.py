@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from esgs.core.errors import FormatError
-from esgs.core.ply import GaussianPly, read_gaussians_ply, write_gaussians_ply
+from esgs.core.formats.ply import GaussianPly, read_gaussians_ply, write_gaussians_ply
 from tests.conftest import require_shared
 
 FIXTURES = Path(__file__).parent / "fixtures"

@@ -6,8 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from esgs.core import report
-from esgs.core.demo import DemoConfig
+from esgs.core.apps import report
+from esgs.core.apps.demo import DemoConfig
 from esgs.core.errors import ConfigError
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from esgs.core import jobs
+from esgs.core.apps import jobs
 from esgs.core.config import config_from_dict
 from esgs.core.errors import ConfigError, DatasetError
 from esgs.core.runtime import ChildJob, error_from_dict, error_to_dict, run_job

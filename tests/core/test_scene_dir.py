@@ -1,4 +1,4 @@
-"""core/scene_dir.py: the prior sources' facts against what their writers really put on disk,
+"""core/formats/scene_dir.py: the prior sources' facts against what their writers really put on disk,
 the scene-folder paths, and one owner for the file names of scene and run folders."""
 from __future__ import annotations
 
@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from esgs.core.errors import ConfigError
-from esgs.core.imageio import read_depth_exr, read_normal_exr
+from esgs.core.formats.imageio import read_depth_exr, read_normal_exr
 from esgs.core.priors import load_prior_maps
-from esgs.core.scene_dir import PriorSource, SceneDir, names
-from esgs.core.train.run_dir import RunDir
+from esgs.core.formats.scene_dir import PriorSource, SceneDir, names
+from esgs.core.formats.run_dir import RunDir
 
 from .ndn.conftest import make_scene, tiny_config
 
@@ -78,7 +78,7 @@ def test_labels_facts_match_what_the_label_writer_writes(tmp_path):
 def test_gt_and_sky_filled_facts_match_the_files_without_a_mask_kind_header(tmp_path):
     """Blender's scene renderer writes gt EXRs with no ``mask_kind`` header (esgs_addon/render_dataset.py),
     so the source's own kind decides: the gt mask marks sky."""
-    from esgs.core.imageio import write_depth_exr, write_normal_exr, write_png
+    from esgs.core.formats.imageio import write_depth_exr, write_normal_exr, write_png
 
     scene = SceneDir(tmp_path)
     mask = np.ones((8, 8), bool)
@@ -105,7 +105,7 @@ def test_the_fixture_scene_gt_uses_the_standard_layout(tmp_path):
 
 def test_the_lists_every_caller_used_are_derived_from_the_enum():
     from esgs.core.commands import priors as priors_command
-    from esgs.core.demo import PRIOR_SOURCES as DEMO_SOURCES
+    from esgs.core.apps.demo import PRIOR_SOURCES as DEMO_SOURCES
     from esgs.core.experiments import ablate, bench
     from esgs.core.train.dataset import find_mask_source
 
@@ -175,7 +175,7 @@ FILE_NAMES = {"ground_truth.ply", "scene.json", "labels.json", "accuracy.json", 
               "events.jsonl", "train_result.json"}
 #: folder names: a spelling when joined with ``/`` to a path (they are common words elsewhere)
 FOLDER_NAMES = {"images", "sparse", "sparse_sfm", "priors", "mesh", "checkpoints", "renders"}
-OWNERS = {"core/scene_dir.py", "core/train/run_dir.py"}
+OWNERS = {"core/formats/scene_dir.py", "core/formats/run_dir.py"}
 #: files allowed to spell those names, each with the reason
 ALLOWED = {
     # another folder's layout, not a scene or run folder

@@ -28,7 +28,7 @@ def textured_panorama(width: int = 2048, seed: int = 0) -> np.ndarray:
 
 @pytest.fixture(scope="session")
 def panorama_file(tmp_path_factory) -> Path:
-    from esgs.core.imageio import write_png
+    from esgs.core.formats.imageio import write_png
 
     path = tmp_path_factory.mktemp("panorama") / "pano.png"
     write_png(path, textured_panorama())

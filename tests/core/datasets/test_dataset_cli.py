@@ -7,7 +7,7 @@ import numpy as np
 
 from esgs.core.cli import main
 from esgs.core.colmap import read_model
-from esgs.core.imageio import write_png
+from esgs.core.formats.imageio import write_png
 
 
 def test_from_panorama_writes_a_scene(panorama_file, tmp_path, capsys):

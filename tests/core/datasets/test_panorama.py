@@ -10,7 +10,7 @@ import pytest
 from esgs.core.colmap import read_model
 from esgs.core.datasets import PanoramaOptions, equirectangular_directions, scene_from_panorama
 from esgs.core.errors import ConfigError, DatasetError
-from esgs.core.imageio import read_image, write_png
+from esgs.core.formats.imageio import read_image, write_png
 
 
 def direction_colours(directions: np.ndarray) -> np.ndarray:

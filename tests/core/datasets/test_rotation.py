@@ -43,7 +43,7 @@ def test_rotations_and_focal_are_recovered(panorama_views, tmp_path):
 
 
 def test_frames_that_do_not_overlap_are_refused(tmp_path):
-    from esgs.core.imageio import write_png
+    from esgs.core.formats.imageio import write_png
 
     rng = np.random.default_rng(3)
     for k in range(2):

@@ -11,7 +11,7 @@ import pytest
 from esgs.core.colmap import read_model
 from esgs.core.datasets import SfmOptions, scene_from_images
 from esgs.core.errors import DatasetError
-from esgs.core.imageio import write_png
+from esgs.core.formats.imageio import write_png
 
 
 def test_one_image_is_refused(tmp_path):

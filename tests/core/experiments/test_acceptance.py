@@ -23,7 +23,7 @@ def _textured_plane_scene(root, views: int = 4, width: int = 240, height: int = 
     from esgs.core.colmap.geometry import matrix_to_quat_wxyz
     from esgs.core.colmap.io import write_model
     from esgs.core.colmap.model import Camera, ColmapModel, Image
-    from esgs.core.imageio import write_png
+    from esgs.core.formats.imageio import write_png
 
     rng = np.random.default_rng(0)
     texture = np.zeros((1024, 1024), np.float32)

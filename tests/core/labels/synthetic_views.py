@@ -73,7 +73,7 @@ def write_scene(folder: Path, count: int = 5) -> list[np.ndarray]:
     """A scene folder (images/, sparse/0 with surface points) of the traverse; returns the true depths."""
     from esgs.core.colmap import Camera, ColmapModel, Image, Point3D, write_model
     from esgs.core.colmap.geometry import matrix_to_quat_wxyz
-    from esgs.core.imageio import write_png
+    from esgs.core.formats.imageio import write_png
 
     rng = np.random.default_rng(3)
     x, y = rng.uniform(-1.5, 1.5, 300), rng.uniform(0.0, 6.0, 300)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from esgs.core.errors import DatasetError
-from esgs.core.imageio import write_png
+from esgs.core.formats.imageio import write_png
 from esgs.core.labels.accuracy import depth_errors, format_accuracy_table, label_accuracy
 from esgs.core.priors.io import write_prior_maps
 

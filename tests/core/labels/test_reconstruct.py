@@ -8,7 +8,7 @@ from esgs.core.errors import ConfigError, DatasetError
 from esgs.core.labels.reconstruct import ReconstructOptions, mesh_from_points, reconstruct_mesh
 from esgs.core.labels.stereo import StereoOptions, View, consistent_depths, depth_maps
 
-from .synthetic_views import height_at, render, rover_poses, texture_at, write_scene
+from .synthetic_views import height_at, render, rover_poses, write_scene
 
 FAST = StereoOptions(planes=48, neighbours=3, best_of=2)
 

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from esgs.core.imageio import read_depth_exr, read_image, read_normal_exr
+from esgs.core.formats.imageio import read_depth_exr, read_image, read_normal_exr
 from esgs.core.labels.fill import FILLED, RENDERED
 from esgs.core.labels.writer import LabelWriter
 from esgs.core.priors.io import load_prior_maps

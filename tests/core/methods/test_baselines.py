@@ -133,7 +133,7 @@ def test_dropout_run_drops_in_training_only_and_evaluates_the_full_model(scene, 
 
 
 def test_mip_splatting_run_filters_renders_and_bakes_the_filter_into_the_ply(scene, tmp_path):
-    from esgs.core.ply import read_gaussians_ply
+    from esgs.core.formats.ply import read_gaussians_ply
 
     config = _config(scene, tmp_path / "mip", "mip-splatting")
     trainer = make_trainer(config)

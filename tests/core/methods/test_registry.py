@@ -72,7 +72,7 @@ def test_a_registered_method_trains_without_any_edit_of_the_trainer(scene, tmp_p
     plain = train(_config(scene, tmp_path / "plain"))
     penalised = train(_config(scene, tmp_path / "penalised", method="opacity-penalty",
                               method_config=OpacityPenaltyConfig(opacity_penalty=5.0)))
-    from esgs.core.ply import read_gaussians_ply
+    from esgs.core.formats.ply import read_gaussians_ply
 
     def mean_opacity(result) -> float:
         logits = torch.from_numpy(read_gaussians_ply(result.point_cloud).opacity_logit)

@@ -22,7 +22,7 @@ def make_scene(root: Path, views: int = 4, width: int = 48, height: int = 27, se
     from esgs.core.colmap.geometry import matrix_to_quat_wxyz
     from esgs.core.colmap.io import write_model
     from esgs.core.colmap.model import Camera, ColmapModel, Image, Point3D
-    from esgs.core.imageio import write_png
+    from esgs.core.formats.imageio import write_png
     from esgs.core.priors import write_prior_maps
 
     rng = np.random.default_rng(seed)

@@ -72,8 +72,8 @@ def test_training_with_augmentation_runs_and_differs(tmp_path):
     scene = make_scene(tmp_path / "scene", seed=0)
     write_shard(tmp_path / "data" / "shards" / "train_plane_1.npz", scene_triples(scene, 32, 2), {})
     settings = dict(steps=3, batch_size=2, checkpoint_every=3, seed=0, threads=1, validation_triples=0)
-    plain = train_ndn(tmp_path / "data", tmp_path / "plain", NDNTrainConfig(**settings), tiny_config())
-    again = train_ndn(tmp_path / "data", tmp_path / "again", NDNTrainConfig(**settings, augment=0.0), tiny_config())
+    train_ndn(tmp_path / "data", tmp_path / "plain", NDNTrainConfig(**settings), tiny_config())
+    train_ndn(tmp_path / "data", tmp_path / "again", NDNTrainConfig(**settings, augment=0.0), tiny_config())
     augmented = train_ndn(tmp_path / "data", tmp_path / "augmented", NDNTrainConfig(**settings, augment=1.0),
                           tiny_config())
     assert augmented["steps"] == 3 and np.isfinite(augmented["final_loss_mean_last_50"])

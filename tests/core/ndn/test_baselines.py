@@ -57,7 +57,7 @@ def _textured_plane_scene(root: Path) -> Path:
     from esgs.core.colmap.geometry import matrix_to_quat_wxyz
     from esgs.core.colmap.io import write_model
     from esgs.core.colmap.model import Camera, ColmapModel, Image, Point3D
-    from esgs.core.imageio import write_png
+    from esgs.core.formats.imageio import write_png
 
     rng = np.random.default_rng(3)
     texture = np.zeros((1024, 1024), np.float32)

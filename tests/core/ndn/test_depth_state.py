@@ -15,7 +15,7 @@ import torch
 from esgs.core.cli import main
 from esgs.core.config import config_from_dict
 from esgs.core.errors import ConfigError
-from esgs.core.imageio import read_depth_exr
+from esgs.core.formats.imageio import read_depth_exr
 from esgs.core.ndn.config import NDNConfig, NDNDiffusionConfig, NDNTrainConfig
 from esgs.core.ndn.data import (LOG_DEPTH_RANGE, depth_to_state, relative_depth_bounds, scene_triples,
                                 state_to_relative_depth, write_shard)
@@ -25,7 +25,7 @@ from esgs.core.ndn.train import (build_model, checkpoint_config, load_checkpoint
 from esgs.core.priors import load_prior_maps
 from esgs.core.priors.losses import fit_scale_shift
 
-from .conftest import make_scene, perturbed_weights, tiny_config
+from .conftest import perturbed_weights, tiny_config
 
 
 def _rover_depth(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -131,7 +131,7 @@ def test_inference_and_evaluation_follow_the_checkpoints_depth_state(scene, tmp_
               for start in range(0, views.shape[0], step)]
     depth_states = torch.cat([depth for depth, _ in states]).numpy()
     normal_states = torch.cat([normal for _, normal in states]).numpy()
-    from esgs.core.imageio import read_image
+    from esgs.core.formats.imageio import read_image
 
     for index, name in enumerate(triples.names):
         maps = load_prior_maps(scene, "ndn", name)

@@ -16,7 +16,7 @@ from esgs.core.ndn.train import build_model, load_checkpoint, save_checkpoint, t
 from esgs.core.priors import load_prior_maps
 from esgs.core.progress import ProgressEvent
 
-from .conftest import make_scene, perturbed_weights, tiny_config
+from .conftest import perturbed_weights, tiny_config
 
 
 def _data(tmp_path, scene):

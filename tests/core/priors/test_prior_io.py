@@ -36,7 +36,7 @@ def test_round_trip_in_standard_layout(tmp_path):
 
 def test_relative_flag_world_frame_conversion_and_resize(tmp_path):
     depth, normal, mask = _maps(height=8, width=12)
-    from esgs.core.imageio import write_normal_exr
+    from esgs.core.formats.imageio import write_normal_exr
 
     write_prior_maps(tmp_path, "ndn", "a.png", depth=depth, relative_depth=True)
     rotation = quat_wxyz_to_matrix(np.array([0.9, 0.1, -0.3, 0.2]))
@@ -126,7 +126,7 @@ def test_mask_kind_says_whether_unmasked_pixels_are_sky(tmp_path):
 
 
 def test_files_without_mask_kind_follow_their_source(tmp_path):
-    from esgs.core.imageio import write_depth_exr, write_png
+    from esgs.core.formats.imageio import write_depth_exr, write_png
 
     depth, _, mask = _maps()
     for source in ("gt", "sfm"):

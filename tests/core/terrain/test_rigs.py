@@ -1,7 +1,6 @@
 """Camera rigs: proper poses in OpenCV axes, above the ground, aimed at it, overlapping."""
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 

@@ -53,7 +53,7 @@ def make_scene(root: Path, *, views: int = 10, width: int = 32, height: int = 24
     from esgs.core.colmap.geometry import matrix_to_quat_wxyz
     from esgs.core.colmap.io import write_model
     from esgs.core.colmap.model import Camera, ColmapModel, Image, Point3D
-    from esgs.core.imageio import write_png
+    from esgs.core.formats.imageio import write_png
     from esgs.core.render import rasterization
 
     root = Path(root)

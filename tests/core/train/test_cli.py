@@ -27,7 +27,7 @@ def test_train_eval_render(tiny_scene, tmp_path, capsys):
     assert main(["render", str(run), "--camera", "view_003", "--depth"]) == 0
     written = capsys.readouterr().out.split()
     assert [p.rsplit("/", 1)[-1] for p in written] == ["view_003.png", "view_003_depth.exr"]
-    from esgs.core.imageio import read_image
+    from esgs.core.formats.imageio import read_image
 
     assert read_image(run / "renders" / "cameras" / "view_003.png").shape == (12, 16, 3)
     assert main(["render", str(run), "--all"]) == 0

@@ -79,7 +79,7 @@ def test_missing_image_and_bad_mask_source(tiny_scene, tmp_path):
 
 
 def test_mask_is_downscaled_by_majority(tiny_scene, tmp_path):
-    from esgs.core.imageio import write_png
+    from esgs.core.formats.imageio import write_png
 
     scene = tmp_path / "masked"
     shutil.copytree(tiny_scene, scene)

@@ -98,7 +98,7 @@ def test_split_samples_follow_the_rotated_parent():
     half = math.sqrt(0.5)
     model = _model([[math.log(2.0), math.log(0.2), math.log(0.2)]], [0.5],
                    quats=torch.tensor([[half, 0.0, 0.0, half]]))
-    optimizer = _optimizer(model)
+    _optimizer(model)
     offsets = []
     generator = torch.Generator().manual_seed(1)
     for _ in range(200):

@@ -40,7 +40,7 @@ def _start_and_wait_for_checkpoint(scene: Path, run: Path) -> subprocess.Popen:
 
 
 def _finished_run(run: Path) -> dict:
-    from esgs.core.ply import read_gaussians_ply
+    from esgs.core.formats.ply import read_gaussians_ply
 
     result = json.loads((run / "train_result.json").read_text())
     assert result["status"] == "completed" and result["step"] == ITERATIONS

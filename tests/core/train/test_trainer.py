@@ -58,7 +58,7 @@ def test_densification_grows_the_model_during_a_short_run(fast_config):
 
 
 def test_run_folder_outputs(fast_config):
-    from esgs.core.ply import read_gaussians_ply
+    from esgs.core.formats.ply import read_gaussians_ply
 
     config = fast_config(iterations=12, checkpoint_every=5, save_renders=True)
     events = []
@@ -227,7 +227,7 @@ def test_masked_pixels_do_not_count(fast_config, tiny_scene, tmp_path):
     """With everything masked out, the photometric loss and its gradients vanish."""
     import shutil
 
-    from esgs.core.imageio import write_png
+    from esgs.core.formats.imageio import write_png
 
     scene = tmp_path / "masked"
     shutil.copytree(tiny_scene, scene)

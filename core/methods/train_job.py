@@ -1,7 +1,6 @@
-"""The child side of a training job (not a CLI command: the leading underscore keeps it
-out of ``esgs --help``): the ``"train"`` entry of :mod:`esgs.core.runtime.entry_points`.
+"""The child side of a training job: the ``"train"`` entry of :mod:`esgs.core.runtime.entry_points`.
 
-The parent (:class:`esgs.core.jobs.TrainingJob`) writes the run's TrainConfig as JSON; this
+The parent (:class:`esgs.core.apps.jobs.TrainingJob`) writes the run's TrainConfig as JSON; this
 reads it back, lets a resumed run keep the settings it was started with (only the
 run-control settings may change), and trains with the method-aware entry point. The trainer
 watches ``config.stop_file`` itself: on a stop request it saves a checkpoint and ends as
@@ -12,19 +11,6 @@ from __future__ import annotations
 from typing import Any
 
 from ..runtime.child import ChildContext
-
-
-def _methods_api() -> tuple[Any, Any]:
-    """``(train, train_config_from_dict)``: the method registry's when it exists, else the trainer's."""
-    try:
-        from .. import methods  # the method registry (issue 21, item 1)
-
-        return methods.train, methods.train_config_from_dict
-    except (ImportError, AttributeError):
-        from ..train import train
-        from ..train.config import run_config_from_dict
-
-        return train, run_config_from_dict
 
 
 def child_job(data: dict[str, Any], context: ChildContext) -> dict[str, Any]:
@@ -39,10 +25,10 @@ def child_job(data: dict[str, Any], context: ChildContext) -> dict[str, Any]:
     from pathlib import Path
 
     from ..config import config_to_dict
-    from ..train.run_dir import RunDir
+    from ..formats.run_dir import RunDir
     from ..train.trainer import RESUMABLE_SETTINGS
 
-    train, config_from_data = _methods_api()
+    from . import train, train_config_from_dict as config_from_data
     data = dict(data)
     # progress goes to the parent's events file through the context, not a second writer
     data["events"] = None

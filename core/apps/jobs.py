@@ -17,9 +17,9 @@ import os
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
-from .errors import ConfigError
-from .train.run_dir import RunDir
-from .runtime.process import (  # noqa: F401 - the job API the add-on and scripts import from here
+from ..errors import ConfigError
+from ..formats.run_dir import RunDir
+from ..runtime.process import (  # noqa: F401 - the job API the add-on and scripts import from here
     ACTIVE_STATUSES,
     CANCELLED,
     FAILED,
@@ -45,7 +45,7 @@ JOB_FOLDER = ".job"
 def trainer_available() -> bool:
     """Whether the engine's trainer module is installed (``esgs.core.train``)."""
     try:
-        return importlib.util.find_spec(f"{__package__}.train") is not None
+        return importlib.util.find_spec("..train", __package__) is not None
     except (ImportError, ValueError):
         return False
 

@@ -22,7 +22,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from .errors import ConfigError, DatasetError
+from ..errors import ConfigError, DatasetError
 
 _CHUNK_PAIRS = 2_000_000  # point/triangle pairs evaluated at once (~300 MB of float64 temporaries)
 
@@ -190,7 +190,7 @@ def _numba_pair_distances():
         return None
     if _NUMBA_KERNEL is None:
         try:
-            from ._compare_kernels import pair_distances
+            from ._geometry_kernels import pair_distances
         except Exception:  # noqa: BLE001 - no numba, or a numba that does not fit this numpy
             _NUMBA_KERNEL = False
         else:
@@ -370,7 +370,7 @@ def compare_ply_to_mesh(gaussians_path: str | Path, mesh_path: str | Path, **opt
     ``options`` are those of :func:`compare_points_to_mesh` (opacity_min, threshold_m, ...);
     the opacities come from the PLY (activated).
     """
-    from .ply import read_gaussians_ply
+    from ..formats.ply import read_gaussians_ply
 
     gaussians = read_gaussians_ply(gaussians_path)
     vertices, faces = load_mesh(mesh_path)

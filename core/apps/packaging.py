@@ -18,9 +18,9 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
-from .errors import ConfigError, ESGSError
+from ..errors import ConfigError, ESGSError
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]  # core/apps/packaging.py -> the repository (package) root
 
 # Blender platform name -> substrings of compatible wheel platform tags
 _PLATFORM_TAGS = {

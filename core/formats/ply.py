@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ESGSError, FormatError
-from .io_utils import atomic_path
+from ..errors import ESGSError, FormatError
+from ..io_utils import atomic_path
 
 __all__ = ["GaussianPly", "write_gaussians_ply", "read_gaussians_ply", "sh_rest_property_names"]
 

@@ -1,6 +1,6 @@
 """Numba kernel for point-to-triangle distances (about 50x the numpy path's speed).
 
-Same region classification as :func:`esgs.core.compare.closest_points_on_triangles`,
+Same region classification as :func:`esgs.core.metrics.geometry.closest_points_on_triangles`,
 written per pair so no [M, 3] temporaries are allocated. Importing this module raises
 ImportError when numba is missing; the caller then uses numpy.
 """

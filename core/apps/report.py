@@ -15,10 +15,10 @@ from typing import Any, Optional
 import cv2
 import numpy as np
 
-from .imageio import read_image, write_png
-from .io_utils import atomic_write_text
-from .scene_dir import PriorSource, SceneDir
-from .train.run_dir import RunDir
+from ..formats.imageio import read_image, write_png
+from ..io_utils import atomic_write_text
+from ..formats.scene_dir import PriorSource, SceneDir
+from ..formats.run_dir import RunDir
 
 _WHITE = (255, 255, 255)
 
@@ -152,7 +152,7 @@ def _prior_panels(config: Any, used: Any, rendered_depth: np.ndarray, rendered_v
     """
     import torch
 
-    from .priors.losses import fit_scale_shift
+    from ..priors.losses import fit_scale_shift
 
     panels = []
     if used.depth is not None:
@@ -187,7 +187,7 @@ def geometry_scores(depth: Optional[np.ndarray], normal: Optional[np.ndarray], v
     """
     import torch
 
-    from .ndn.infer import depth_metrics, normal_metrics
+    from ..ndn.infer import depth_metrics, normal_metrics
 
     scores: dict[str, float] = {}
     mask = valid & truth_mask
@@ -216,9 +216,9 @@ def _geometry_figure(config: Any, scene: Path, out: Path) -> tuple[str, dict[str
     """
     import torch
 
-    from .priors import available_prior_sources, load_prior_maps
-    from .train.evaluate import load_run
-    from .train.rendering import render_view
+    from ..priors import available_prior_sources, load_prior_maps
+    from ..train.evaluate import load_run
+    from ..train.rendering import render_view
 
     run = config.out / "runs" / "esgs"
     _, data, model, backend, device = load_run(run)
@@ -274,8 +274,8 @@ def _geometry_figure(config: Any, scene: Path, out: Path) -> tuple[str, dict[str
 
 def _esgs_terms(config: Any) -> str:
     """The ESGS switches of the run as words, from its saved config.json (what actually trained)."""
-    from .errors import ConfigError
-    from .methods import load_run_config
+    from ..errors import ConfigError
+    from ..methods import load_run_config
 
     try:
         saved = load_run_config(RunDir(config.out / "runs" / "esgs").config)
@@ -290,8 +290,8 @@ def _esgs_terms(config: Any) -> str:
 
 def _ndn_weights(scene: Path) -> str:
     """Which NDN weights wrote the scene's ndn priors, from a depth map's EXR header."""
-    from .imageio import read_depth_exr
-    from .ndn.shipped import SHIPPED_WEIGHTS
+    from ..formats.imageio import read_depth_exr
+    from ..ndn.shipped import SHIPPED_WEIGHTS
 
     maps = sorted(SceneDir(scene).prior_maps(PriorSource.NDN, "depth").glob("*.exr"))
     try:
@@ -433,7 +433,7 @@ def write_report(config: Any, scene: Path, runs: dict[str, dict], distances: dic
     lines += ["", "Reproduce: `make demo` (or `esgs demo --out DIR`); settings in `demo_config.json`.", ""]
     report = config.out / "report.md"
     atomic_write_text(report, "\n".join(lines))
-    from .config import save_config
+    from ..config import save_config
 
     save_config(config, config.out / "demo_config.json")
     return report

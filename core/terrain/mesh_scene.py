@@ -27,9 +27,9 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .errors import ConfigError, DatasetError
-from .terrain.config import RenderConfig
-from .terrain.rigs import CameraPose, intrinsics, pose_matrix
+from ..errors import ConfigError, DatasetError
+from .config import RenderConfig
+from .rigs import CameraPose, intrinsics, pose_matrix
 
 #: Mesh file types the Blender side can import.
 MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply")

@@ -22,10 +22,10 @@ from pathlib import Path
 from typing import Any, Optional
 
 
-from .errors import ConfigError, DatasetError, ESGSError
-from .progress import ProgressCallback, ProgressEvent, no_progress
-from .scene_dir import PriorSource, SceneDir, names
-from .train.run_dir import RunDir
+from ..errors import ConfigError, DatasetError, ESGSError
+from ..progress import ProgressCallback, ProgressEvent, no_progress
+from ..formats.scene_dir import PriorSource, SceneDir, names
+from ..formats.run_dir import RunDir
 
 #: Prior sources the demo can train ESGS with (folders under SCENE/priors/).
 PRIOR_SOURCES = names(PriorSource.for_synthetic_scenes())
@@ -85,7 +85,7 @@ def esgs_settings(priors: str, gpdfn: bool = True) -> dict:
     alignment branch; sparse ``sfm`` has no normals, so the depth-normal consistency loss
     stands in for them there.
     """
-    from .methods import full_esgs
+    from ..methods import full_esgs
 
     if priors not in PRIOR_SOURCES:
         raise ConfigError(f"unknown prior source {priors!r}", hint=f"use one of {', '.join(PRIOR_SOURCES)}")
@@ -95,8 +95,8 @@ def esgs_settings(priors: str, gpdfn: bool = True) -> dict:
 
 def _esgs_settings_of(switches: dict) -> Any:
     """The ESGSConfig of the demo's switches (None for the 3DGS run, which has none)."""
-    from .config import config_from_dict
-    from .methods import ESGSConfig
+    from ..config import config_from_dict
+    from ..methods import ESGSConfig
 
     return config_from_dict(ESGSConfig, switches) if switches else None
 
@@ -134,7 +134,7 @@ class StageClock:
 def _run_stage(job: str, config: Any, stage: str, progress: ProgressCallback, log_path: Path) -> Any:
     """Run a registered child job for a demo stage, keep its output in a log; the child's
     error comes back as our error type, a crash with its last lines. Returns its result."""
-    from .runtime import ChildJob, child_command
+    from ..runtime import ChildJob, child_command
 
     progress(ProgressEvent(step=0, total=1, stage=stage, kind="message", message=f"{stage}: {job} job"))
     log_path.parent.mkdir(parents=True, exist_ok=True)
@@ -162,14 +162,14 @@ def make_scene(config: DemoConfig, progress: ProgressCallback) -> Path:
         return scene
     rendered = scene if config.sparse_points == "exact" else config.out / "scene_rendered"
     if not SceneDir(rendered).provenance.is_file():
-        from .terrain.scene_job import SceneJob, check_request
+        from ..terrain.scene_job import SceneJob, check_request
 
         job = SceneJob(preset=config.preset, seed=config.seed, views=config.views, width=config.width,
                        height=config.height, samples=config.samples)
         check_request(job, rendered)  # bad settings or no bpy fail here, before Blender starts
         _run_stage("scene", {"job": job, "out": str(rendered)}, "scene", progress, config.out / "logs" / "scene.log")
     if config.sparse_points == "triangulated":
-        from .experiments.sfm_scene import make_sfm_scene
+        from ..experiments.sfm_scene import make_sfm_scene
 
         try:
             record = make_sfm_scene(rendered, scene, progress=progress)
@@ -187,7 +187,7 @@ def make_scene(config: DemoConfig, progress: ProgressCallback) -> Path:
 
 def _priors_complete(scene: Path, source: str) -> bool:
     """Whether ``SCENE/priors/<source>/depth`` has a map for every image of the scene's COLMAP model."""
-    from .colmap import read_model
+    from ..colmap import read_model
 
     folder = SceneDir(scene)
     if not folder.has_prior_maps(source, "depth"):
@@ -203,14 +203,14 @@ def make_priors(config: DemoConfig, scene: Path, progress: ProgressCallback) -> 
         progress(ProgressEvent(0, 1, "priors", kind="message", message=f"priors: reusing {SceneDir(scene).prior(source)}"))
         return
     if source == "sfm":
-        from .colmap import read_model
-        from .priors.sfm import write_sfm_priors
+        from ..colmap import read_model
+        from ..priors.sfm import write_sfm_priors
 
         write_sfm_priors(scene, read_model(SceneDir(scene).model), progress=progress)
     elif source == "ndn":
         import torch
 
-        from .ndn.infer import write_ndn_priors
+        from ..ndn.infer import write_ndn_priors
 
         def relabel(event: ProgressEvent) -> None:
             progress(ProgressEvent(event.step, event.total, "ndn priors", dict(event.metrics), event.kind,
@@ -232,8 +232,8 @@ def _snapshot_hook(folder: Path, steps: list[int]):
     """A trainer hook rendering one held-out view at ``steps`` (the paper's Figure 17)."""
     import torch
 
-    from .imageio import write_png
-    from .train.hooks import RunView, TrainHook
+    from ..formats.imageio import write_png
+    from ..train.hooks import RunView, TrainHook
 
     class SnapshotHook(TrainHook):
         name = "demo_snapshots"
@@ -254,9 +254,8 @@ def _snapshot_hook(folder: Path, steps: list[int]):
 def train_method(config: DemoConfig, scene: Path, name: str, esgs: dict, progress: ProgressCallback,
                  snapshots: bool) -> dict:
     """Train one method into OUT/runs/<name> (skipped when already finished); returns its result.json."""
-    from .methods import train
-    from .progress import JsonLinesProgress, combine
-    from .train import TrainConfig
+    from ..methods import train
+    from ..train import TrainConfig
 
     run = config.out / "runs" / name
     _check_same_settings(run, esgs, {"iterations": config.iterations, "max_gaussians": config.max_gaussians})
@@ -295,7 +294,7 @@ def _check_same_settings(run: Path, esgs: dict, train: dict) -> None:
         saved = json.loads(saved_path.read_text())
     except (OSError, json.JSONDecodeError):
         return  # a damaged config: the trainer's own resume check reports it
-    from .train.config import with_predating_values
+    from ..train.config import with_predating_values
 
     saved = with_predating_values(saved)  # runs saved before methods were registered, too
     saved_esgs = (saved.get("method_config") or {}) if saved.get("method") == "esgs" else {}
@@ -322,7 +321,7 @@ def mesh_distances(scene: Path, run: Path, opacity_min: float = 0.5, threshold: 
     every run when Blender is off or failed); the Blender stage's ``compare.json`` holds the
     same statistics for the ESGS run.
     """
-    from .compare import compare_ply_to_mesh
+    from ..metrics.geometry import compare_ply_to_mesh
 
     result = compare_ply_to_mesh(RunDir(run).point_cloud, SceneDir(scene).ground_truth_mesh,
                                  opacity_min=opacity_min, threshold_m=threshold)

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 
 class PriorSource(str, Enum):

@@ -14,8 +14,8 @@ from typing import Mapping
 
 import numpy as np
 
-from .errors import DatasetError, ESGSError, FormatError
-from .io_utils import atomic_path, atomic_write_bytes
+from ..errors import DatasetError, ESGSError, FormatError
+from ..io_utils import atomic_path, atomic_write_bytes
 
 #: Larger than any map this project writes; beyond it a header is taken as corrupt.
 MAX_EXR_SIDE = 65536
