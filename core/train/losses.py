@@ -28,8 +28,8 @@ class LossContext:
     [H, W, 1] bool (True = valid) or None; alpha: [H, W, 1]; depth: [H, W, 1] or None;
     normals: [H, W, 3] or None (camera frame); view: the :class:`~.dataset.View`;
     output: the :class:`~.rendering.RenderOutput`; params: the
-    :class:`~.gaussians.RenderParams` that were rendered; trainer: the running trainer
-    (for terms that need scene-level data such as prior maps).
+    :class:`~.gaussians.RenderParams` that were rendered; run: the run as hooks see it
+    (:class:`~.hooks.RunView`), for terms that need scene-level data.
     """
 
     step: int
@@ -42,7 +42,7 @@ class LossContext:
     view: Any = None
     output: Any = None
     params: Any = None
-    trainer: Any = None
+    run: Any = None
     cache: dict = field(default_factory=dict)
 
     def masked_image(self) -> torch.Tensor:

@@ -362,7 +362,7 @@ class Trainer:
         mask = view.mask.to(self.device) if view.mask is not None else None
         loss_context = LossContext(step=step, image=output.image, target=target, mask=mask, alpha=output.alpha,
                                    depth=output.depth, normals=output.normals, view=view, output=output,
-                                   params=params, trainer=self)
+                                   params=params, run=self)
         loss, values = total_loss(self.loss_terms, loss_context)
         context.loss, context.loss_values = loss, values
         if not bool(torch.isfinite(loss)):
