@@ -133,15 +133,23 @@ def save_config(config: Any, path: str | Path) -> None:
     atomic_write_json(path, config_to_dict(config))
 
 
-def load_config(cls: type[T], path: str | Path) -> T:
-    """Read a settings dataclass written by :func:`save_config`."""
+def read_json_object(path: str | Path, *, what: str = "config file") -> dict[str, Any]:
+    """The JSON object in ``path``; ConfigError naming the file when it is missing, unreadable,
+    not JSON or not an object (``what`` names the file in the message)."""
     path = Path(path)
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError as err:
-        raise ConfigError("config file not found", path=path) from err
+        raise ConfigError(f"{what} not found", path=path) from err
+    except OSError as err:
+        raise ConfigError(f"cannot read the {what}: {err}", path=path) from err
     except json.JSONDecodeError as err:
         raise ConfigError(f"not valid JSON: {err}", path=path) from err
     if not isinstance(data, dict):
         raise ConfigError("expected a JSON object", path=path)
-    return config_from_dict(cls, data, source=path)
+    return data
+
+
+def load_config(cls: type[T], path: str | Path) -> T:
+    """Read a settings dataclass written by :func:`save_config`."""
+    return config_from_dict(cls, read_json_object(path), source=Path(path))

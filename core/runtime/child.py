@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import _thread
 import argparse
-import json
 import os
 import signal
 import sys
@@ -76,16 +75,9 @@ def read_config_data(path: str | os.PathLike) -> dict[str, Any]:
     Raises:
         ConfigError: the file is missing, not JSON, or not an object.
     """
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError as err:
-        raise ConfigError("job config file not found", path=path) from err
-    except json.JSONDecodeError as err:
-        raise ConfigError(f"not valid JSON: {err}", path=path) from err
-    if not isinstance(data, dict):
-        raise ConfigError("expected a JSON object", path=path)
-    return data
+    from ..config import read_json_object
+
+    return read_json_object(path, what="job config file")
 
 
 class _StopWatcher:

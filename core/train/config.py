@@ -234,16 +234,9 @@ def run_config_from_dict(data: dict, *, source: str | Path | None = None) -> Tra
 
 def load_run_config(path: str | Path) -> TrainConfig:
     """Read a run's config.json with :func:`run_config_from_dict`."""
-    import json
+    from ..config import read_json_object
 
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as err:
-        raise ConfigError(f"cannot read the run's settings: {err}", path=path) from err
-    if not isinstance(data, dict):
-        raise ConfigError("expected a JSON object", path=path)
-    return run_config_from_dict(data, source=path)
+    return run_config_from_dict(read_json_object(path, what="run's settings (config.json)"), source=Path(path))
 
 
 @dataclass(frozen=True)
