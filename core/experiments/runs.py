@@ -147,11 +147,12 @@ def render_seconds_per_frame(run_dir: Path) -> Optional[float]:
     import torch
 
     from ..methods import render_options
-    from ..train.evaluate import load_run
+    from ..train.evaluate import load_run, load_run_sky
     from ..train.rendering import render_view
 
     config, data, model, backend, device = load_run(run_dir)
     render = render_options(config)
+    sky = load_run_sky(run_dir, device)
     views = data.test or data.train
     if not views:
         return None
@@ -163,7 +164,7 @@ def render_seconds_per_frame(run_dir: Path) -> Optional[float]:
             start = time.perf_counter()
             render_view(params, view.viewmat.to(device), view.K.to(device), view.width, view.height,
                         background=background, backend=backend, num_threads=config.threads or None,
-                        antialiased=render.antialiased, eps2d=render.eps2d)
+                        antialiased=render.antialiased, eps2d=render.eps2d, sky=sky)
             if device.type == "cuda":
                 torch.cuda.synchronize()
             times.append(time.perf_counter() - start)

@@ -74,11 +74,12 @@ def sky_figures(run_dir: str | Path, scene: str | Path, *, band_px: int = 4) -> 
 
     from ..methods import render_options
     from ..priors.io import load_prior_maps
-    from ..train.evaluate import load_run
+    from ..train.evaluate import load_run, load_run_sky
     from ..train.rendering import render_view
 
     config, data, model, backend, device = load_run(run_dir)
     render = render_options(config)
+    sky = load_run_sky(run_dir, device)
     views = data.test or data.train
     background = torch.tensor(config.background, dtype=torch.float32, device=device)
     sky_sq, sky_n, surface_sq, surface_n, alpha_sum, band_errors = 0.0, 0, 0.0, 0, 0.0, []
@@ -88,7 +89,7 @@ def sky_figures(run_dir: str | Path, scene: str | Path, *, band_px: int = 4) -> 
             out = render_view(params, view.viewmat.to(device), view.K.to(device), view.width, view.height,
                               background=background, render_depth=True, backend=backend,
                               num_threads=config.threads or None, antialiased=render.antialiased,
-                              eps2d=render.eps2d)
+                              eps2d=render.eps2d, sky=sky)
             maps = load_prior_maps(Path(scene), "gt", view.name, size=(view.width, view.height))
             mask = maps.mask.astype(bool)
             image = out.image.clamp(0, 1).cpu().numpy()

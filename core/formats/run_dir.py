@@ -47,6 +47,11 @@ class RunDir:
         return self.root / "events.jsonl"
 
     @property
+    def sky(self) -> Path:
+        """The run's sky model (train.sky.SkyModel as JSON); absent for runs with sky none."""
+        return self.root / "sky.json"
+
+    @property
     def result(self) -> Path:
         """Summary of the last training invocation (status, steps, timings)."""
         return self.root / "train_result.json"

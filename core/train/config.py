@@ -37,7 +37,18 @@ class TrainConfig:
     test_every: int = field(default=8, metadata=_help("every Nth image (sorted by name, index %% N == 0) is held out; 0 = no test split"))
     mask_source: str = field(default="auto", metadata=_help(
         "priors/<source>/mask/ to use as sky masks: a source name, 'auto' (first found of gt, labels, ndn; never the sparse sfm masks) or 'none'"))
-    background: tuple[float, ...] = field(default=(0.0, 0.0, 0.0), metadata=_help("background colour, RGB in [0, 1]"))
+    background: tuple[float, ...] = field(default=(0.0, 0.0, 0.0), metadata=_help(
+        "background colour, RGB in [0, 1], behind the Gaussians when sky is none"))
+    sky: str = field(default="envmap", metadata=_help(
+        "what is behind the Gaussians: envmap = a learned environment map (the sky, trained by the photometric "
+        "loss on every pixel; RUN/sky.json; docs/training.md), none = the constant background (plain 3DGS)",
+        choices=("envmap", "none")))
+    sky_degree: int = field(default=3, metadata=_help("spherical-harmonics degree of the sky model (0..3)"))
+    sky_lr: float = field(default=0.05, metadata=_help(
+        "Adam learning rate of the sky model (its colour in logit units, its directional bands)"))
+    sky_alpha_weight: float = field(default=0.05, metadata=_help(
+        "weight of mean(alpha) over sky pixels, where the mask source marks sky (gt, ndn): keeps Gaussians from "
+        "painting the sky so the sky model does; 0 = off"))
 
     # --- run control ----------------------------------------------------------------
     iterations: int = field(default=30_000, metadata=_help("training steps"))
@@ -139,6 +150,13 @@ class TrainConfig:
             raise ConfigError(f"lambda_dssim must be in [0, 1], got {self.lambda_dssim}")
         if len(self.background) != 3:
             raise ConfigError(f"background must have 3 values (RGB), got {len(self.background)}")
+        if self.sky not in ("envmap", "none"):
+            raise ConfigError(f"sky must be envmap or none, got {self.sky!r}")
+        if not 0 <= self.sky_degree <= 3:
+            raise ConfigError(f"sky_degree must be in 0..3, got {self.sky_degree}")
+        for name in ("sky_lr", "sky_alpha_weight"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.test_every == 1:
             raise ConfigError("test_every = 1 would hold out every image", hint="use 0 for no test split, or >= 2")
 
@@ -173,7 +191,7 @@ class TrainConfig:
 #: with: a run folder or checkpoint whose config lacks one is read with this value, so an
 #: older run resumes as it was going (Gaussians in their old order) instead of changing.
 #: A dotted name ("esgs.sky_weight") is a setting of a section of the legacy layout below.
-PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0}
+PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0, "sky": "none"}
 
 #: Legacy layout (runs saved before methods were registered): the method's settings were
 #: the sections "esgs" (ESGSConfig) and "baselines" (Mip-Splatting and DropoutGS switches

@@ -45,10 +45,11 @@ def _lpips_model(use_lpips: bool) -> tuple[Any, Optional[str]]:
 def evaluate_model(model: GaussianModel, data: Any, *, backend: str, background: torch.Tensor, sh_degree: int,
                    renders_dir: Optional[Path] = None, use_lpips: bool = True, num_threads: Optional[int] = None,
                    progress: Optional[ProgressCallback] = None, views: Optional[list] = None,
-                   antialiased: bool = False, eps2d: float = 0.3) -> dict:
+                   antialiased: bool = False, eps2d: float = 0.3, sky: Any = None) -> dict:
     """Render every held-out view of ``data`` (or ``views``) and measure it against its image.
 
-    ``antialiased``/``eps2d``: render with the rasterizer's 2D filter (runs trained with Mip-Splatting).
+    ``antialiased``/``eps2d``: render with the rasterizer's 2D filter (runs trained with Mip-Splatting);
+    ``sky``: the run's :class:`~.sky.SkyModel`, composited behind the Gaussians (None: ``background``).
     """
     from ..formats.imageio import write_png
     from ..metrics.image import psnr, ssim
@@ -69,7 +70,7 @@ def evaluate_model(model: GaussianModel, data: Any, *, backend: str, background:
         for number, view in enumerate(views):
             output = render_view(params, view.viewmat.to(device), view.K.to(device), view.width, view.height,
                                  background=background, backend=backend, num_threads=num_threads,
-                                 antialiased=antialiased, eps2d=eps2d)
+                                 antialiased=antialiased, eps2d=eps2d, sky=sky)
             image = output.image.clamp(0.0, 1.0).permute(2, 0, 1)[None]
             target = view.image_float(device).permute(2, 0, 1)[None]
             row = {"name": view.name, "psnr": float(psnr(image, target)), "ssim": float(ssim(image, target)),
@@ -141,6 +142,15 @@ def load_run(run_dir: str | Path, *, backend: Optional[str] = None):
     return config, data, model, name, device
 
 
+def load_run_sky(run_dir: str | Path, device: Any = "cpu") -> Any:
+    """The run's sky model (``RUN/sky.json``) on ``device``, or None for a run without one."""
+    from ..formats.run_dir import RunDir
+    from .sky import load_sky
+
+    sky = load_sky(RunDir(Path(run_dir)).sky)
+    return sky.to(device) if sky is not None else None
+
+
 def evaluate_run(run_dir: str | Path, *, backend: Optional[str] = None, save_renders: bool = True,
                  use_lpips: bool = True, progress: Optional[ProgressCallback] = None,
                  render: Optional[RenderOptions] = None) -> dict:
@@ -160,6 +170,6 @@ def evaluate_run(run_dir: str | Path, *, backend: Optional[str] = None, save_ren
     metrics = evaluate_model(model, data, backend=name, background=background, sh_degree=model.max_sh_degree,
                              renders_dir=run.test_renders if save_renders else None, use_lpips=use_lpips,
                              num_threads=config.threads or None, progress=progress,
-                             antialiased=render.antialiased, eps2d=render.eps2d)
+                             antialiased=render.antialiased, eps2d=render.eps2d, sky=load_run_sky(run.root, device))
     atomic_write_json(run.metrics, metrics)
     return metrics

@@ -5,10 +5,10 @@ ESGS modules append their own :class:`LossTerm` (depth prior, normal prior...) f
 hook's ``setup``; a term that needs depth or normal maps says so in ``needs`` and the
 trainer renders those channels only on the steps where such a term is active.
 
-Masks: where ``mask`` is False (sky, no surface) the rendered colour is replaced by the
-ground truth before the photometric terms, so those pixels contribute neither loss nor
-gradient. The mean still runs over all pixels, so a mostly masked image contributes a
-proportionally smaller loss (its valid pixels weigh as much as anywhere else).
+Masks: ``mask`` (False = sky or no surface, from the scene's mask source) never removes a
+pixel from the photometric terms: every pixel is fitted, the sky by the run's sky model
+(:mod:`.sky`). Masks keep the prior losses off the sky, and the ``sky_alpha`` term uses
+them to keep Gaussians from painting it.
 """
 from __future__ import annotations
 
@@ -45,14 +45,6 @@ class LossContext:
     run: Any = None
     cache: dict = field(default_factory=dict)
 
-    def masked_image(self) -> torch.Tensor:
-        """The rendered colour with invalid pixels replaced by the target (no loss, no gradient there)."""
-        if self.mask is None:
-            return self.image
-        key = "masked_image"
-        if key not in self.cache:
-            self.cache[key] = torch.where(self.mask, self.image, self.target)
-        return self.cache[key]
 
 
 LossFunction = Callable[[LossContext], torch.Tensor]
@@ -78,13 +70,14 @@ class LossTerm:
 
 
 def l1_loss(context: LossContext) -> torch.Tensor:
-    """Mean absolute colour error."""
-    return (context.masked_image() - context.target).abs().mean()
+    """Mean absolute colour error over every pixel (sky included: masks keep priors off the sky,
+    never the photometric loss; the sky model learns it)."""
+    return (context.image - context.target).abs().mean()
 
 
 def dssim_loss(context: LossContext) -> torch.Tensor:
     """1 - SSIM (11x11 Gaussian window, 3DGS convention; see :mod:`esgs.core.metrics.image`)."""
-    image = context.masked_image().permute(2, 0, 1)[None]
+    image = context.image.permute(2, 0, 1)[None]
     target = context.target.permute(2, 0, 1)[None]
     return 1.0 - ssim_map(image, target).mean()
 

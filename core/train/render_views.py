@@ -21,7 +21,7 @@ def render_run(run_dir: str | Path, *, cameras: Optional[Sequence[str]] = None, 
     to ``<stem>_depth.exr`` (0 where nothing was hit).
     """
     from ..formats.imageio import write_depth_exr, write_png
-    from .evaluate import _to_uint8, load_run
+    from .evaluate import _to_uint8, load_run, load_run_sky
     from .rendering import render_view
     from ..formats.run_dir import RunDir
 
@@ -39,6 +39,7 @@ def render_run(run_dir: str | Path, *, cameras: Optional[Sequence[str]] = None, 
         views = [by_name[camera] for camera in cameras]
     output = Path(output) if output is not None else run.renders / "cameras"
     background = torch.tensor(config.background, dtype=torch.float32, device=device)
+    sky = load_run_sky(run.root, device)
     written = []
     with torch.no_grad():
         params = model.render_params(model.max_sh_degree)
@@ -46,7 +47,7 @@ def render_run(run_dir: str | Path, *, cameras: Optional[Sequence[str]] = None, 
             result = render_view(params, view.viewmat.to(device), view.K.to(device), view.width, view.height,
                                  background=background, render_depth=depth, backend=name,
                                  num_threads=config.threads or None,
-                                 antialiased=render.antialiased, eps2d=render.eps2d)
+                                 antialiased=render.antialiased, eps2d=render.eps2d, sky=sky)
             written.append(write_png(output / f"{view.stem}.png", _to_uint8(result.image)))
             if depth:
                 path = output / f"{view.stem}_depth.exr"

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Any, Optional
 
 import torch
 
@@ -46,12 +46,16 @@ class RenderOutput:
 def render_view(params: RenderParams, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, *,
                 background: Optional[torch.Tensor] = None, render_depth: bool = False, render_normals: bool = False,
                 backend: str = "cpu", num_threads: Optional[int] = None, antialiased: bool = False,
-                eps2d: float = 0.3) -> RenderOutput:
+                eps2d: float = 0.3, sky: Any = None) -> RenderOutput:
     """Render ``params`` into one camera. viewmat: [4, 4] world-to-camera; K: [3, 3]; background: [3].
 
     ``antialiased``/``eps2d``: the rasterizer's 2D anti-aliasing filter (Mip-Splatting's 2D filter).
+    ``sky``: a :class:`~.sky.SkyModel` composited behind the Gaussians (``background`` is then unused).
     """
     from ..render import rasterization
+
+    if sky is not None:
+        background = None  # the Gaussians on black, then the sky where they leave the pixel transparent
 
     render, alpha, meta = rasterization(
         params.means, params.quats, params.scales, params.opacities, params.colors,
@@ -65,5 +69,10 @@ def render_view(params: RenderParams, viewmat: torch.Tensor, K: torch.Tensor, wi
         piece = channels.get(name)
         return None if piece is None else render[0, :, :, piece]
 
-    return RenderOutput(image=part("color"), alpha=alpha[0], depth=part("depth"), normals=part("normal"),
+    image = part("color")
+    if sky is not None:
+        from .sky import composite
+
+        image = composite(image, alpha[0], sky.image(viewmat, K, width, height).to(image))
+    return RenderOutput(image=image, alpha=alpha[0], depth=part("depth"), normals=part("normal"),
                         extra=part("extra"), meta=meta)

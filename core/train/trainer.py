@@ -47,6 +47,8 @@ from .method import PLAIN_3DGS, Method, MethodParts
 from .optim import ExponentialDecay, TrainOptimizer
 from .rendering import RenderOutput, backend_device, render_view, resolve_backend
 from ..formats.run_dir import RunDir
+from ..formats.scene_dir import PriorSource
+from .sky import SkyModel, save_sky
 from .strategy import DefaultStrategy, Strategy, StrategyContext
 
 #: Settings that may change when a run is resumed (they do not change what is computed).
@@ -167,6 +169,7 @@ class Trainer:
         self.device = backend_device(self.backend)
         self.loss_terms: list[LossTerm] = photometric_terms(config.lambda_dssim)
         self.background = torch.tensor(config.background, dtype=torch.float32, device=self.device)
+        self.sky: Optional[SkyModel] = None
         self.num_threads = config.threads or None
         self.step = 0
         self.loss_ema: Optional[float] = None
@@ -217,7 +220,7 @@ class Trainer:
         return render_view(params, view.viewmat.to(self.device), view.K.to(self.device), view.width, view.height,
                            background=self.background, render_depth=render_depth, render_normals=render_normals,
                            backend=self.backend, num_threads=self.num_threads,
-                           antialiased=self.parts.render.antialiased, eps2d=self.parts.render.eps2d)
+                           antialiased=self.parts.render.antialiased, eps2d=self.parts.render.eps2d, sky=self.sky)
 
     def render_model(self, view: View, *, sh_degree: Optional[int] = None, render_depth: bool = False,
                      render_normals: bool = False) -> RenderOutput:
@@ -287,6 +290,7 @@ class Trainer:
             self.gaussians = self._initial_gaussians()
         self.gaussians.to(self.device)
         self._build_optimizer()
+        self._setup_sky()
         self.strategy.setup(StrategyContext(gaussians=self.gaussians, optimizer=self.optimizer, extent=self.data.extent,
                                             device=self.device, generator=self.generator, message=self.message))
         self.sampler = ViewSampler(len(self.data.train), config.seed)
@@ -296,6 +300,22 @@ class Trainer:
             self._load_state(checkpoint)
         # loading left ~100 MiB of freed heap (decoded files, the COLMAP model's objects)
         release_free_memory()
+
+    def _setup_sky(self) -> None:
+        """The sky model and its loss on the mask source's sky pixels (see :mod:`.sky`)."""
+        config = self.config
+        if config.sky != "envmap":
+            return
+        self.sky = SkyModel(config.sky_degree).to(self.device)  # no random draw: same seed, same run
+        marks_sky = self.data.mask_source is not None and PriorSource.parse(self.data.mask_source).masks_sky
+        if marks_sky:
+            # start from the mean colour of the pixels the masks call sky (else black, 3DGS's background)
+            colour = _mean_sky_colour(self.data.train)
+            if colour is not None:
+                self.sky.set_color(colour)
+        self.optimizer.add_group("sky", list(self.sky.parameters()), config.sky_lr, per_gaussian=False)
+        if config.sky_alpha_weight > 0 and marks_sky:
+            self.add_loss_term(LossTerm("sky_alpha", config.sky_alpha_weight, _sky_alpha_term))
 
     # --- checkpoints ---------------------------------------------------------------
     def _state(self) -> dict:
@@ -310,6 +330,7 @@ class Trainer:
             "torch_rng": torch.get_rng_state(),
             "generator": self.generator.get_state().cpu(),
             "hooks": {getattr(h, "name", type(h).__name__): h.state_dict() for h in self.hooks},
+            "sky": self.sky.to_dict() if self.sky is not None else None,
             "loss_ema": self.loss_ema,
             "psnr_ema": self.psnr_ema,
             "elapsed_s": self.elapsed_before_s + self._session_elapsed(),
@@ -319,6 +340,8 @@ class Trainer:
         if state.get("format") != CHECKPOINT_FORMAT:
             raise CheckpointError(f"checkpoint format {state.get('format')} is not supported (expected {CHECKPOINT_FORMAT})")
         self.step = int(state["step"])
+        if self.sky is not None and state.get("sky") is not None:
+            self.sky.load_state_dict(SkyModel.from_dict(state["sky"]).to(self.device).state_dict())
         self.optimizer.load_state_dict(state["optimizer"])
         self.strategy.load_state_dict(state["densify"])
         self.sampler.load_state_dict(state["sampler"])
@@ -374,7 +397,7 @@ class Trainer:
 
         self.strategy.step_post_backward(step, view, output)
         with torch.no_grad():
-            image = loss_context.masked_image().clamp(0.0, 1.0)
+            image = output.image.detach().clamp(0.0, 1.0)
             mse = float((image - target).pow(2).mean())
         psnr = -10.0 * math.log10(max(mse, 1e-12))
         self.optimizer.step()
@@ -512,6 +535,8 @@ class Trainer:
         for hook in self.hooks:
             model = hook.export_model(self, model) or model
         write_gaussians_ply(self.run_dir.point_cloud, model.to_ply())
+        if self.sky is not None:
+            save_sky(self.run_dir.sky, self.sky)
         metrics = None
         if status != "interrupted" and config.evaluate:
             from .evaluate import evaluate_model
@@ -521,7 +546,7 @@ class Trainer:
                                      sh_degree=sh_degree, renders_dir=self.run_dir.test_renders if config.save_renders else None,
                                      use_lpips=config.lpips, num_threads=self.num_threads,
                                      progress=self._progress, antialiased=self.parts.render.antialiased,
-                                     eps2d=self.parts.render.eps2d)
+                                     eps2d=self.parts.render.eps2d, sky=self.sky)
             metrics["step"] = self.step
             atomic_write_json(self.run_dir.metrics, metrics)
         elapsed = self.elapsed_before_s + self._session_elapsed()
@@ -535,6 +560,29 @@ class Trainer:
         self._progress(ProgressEvent(step=self.step, total=config.iterations, stage="train", kind="done",
                                      metrics=summary, message=status))
         return result
+
+
+def _mean_sky_colour(views: Sequence[View]) -> Optional[torch.Tensor]:
+    """[3] mean colour of the views' sky pixels (mask False), or None when no view has any."""
+    total, count = torch.zeros(3, dtype=torch.float64), 0
+    for view in views:
+        if view.mask is None:
+            continue
+        sky = ~view.mask[..., 0].bool()
+        if bool(sky.any()):
+            total += view.image[sky].double().sum(dim=0) / 255.0
+            count += int(sky.sum())
+    return (total / count).float() if count else None
+
+
+def _sky_alpha_term(context: LossContext) -> torch.Tensor:
+    """Mean alpha over the view's sky pixels (mask False where the source marks sky)."""
+    if context.mask is None:
+        return context.alpha.sum() * 0.0
+    sky = ~context.mask[..., 0]
+    if not bool(sky.any()):
+        return context.alpha.sum() * 0.0
+    return context.alpha[..., 0][sky].mean()
 
 
 def _resume_state(run: RunDir, config: TrainConfig, method: Method) -> Optional[dict]:

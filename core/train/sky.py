@@ -1,0 +1,126 @@
+"""The sky: a learned environment map rendered behind every Gaussian.
+
+Outdoor views see sky, which no surface explains. Without a model of it, either the sky is
+dropped from the photometric loss (it then renders black) or Gaussians paint it, floating
+anywhere between the camera and infinity and wrecking the geometry. :class:`SkyModel` is a
+colour for every viewing direction, ``sigmoid(b + sum_{k>0} c_k Y_k(d))`` per channel with
+real spherical harmonics ``Y_k`` up to degree 3 (15 coefficients per channel besides the
+constant ``b``, a logit) of the world-space ray direction ``d``: smooth, like a sky's
+gradient, so it cannot mimic terrain detail. The constant is its own parameter in logit
+units so Adam moves the overall colour at the learning rate's pace (a sky far from its start
+colour is reached in tens of steps, not thousands). The
+image of a view is ``rendered colour + (1 - alpha) * sky(d)``: it shows only where the
+Gaussians leave the pixel transparent, and the photometric loss trains it on every pixel.
+
+A run saves it as ``RUN/sky.json`` (its own file: ``point_cloud.ply`` holds the terrain
+only) and in its checkpoints; evaluation and ``esgs render`` composite it the same way.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Optional
+
+import torch
+
+from ..errors import CheckpointError
+from ..render.sh import num_sh_bases, sh_basis
+
+#: ``TrainConfig.sky`` values: a learned environment map, or a constant background (3DGS).
+SKY_MODELS = ("envmap", "none")
+SKY_FORMAT = "esgs-sky-1"
+
+
+def ray_directions(viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """[H, W, 3] world-space unit directions of the rays through the pixel centres.
+
+    viewmat: [4, 4] world-to-camera (OpenCV axes); K: [3, 3] pinhole intrinsics.
+    """
+    dtype = torch.float32
+    viewmat, K = viewmat.to(dtype), K.to(dtype)
+    v, u = torch.meshgrid(torch.arange(height, dtype=dtype, device=K.device) + 0.5,
+                          torch.arange(width, dtype=dtype, device=K.device) + 0.5, indexing="ij")
+    camera = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], dim=-1)
+    world = camera @ viewmat[:3, :3]  # R^T applied to row vectors: camera -> world
+    return torch.nn.functional.normalize(world, dim=-1)
+
+
+class SkyModel(torch.nn.Module):
+    """Colour of the sky in every direction: spherical harmonics of ``degree`` (0..3) through a sigmoid.
+
+    ``base`` [3]: the constant part, a logit; ``coefficients`` [K - 1, 3] (K = (degree + 1)^2):
+    the directional bands, starting at 0 (a uniform sky of ``initial_color``).
+    """
+
+    def __init__(self, degree: int = 3, initial_color: tuple[float, float, float] = (0.0, 0.0, 0.0)):
+        super().__init__()
+        if not 0 <= degree <= 3:
+            raise ValueError(f"sky degree must be in 0..3, got {degree}")
+        self.degree = int(degree)
+        self.base = torch.nn.Parameter(torch.zeros(3))
+        self.coefficients = torch.nn.Parameter(torch.zeros(num_sh_bases(degree) - 1, 3))
+        self.set_color(initial_color)
+
+    def set_color(self, color: tuple[float, float, float] | torch.Tensor) -> None:
+        """Make the sky uniformly ``color`` (RGB in [0, 1]; clamped away from 0 and 1 for the logit)."""
+        color = torch.as_tensor(color, dtype=torch.float32).clamp(0.01, 0.99)
+        with torch.no_grad():
+            self.base.copy_(torch.log(color / (1 - color)).to(self.base))
+            self.coefficients.zero_()
+
+    def forward(self, directions: torch.Tensor) -> torch.Tensor:
+        """[..., 3] unit directions -> [..., 3] colours in (0, 1)."""
+        logits = self.base.expand(directions[..., :1].numel(), 3)
+        if self.degree > 0:
+            basis = sh_basis(self.degree, directions.reshape(-1, 3).to(self.base))[:, 1:]  # [P, K - 1]
+            logits = logits + basis @ self.coefficients
+        return torch.sigmoid(logits).reshape(*directions.shape[:-1], 3)
+
+    def image(self, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int) -> torch.Tensor:
+        """[H, W, 3] the sky as one camera sees it."""
+        return self(ray_directions(viewmat.to(self.base.device), K.to(self.base.device), width, height))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"format": SKY_FORMAT, "kind": "envmap", "degree": self.degree,
+                "base": self.base.detach().cpu().tolist(), "coefficients": self.coefficients.detach().cpu().tolist()}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], *, source: Any = None) -> "SkyModel":
+        if not isinstance(data, dict) or data.get("format") != SKY_FORMAT:
+            raise CheckpointError("not a sky model (missing or unknown format tag)", path=source)
+        model = cls(int(data["degree"]))
+        base = torch.tensor(data["base"], dtype=torch.float32)
+        coefficients = torch.tensor(data["coefficients"], dtype=torch.float32).reshape(-1, 3)
+        if base.shape != model.base.shape or coefficients.shape != model.coefficients.shape:
+            raise CheckpointError(f"sky parameters have shapes {tuple(base.shape)} and {tuple(coefficients.shape)}, "
+                                  f"expected {tuple(model.base.shape)} and {tuple(model.coefficients.shape)}",
+                                  path=source)
+        with torch.no_grad():
+            model.base.copy_(base)
+            model.coefficients.copy_(coefficients)
+        return model
+
+
+def save_sky(path: str | Path, sky: SkyModel) -> Path:
+    """Write ``sky`` as JSON, atomically."""
+    from ..io_utils import atomic_write_json
+
+    atomic_write_json(path, sky.to_dict())
+    return Path(path)
+
+
+def load_sky(path: str | Path) -> Optional[SkyModel]:
+    """The sky model saved at ``path``, or None when the file does not exist (a run without one)."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as err:
+        raise CheckpointError(f"cannot read the sky model: {err}", path=path) from err
+    return SkyModel.from_dict(data, source=path)
+
+
+def composite(image: torch.Tensor, alpha: torch.Tensor, sky_image: torch.Tensor) -> torch.Tensor:
+    """[H, W, 3] ``image`` (rendered on a black background) over the sky: image + (1 - alpha) * sky."""
+    return image + (1.0 - alpha) * sky_image

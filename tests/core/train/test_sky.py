@@ -1,0 +1,176 @@
+"""The sky model: behind the Gaussians, learned from every pixel, saved with the run, used by evaluation."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from esgs.core.errors import CheckpointError
+from esgs.core.train.sky import SkyModel, composite, load_sky, ray_directions, save_sky
+
+from .conftest import train_then_checkpoint
+from .scene import ground_truth_gaussians
+
+
+def _true_sky() -> SkyModel:
+    """A butterscotch sky, brighter towards +z: what the test scene's images show behind the plane."""
+    sky = SkyModel(degree=1, initial_color=(0.75, 0.55, 0.35))
+    with torch.no_grad():
+        sky.coefficients[1] = torch.tensor([0.8, 0.8, 0.8])  # the band along z (basis order y, z, x)
+    return sky
+
+
+@pytest.fixture(scope="module")
+def sky_scene(tiny_scene, tmp_path_factory):
+    """The tiny plane scene with the true sky behind it and gt masks (255 = surface, 0 = sky)."""
+    from esgs.core.colmap.io import read_model
+    from esgs.core.formats.imageio import write_png
+    from esgs.core.render import rasterization
+
+    scene = tmp_path_factory.mktemp("sky") / "scene"
+    shutil.copytree(tiny_scene, scene)
+    truth, sky = ground_truth_gaussians(14, 0), _true_sky()
+    model = read_model(scene / "sparse" / "0")
+    (scene / "priors" / "gt" / "mask").mkdir(parents=True)
+    for image in model.images.values():
+        camera = model.cameras[image.camera_id]
+        viewmat = torch.tensor(image.world_to_camera(), dtype=torch.float32)
+        fx, fy, cx, cy = camera.params
+        K = torch.tensor([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]], dtype=torch.float32)
+        render, alpha, _ = rasterization(truth["means"], truth["quats"], truth["scales"], truth["opacities"],
+                                         truth["colors"], viewmat[None], K[None], camera.width, camera.height,
+                                         backend="reference")
+        with torch.no_grad():
+            pixels = composite(render[0], alpha[0], sky.image(viewmat, K, camera.width, camera.height))
+        write_png(scene / "images" / image.name, (pixels.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy())
+        mask = np.where(alpha[0, :, :, 0].numpy() > 0.5, 255, 0).astype(np.uint8)
+        write_png(scene / "priors" / "gt" / "mask" / image.name, mask)
+    return scene
+
+
+def test_directions_are_the_camera_axes_in_the_world():
+    viewmat = torch.eye(4)
+    viewmat[:3, :3] = torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])  # world -> camera
+    K = torch.tensor([[10.0, 0, 2.0], [0, 10.0, 2.0], [0, 0, 1.0]])
+    directions = ray_directions(viewmat, K, 4, 4)
+    assert directions.shape == (4, 4, 3)
+    torch.testing.assert_close(directions.norm(dim=-1), torch.ones(4, 4))
+    # the optical axis (camera +z) is world -x here; the image's +u (camera +x) is world +y
+    centre = torch.nn.functional.normalize(directions[1:3, 1:3].mean(dim=(0, 1)), dim=0)
+    torch.testing.assert_close(centre, torch.tensor([-1.0, 0.0, 0.0]), atol=1e-6, rtol=0)
+    assert float(directions[0, 3, 1] - directions[0, 0, 1]) > 0
+
+
+def test_sky_colour_gradients_match_finite_differences():
+    sky = SkyModel(degree=3).double()
+    with torch.no_grad():
+        sky.base.copy_(torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64))
+        sky.coefficients.copy_(0.3 * torch.randn(15, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64))
+    directions = torch.nn.functional.normalize(torch.randn(7, 3, generator=torch.Generator().manual_seed(1),
+                                                           dtype=torch.float64), dim=-1)
+    assert torch.autograd.gradcheck(lambda base, bands: torch.func.functional_call(
+        sky, {"base": base, "coefficients": bands}, (directions,)), (sky.base, sky.coefficients))
+
+
+def test_the_sky_shows_only_where_the_gaussians_leave_the_pixel_transparent():
+    image = torch.tensor([[[0.2, 0.1, 0.0], [0.0, 0.0, 0.0]]])  # premultiplied colours
+    alpha = torch.tensor([[[1.0], [0.0]]])
+    sky = torch.full((1, 2, 3), 0.6)
+    torch.testing.assert_close(composite(image, alpha, sky), torch.tensor([[[0.2, 0.1, 0.0], [0.6, 0.6, 0.6]]]))
+    uniform = SkyModel(degree=2, initial_color=(0.25, 0.5, 0.75))
+    torch.testing.assert_close(uniform(torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])),
+                               torch.tensor([[0.25, 0.5, 0.75]] * 2))
+
+
+def test_the_sky_file_round_trips_and_rejects_foreign_files(tmp_path):
+    sky = _true_sky()
+    path = save_sky(tmp_path / "sky.json", sky)
+    again = load_sky(path)
+    assert again.degree == 1 and torch.equal(again.base, sky.base) and torch.equal(again.coefficients, sky.coefficients)
+    assert load_sky(tmp_path / "missing.json") is None
+    (tmp_path / "other.json").write_text(json.dumps({"format": "something else"}))
+    with pytest.raises(CheckpointError, match="not a sky model"):
+        load_sky(tmp_path / "other.json")
+
+
+def _config(fast_config, scene, out, **values):
+    return fast_config(**{"scene": scene, "out": out, "iterations": 60, "densify": False, "test_every": 5, **values})
+
+
+def test_the_sky_is_learned_from_masked_pixels_and_evaluation_uses_it(fast_config, sky_scene, tmp_path):
+    from esgs.core.train import train
+    from esgs.core.train.evaluate import evaluate_run
+
+    learned = train(_config(fast_config, sky_scene, tmp_path / "envmap"))
+    plain = train(_config(fast_config, sky_scene, tmp_path / "none", sky="none"))
+    assert (tmp_path / "envmap" / "sky.json").is_file() and not (tmp_path / "none" / "sky.json").exists()
+    # the masks no longer drop the sky from the photometric loss: it is learned, and it shows
+    from esgs.core.train.evaluate import load_run
+
+    sky, truth = load_sky(tmp_path / "envmap" / "sky.json"), _true_sky()
+    _, data, _, _, _ = load_run(tmp_path / "envmap")
+    errors = []
+    with torch.no_grad():
+        for view in data.train:  # in the directions the training views saw sky
+            directions = ray_directions(view.viewmat, view.K, view.width, view.height)[~view.mask[..., 0]]
+            errors.append(float((sky(directions) - truth(directions)).abs().mean()))
+    assert float(np.mean(errors)) < 0.05
+    assert learned.metrics["psnr"] > plain.metrics["psnr"] + 3.0
+    # re-evaluating the run folder composites the saved sky: the same figures as at the end of training
+    again = evaluate_run(tmp_path / "envmap", use_lpips=False, save_renders=False)
+    assert again["psnr"] == pytest.approx(learned.metrics["psnr"], abs=1e-4)
+    (tmp_path / "envmap" / "sky.json").unlink()
+    assert evaluate_run(tmp_path / "envmap", use_lpips=False, save_renders=False)["psnr"] < again["psnr"] - 3.0
+
+
+def test_gaussians_are_kept_off_the_sky_where_the_masks_mark_it(fast_config, sky_scene, tmp_path):
+    from esgs.core.train.trainer import Trainer
+
+    def sky_alpha(weight: float) -> float:
+        trainer = Trainer(_config(fast_config, sky_scene, tmp_path / f"w{weight}", sky_alpha_weight=weight))
+        trainer.setup()
+        assert ("sky_alpha" in {term.name for term in trainer.loss_terms}) == (weight > 0)
+        for step in range(1, 61):
+            trainer.train_step(step)
+        values = []
+        with torch.no_grad():
+            for view in trainer.data.train:
+                alpha = trainer.render(trainer.gaussians.render_params(0), view).alpha[..., 0]
+                values.append(float(alpha[~view.mask[..., 0]].mean()))
+        return float(np.mean(values))
+
+    assert sky_alpha(1.0) < 0.8 * sky_alpha(0.0)
+
+
+def test_a_resumed_run_continues_its_sky_exactly(fast_config, sky_scene, tmp_path):
+    from esgs.core.train import train
+
+    full = train(_config(fast_config, sky_scene, tmp_path / "full", iterations=16, checkpoint_every=8))
+    first = _config(fast_config, sky_scene, tmp_path / "split", iterations=16, checkpoint_every=8)
+    train_then_checkpoint(first, 8)
+    resumed = train(_config(fast_config, sky_scene, tmp_path / "split", iterations=16, checkpoint_every=8,
+                            resume=True))
+    assert resumed.step == 16
+    a, b = load_sky(tmp_path / "full" / "sky.json"), load_sky(tmp_path / "split" / "sky.json")
+    assert torch.equal(a.base, b.base) and torch.equal(a.coefficients, b.coefficients)
+    assert full.metrics["psnr"] == resumed.metrics["psnr"]
+
+
+def test_runs_saved_before_the_sky_model_resume_without_one(fast_config, tiny_scene, tmp_path):
+    from esgs.core.train import train
+    from esgs.core.train.checkpoint import list_checkpoints
+    from esgs.core.train.config import load_run_config
+
+    config = fast_config(out=tmp_path / "old", iterations=8, checkpoint_every=4, sky="none")
+    train(config)
+    path = config.out / "config.json"
+    data = json.loads(path.read_text())
+    del data["sky"]  # an older run's files have no sky setting at all
+    path.write_text(json.dumps(data))
+    assert load_run_config(path).sky == "none"
+    list_checkpoints(config.out / "checkpoints")[-1][1].unlink()
+    resumed = train(fast_config(out=tmp_path / "old", iterations=8, checkpoint_every=4, sky="none", resume=True))
+    assert resumed.status == "completed" and not (tmp_path / "old" / "sky.json").exists()
