@@ -30,6 +30,9 @@ class SceneJob:
     mesh: str = field(default="", metadata={"help": "render this textured mesh (.glb/.gltf/.obj/.ply) instead of a synthetic preset (docs/mesh_scenes.md)"})
     rig: str = field(default="traverse", metadata={"help": "with --mesh: camera layout", "choices": ("traverse", "orbit")})
     mast_height_m: float = field(default=2.0, metadata={"help": "with --mesh --rig traverse: camera height above the surface, metres"})
+    pitch_deg: float = field(default=-30.0, metadata={
+        "help": "with --mesh --rig traverse: camera pitch in degrees (negative looks down; near 0 the views "
+                "show the horizon and the sky)"})
 
     def validate(self) -> None:
         from ..errors import ConfigError
@@ -59,7 +62,8 @@ class SceneJob:
             render.width, render.height = self.width, self.height
         if self.samples:
             render.samples = self.samples
-        rig = MeshRigConfig(kind=self.rig, views=self.views or base.rig.views, mast_height_m=self.mast_height_m)
+        rig = MeshRigConfig(kind=self.rig, views=self.views or base.rig.views, mast_height_m=self.mast_height_m,
+                            pitch_deg=self.pitch_deg)
         config = MeshSceneConfig(mesh=str(Path(self.mesh).expanduser().resolve()), name=Path(self.mesh).stem,
                                  seed=self.seed if self.seed >= 0 else 0, rig=rig, render=render)
         config.validate()

@@ -1,0 +1,122 @@
+"""Sky handling on outdoor scenes: held-out image quality, sky-pixel error and geometry.
+
+Trains each arm on each scene (3DGS, same steps and seed) and writes, per run, the held-out
+PSNR / SSIM / LPIPS, the mean absolute colour error on the held-out views' sky pixels
+(gt masks), the opaque Gaussians' distance to the true mesh, and the Gaussian count:
+
+- ``none``: ``--sky none --mask-source none``, plain 3DGS (the sky is painted by Gaussians);
+- ``envmap``: the default (the sky model, the sky-alpha term on the gt masks);
+- ``envmap-alphaW``: the default with ``--sky-alpha-weight W`` (tuning).
+
+Runs from before the sky model (masks dropping the sky from the loss) are measured with
+``--measure-run NAME=RUN_DIR`` (trained with that code; this script only measures them).
+
+    .venv/bin/python benchmarks/sky_study.py --scene tune=SCENE ... --out DIR --iterations 1000 \\
+        [--arms none envmap] [--alpha-weights 0 0.2] [--seeds 0] [--json benchmarks/results/sky_study.json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from esgs.core.experiments.runs import RunTask, geometry_figures, run_task
+from esgs.core.formats.run_dir import RunDir
+from esgs.core.formats.scene_dir import SceneDir
+from esgs.core.io_utils import atomic_write_json
+
+
+def sky_error(run_dir: Path, scene: Path) -> dict[str, Any]:
+    """Mean absolute colour error (0..1) of the held-out views on their sky and surface pixels
+    (gt masks: 0 = sky), and PSNR per view."""
+    from esgs.core.priors.io import load_prior_maps
+    from esgs.core.train.evaluate import load_run, load_run_sky
+    from esgs.core.train.rendering import render_view
+
+    config, data, model, backend, device = load_run(run_dir)
+    sky_model = load_run_sky(run_dir, device)
+    background = torch.tensor(config.background, dtype=torch.float32, device=device)
+    sky_abs, sky_count, surface_abs, surface_count, views = 0.0, 0, 0.0, 0, []
+    with torch.no_grad():
+        params = model.render_params(model.max_sh_degree)
+        for view in data.test:
+            image = render_view(params, view.viewmat.to(device), view.K.to(device), view.width, view.height,
+                                background=background, backend=backend, sky=sky_model).image.clamp(0, 1)
+            error = (image - view.image_float(device)).abs().mean(dim=-1)
+            sky = ~torch.from_numpy(load_prior_maps(scene, "gt", view.name,
+                                                    size=(view.width, view.height)).mask.astype(bool))
+            sky_abs += float(error[sky].sum())
+            sky_count += int(sky.sum())
+            surface_abs += float(error[~sky].sum())
+            surface_count += int((~sky).sum())
+            mse = float(((image - view.image_float(device)) ** 2).mean())
+            views.append({"name": view.name, "psnr": -10 * np.log10(max(mse, 1e-12)), "sky_fraction": float(sky.float().mean())})
+    return {"sky_mae": sky_abs / sky_count if sky_count else None,
+            "surface_mae": surface_abs / surface_count if surface_count else None, "views": views}
+
+
+def measure(run_dir: Path, scene: Path) -> dict[str, Any]:
+    metrics = json.loads(RunDir(run_dir).metrics.read_text())
+    mesh = SceneDir(scene).ground_truth_mesh
+    result = {"psnr": metrics["psnr"], "ssim": metrics["ssim"], "lpips": metrics.get("lpips"),
+              "n_gaussians": metrics.get("n_gaussians"), **sky_error(run_dir, scene)}
+    if mesh.is_file():
+        result.update(geometry_figures(RunDir(run_dir).point_cloud, mesh))
+    return result
+
+
+def arms(names: list[str], alpha_weights: list[float]) -> dict[str, dict[str, Any]]:
+    table = {"none": {"sky": "none", "mask_source": "none"}, "envmap": {}}
+    chosen = {name: table[name] for name in names}
+    for weight in alpha_weights:
+        chosen[f"envmap-alpha{weight:g}"] = {"sky_alpha_weight": weight}
+    return chosen
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", action="append", required=True, help="NAME=SCENE_DIR (repeat)")
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--iterations", type=int, default=1000)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--arms", nargs="+", default=["none", "envmap"])
+    parser.add_argument("--alpha-weights", type=float, nargs="*", default=[])
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--measure-run", action="append", default=[], help="ARM/SCENE=RUN_DIR of an older run")
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+    scenes = dict(item.split("=", 1) for item in args.scene)
+    rows = []
+    for seed in args.seeds:
+        for scene_name, scene in scenes.items():
+            for arm, settings in arms(args.arms, args.alpha_weights).items():
+                out = args.out / scene_name / arm / f"seed{seed}"
+                config = {"iterations": args.iterations, "seed": seed, "threads": args.threads, "lpips": True,
+                          "save_renders": True, "checkpoint_every": 0, **settings}
+                started = time.perf_counter()
+                run_task(RunTask(name=f"{scene_name}/{arm}/seed{seed}", scene=Path(scene), out=out, config=config,
+                                 variant=arm, seed=seed, scene_name=scene_name, measure_render=False))
+                row = {"scene": scene_name, "arm": arm, "seed": seed, "settings": settings,
+                       "wall_s": time.perf_counter() - started, **measure(out, Path(scene))}
+                rows.append(row)
+                print(json.dumps({k: v for k, v in row.items() if k != "views"}), flush=True)
+    for item in args.measure_run:
+        label, run = item.split("=", 1)
+        arm, scene_name = label.split("/", 1)
+        rows.append({"scene": scene_name, "arm": arm, "seed": None, "run": run,
+                     **measure(Path(run), Path(scenes[scene_name]))})
+        print(json.dumps({k: v for k, v in rows[-1].items() if k != "views"}), flush=True)
+    if args.json is not None:
+        atomic_write_json(args.json, {"command": " ".join(sys.argv), "iterations": args.iterations,
+                                      "scenes": scenes, "rows": rows})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
