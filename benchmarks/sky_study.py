@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--iterations", type=int, default=1000)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
-    parser.add_argument("--arms", nargs="+", default=["none", "envmap"])
+    parser.add_argument("--arms", nargs="*", default=["none", "envmap"])
     parser.add_argument("--alpha-weights", type=float, nargs="*", default=[])
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--measure-run", action="append", default=[], help="ARM/SCENE=RUN_DIR of an older run")
