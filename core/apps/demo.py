@@ -258,7 +258,9 @@ def train_method(config: DemoConfig, scene: Path, name: str, esgs: dict, progres
     from ..train import TrainConfig
 
     run = config.out / "runs" / name
-    _check_same_settings(run, esgs, {"iterations": config.iterations, "max_gaussians": config.max_gaussians})
+    # the sky model too: a run from before it would resume without one, or be reused beside one with it
+    _check_same_settings(run, esgs, {"iterations": config.iterations, "max_gaussians": config.max_gaussians,
+                                     "sky": TrainConfig.sky})
     result_path = RunDir(run).result
     if result_path.is_file() and json.loads(result_path.read_text()).get("status") in ("completed", "time_limit") \
             and RunDir(run).metrics.is_file():

@@ -107,7 +107,7 @@ def build_config(args: argparse.Namespace):
     if base is not None and base.method == name:
         settings = base.method_config
     elif name == "esgs" and args.method == "esgs" and getattr(args, "priors", None):
-        settings = full_esgs(args.priors)
+        settings = full_esgs(args.priors, scene=Path(args.scene))
     else:
         settings = method.default_settings()
     if method.settings_class is not None:

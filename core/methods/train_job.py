@@ -40,10 +40,16 @@ def child_job(data: dict[str, Any], context: ChildContext) -> dict[str, Any]:
         base = config_to_dict(load_run_config(saved))
         data = {**base, **{name: value for name, value in data.items() if name in RESUMABLE_SETTINGS},
                 "iterations": data.get("iterations", base.get("iterations"))}
-    config = config_from_data(data)
+    # a fresh run is a request (missing settings take today's defaults); a resumed one was
+    # completed from its saved config.json above
+    config = config_from_data(data, saved=False)
     if context.stop_file is not None:
         config = dataclasses.replace(config, stop_file=Path(context.stop_file))
-    result = train(config, progress=context.progress)
+    progress = context.progress
+    if context.events_path is not None and config.out is not None and \
+            Path(context.events_path).resolve() == RunDir(Path(config.out)).events.resolve():
+        progress = None  # the trainer writes RUN/events.jsonl itself: one writer, no doubled lines
+    result = train(config, progress=progress)
     return {"status": result.status, "step": result.step, "iterations": result.iterations,
             "n_gaussians": result.n_gaussians, "elapsed_s": result.elapsed_s, "metrics": result.metrics,
             "point_cloud": str(result.point_cloud)}

@@ -45,12 +45,13 @@ class ChildContext:
 
     ``progress`` appends to the parent's events file; ``stop_file`` appears when the parent
     asks the job to stop (None when started without one); ``config_path`` is the config
-    file (for error messages).
+    file (for error messages); ``events_path``: the file ``progress`` appends to (None: none).
     """
 
     progress: ProgressCallback
     stop_file: Optional[Path]
     config_path: Path
+    events_path: Optional[Path] = None
 
     def stop_requested(self) -> bool:
         """Whether the parent has asked the job to stop."""
@@ -121,7 +122,8 @@ def run_child_job(job: str, config_path: Path, *, events: Optional[Path] = None,
     progress_file = JsonLinesProgress(events) if events is not None else None
     progress: ProgressCallback = progress_file if progress_file is not None else no_progress
     package = __package__.rsplit(".core.runtime", 1)[0] if __package__ else entry_points.PACKAGE
-    context = ChildContext(progress=progress, stop_file=stop_file, config_path=Path(config_path))
+    context = ChildContext(progress=progress, stop_file=stop_file, config_path=Path(config_path),
+                           events_path=Path(events) if events is not None else None)
 
     def finish(record: dict[str, Any]) -> None:
         if result is not None:

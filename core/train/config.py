@@ -37,6 +37,9 @@ class TrainConfig:
     test_every: int = field(default=8, metadata=_help("every Nth image (sorted by name, index %% N == 0) is held out; 0 = no test split"))
     mask_source: str = field(default="auto", metadata=_help(
         "priors/<source>/mask/ to use as sky masks: a source name, 'auto' (first found of gt, labels, ndn; never the sparse sfm masks) or 'none'"))
+    mask_photometric: bool = field(default=False, metadata=_help(
+        "legacy: masked pixels leave the photometric loss (how runs saved before the sky model trained; "
+        "their sky then renders as the background)"))
     background: tuple[float, ...] = field(default=(0.0, 0.0, 0.0), metadata=_help(
         "background colour, RGB in [0, 1], behind the Gaussians when sky is none"))
     sky: str = field(default="envmap", metadata=_help(
@@ -191,7 +194,7 @@ class TrainConfig:
 #: with: a run folder or checkpoint whose config lacks one is read with this value, so an
 #: older run resumes as it was going (Gaussians in their old order) instead of changing.
 #: A dotted name ("esgs.sky_weight") is a setting of a section of the legacy layout below.
-PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0, "sky": "none"}
+PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0, "sky": "none", "mask_photometric": True}
 
 #: Legacy layout (runs saved before methods were registered): the method's settings were
 #: the sections "esgs" (ESGSConfig) and "baselines" (Mip-Splatting and DropoutGS switches

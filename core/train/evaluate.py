@@ -143,11 +143,23 @@ def load_run(run_dir: str | Path, *, backend: Optional[str] = None):
 
 
 def load_run_sky(run_dir: str | Path, device: Any = "cpu") -> Any:
-    """The run's sky model (``RUN/sky.json``) on ``device``, or None for a run without one."""
+    """The run's sky model on ``device``, from where :func:`load_run_model` takes the Gaussians:
+    ``RUN/sky.json`` beside ``point_cloud.ply`` (both written at the end of a session), else the
+    newest checkpoint's. None for a run with ``sky = none`` or without one."""
     from ..formats.run_dir import RunDir
-    from .sky import load_sky
+    from .checkpoint import latest_checkpoint, load_checkpoint
+    from .config import load_run_config
+    from .sky import SkyModel, load_sky
 
-    sky = load_sky(RunDir(Path(run_dir)).sky)
+    run = RunDir(Path(run_dir))
+    if run.config.is_file() and load_run_config(run.config).sky == "none":
+        return None  # a sky.json left in the folder by another run is not this run's
+    if run.point_cloud.is_file():
+        sky = load_sky(run.sky)
+    else:
+        latest = latest_checkpoint(run.checkpoints)
+        state = load_checkpoint(latest).get("sky") if latest is not None else None
+        sky = SkyModel.from_dict(state, source=latest) if state else None
     return sky.to(device) if sky is not None else None
 
 

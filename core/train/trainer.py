@@ -307,7 +307,7 @@ class Trainer:
         if config.sky != "envmap":
             return
         self.sky = SkyModel(config.sky_degree).to(self.device)  # no random draw: same seed, same run
-        marks_sky = self.data.mask_source is not None and PriorSource.parse(self.data.mask_source).masks_sky
+        marks_sky = _marks_sky(self.data.mask_source)
         if marks_sky:
             # start from the mean colour of the pixels the masks call sky (else black, 3DGS's background)
             colour = _mean_sky_colour(self.data.train)
@@ -383,7 +383,11 @@ class Trainer:
         self.strategy.step_pre_backward(step, output)
         target = view.image_float(self.device)
         mask = view.mask.to(self.device) if view.mask is not None else None
-        loss_context = LossContext(step=step, image=output.image, target=target, mask=mask, alpha=output.alpha,
+        image = output.image
+        if config.mask_photometric and mask is not None:
+            # runs saved before the sky model: masked pixels took the target's colour (no loss there)
+            image = torch.where(mask, image, target)
+        loss_context = LossContext(step=step, image=image, target=target, mask=mask, alpha=output.alpha,
                                    depth=output.depth, normals=output.normals, view=view, output=output,
                                    params=params, run=self)
         loss, values = total_loss(self.loss_terms, loss_context)
@@ -397,7 +401,7 @@ class Trainer:
 
         self.strategy.step_post_backward(step, view, output)
         with torch.no_grad():
-            image = output.image.detach().clamp(0.0, 1.0)
+            image = image.detach().clamp(0.0, 1.0)
             mse = float((image - target).pow(2).mean())
         psnr = -10.0 * math.log10(max(mse, 1e-12))
         self.optimizer.step()
@@ -560,6 +564,14 @@ class Trainer:
         self._progress(ProgressEvent(step=self.step, total=config.iterations, stage="train", kind="done",
                                      metrics=summary, message=status))
         return result
+
+
+def _marks_sky(mask_source: Optional[str]) -> bool:
+    """Whether the masks of ``mask_source`` mark sky (0 = no surface), not just missing values;
+    a folder of another name under priors/ is not assumed to."""
+    if mask_source is None or mask_source not in {source.value for source in PriorSource}:
+        return False
+    return PriorSource(mask_source).masks_sky
 
 
 def _mean_sky_colour(views: Sequence[View]) -> Optional[torch.Tensor]:

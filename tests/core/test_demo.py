@@ -65,8 +65,14 @@ def test_a_run_folder_from_other_settings_is_neither_reused_nor_resumed(tmp_path
         demo.train_method(config, tmp_path / "scene", "esgs", esgs_settings("ndn"), lambda event: None,
                           snapshots=False)
     assert "'sfm' -> 'ndn'" in str(error.value) and "another --out" in str(error.value)
-    # the same settings are reused as before (no training: the scene does not even exist)
+    # a run from before the sky model (no "sky" setting: it trained without one) is not reused
     saved["esgs"] = esgs_settings("ndn")
+    (run / "config.json").write_text(json.dumps(saved))
+    with pytest.raises(ConfigError, match="sky 'none' -> 'envmap'"):
+        demo.train_method(config, tmp_path / "scene", "esgs", esgs_settings("ndn"), lambda event: None,
+                          snapshots=False)
+    # the same settings are reused as before (no training: the scene does not even exist)
+    saved["sky"] = "envmap"
     (run / "config.json").write_text(json.dumps(saved))
     events = []
     summary = demo.train_method(config, tmp_path / "scene", "esgs", esgs_settings("ndn"), events.append,

@@ -13,7 +13,7 @@ periodically while the centres move, not differentiated.
 
 The 2D half of Mip-Splatting (a screen-space filter of ~one pixel with the same opacity
 compensation) is the rasterizer's ``antialiased`` mode; the trainer turns it on for renders
-and evaluation when ``BaselinesConfig.mip_splatting`` is set.
+and evaluation of the ``mip-splatting`` method (its RenderOptions).
 """
 from __future__ import annotations
 

@@ -174,3 +174,68 @@ def test_runs_saved_before_the_sky_model_resume_without_one(fast_config, tiny_sc
     list_checkpoints(config.out / "checkpoints")[-1][1].unlink()
     resumed = train(fast_config(out=tmp_path / "old", iterations=8, checkpoint_every=4, sky="none", resume=True))
     assert resumed.status == "completed" and not (tmp_path / "old" / "sky.json").exists()
+
+
+def test_the_legacy_switch_keeps_masked_pixels_out_of_the_loss_for_older_runs(fast_config, sky_scene, tmp_path):
+    """Runs saved before the sky model resume as they trained: masked pixels out of the loss."""
+    from esgs.core.train.config import run_config_from_dict
+    from esgs.core.train.trainer import Trainer
+
+    assert run_config_from_dict({"iterations": 5}).mask_photometric is True  # what older config.json files mean
+    trainer = Trainer(_config(fast_config, sky_scene, tmp_path / "legacy", sky="none", mask_photometric=True))
+    trainer.setup()
+    view = trainer.data.train[0]
+    view_mask = view.mask
+    view.mask = torch.zeros_like(view_mask)  # every pixel masked: no photometric loss at all
+    trainer.sampler.order = [0]
+    assert trainer.train_step(1).loss.item() == pytest.approx(0.0, abs=1e-6)
+    view.mask = view_mask
+
+
+def test_a_mask_folder_of_another_name_is_not_taken_for_sky(fast_config, sky_scene, tmp_path):
+    from esgs.core.train.trainer import Trainer
+
+    scene = tmp_path / "scene"
+    shutil.copytree(sky_scene, scene)
+    shutil.copytree(scene / "priors" / "gt" / "mask", scene / "priors" / "mine" / "mask")
+    trainer = Trainer(_config(fast_config, scene, tmp_path / "run", mask_source="mine"))
+    trainer.setup()
+    assert trainer.data.mask_source == "mine" and "sky_alpha" not in {t.name for t in trainer.loss_terms}
+
+
+def test_renders_of_a_run_take_the_sky_that_goes_with_its_gaussians(fast_config, sky_scene, tmp_path):
+    from esgs.core.train import train
+    from esgs.core.train.evaluate import load_run_sky
+
+    # no point_cloud.ply yet (a run stopped in its first session): the checkpoint's sky
+    first = _config(fast_config, sky_scene, tmp_path / "stopped", iterations=16, checkpoint_every=8)
+    train_then_checkpoint(first, 8)
+    sky = load_run_sky(tmp_path / "stopped")
+    assert sky is not None and not torch.equal(sky.base, SkyModel().base)
+    # a run with sky none ignores a sky.json another run left in its folder
+    plain = train(_config(fast_config, sky_scene, tmp_path / "plain", iterations=4, sky="none"))
+    save_sky(plain.run_dir / "sky.json", _true_sky())
+    assert load_run_sky(plain.run_dir) is None
+
+
+def test_a_training_child_reads_a_partial_request_with_todays_defaults_and_writes_events_once(tiny_scene, tmp_path):
+    from esgs.core.formats.run_dir import RunDir
+    from esgs.core.methods.train_job import child_job
+    from esgs.core.progress import JsonLinesProgress
+    from esgs.core.runtime.child import ChildContext
+
+    run = RunDir(tmp_path / "run")
+    run.root.mkdir()
+    events = JsonLinesProgress(run.events)
+    data = {"scene": str(tiny_scene), "out": str(run.root), "iterations": 6, "backend": "reference", "threads": 1,
+            "lpips": False, "progress_every": 2, "checkpoint_every": 0, "save_renders": False}
+    try:
+        child_job(data, ChildContext(progress=events, stop_file=None, config_path=tmp_path / "job.json",
+                                     events_path=run.events))
+    finally:
+        events.close()
+    saved = json.loads(run.config.read_text())
+    assert saved["sky"] == "envmap" and saved["spatial_order"] is True and saved["mask_photometric"] is False
+    steps = [json.loads(line)["step"] for line in run.events.read_text().splitlines()
+             if json.loads(line).get("kind") == "progress" and json.loads(line).get("stage") == "train"]
+    assert steps == sorted(set(steps)) and steps[-1] == 6
