@@ -27,7 +27,7 @@ from typing import Any, Callable, Optional
 from ..core.apps import jobs
 from ..core.colmap.io import find_model_dir
 from ..core.errors import CheckpointError, ConfigError, DatasetError, ESGSError
-from ..core.commands.priors import PriorsSettings
+from ..core.priors.job import PriorsSettings
 from ..core.apps.jobs import ChildJob, JobState
 from ..core.formats.scene_dir import PriorSource, SceneDir, names
 from . import preferences
@@ -45,7 +45,7 @@ COMMAND_OVERRIDE: Optional[list[str]] = None
 class PriorsJob(ChildJob):
     """The ``"priors"`` job of the child-process runtime for one scene folder and method.
 
-    Its settings are a :class:`esgs.core.commands.priors.PriorsSettings`, written as the
+    Its settings are a :class:`esgs.core.priors.job.PriorsSettings`, written as the
     child's config file; progress, cancel (the stop file: the writers remove their staging
     folders) and the failure message are the runtime's. The exchange files and events live
     in a temporary folder (``events_dir``), never in the scene folder; :meth:`cleanup`

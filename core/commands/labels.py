@@ -74,15 +74,3 @@ def run(args: argparse.Namespace) -> int:
     if result["accuracy"] is not None:
         print(format_accuracy_table(result["accuracy"]))
     return 0
-
-
-def child_job(data: dict, context) -> dict:
-    """The ``"labels"`` job of the child-process runtime (the bench's labels for a scene):
-    ``data`` is a :class:`esgs.core.labels.pipeline.LabelJob` dict. Returns the number of
-    views labelled and the accuracy report (None without ``report``)."""
-    from ..config import config_from_dict
-    from ..labels.pipeline import LabelJob, run_label_job
-
-    job = config_from_dict(LabelJob, data, source=context.config_path)
-    result = run_label_job(job, context.progress)
-    return {"views": len(result["labels"]["views"]), "accuracy": result["accuracy"]}

@@ -113,3 +113,14 @@ def run_label_job(job: LabelJob, progress: ProgressCallback = no_progress, *, ve
         accuracy["method"] = method
         atomic_write_json(SceneDir(job.scene).labels_accuracy, accuracy)
     return {"labels": labels, "reconstruction": reconstruction, "accuracy": accuracy}
+
+
+def child_job(data: dict, context: Any) -> dict:
+    """The ``"labels"`` job of the child-process runtime (the bench's labels for a scene):
+    ``data`` is a :class:`LabelJob` dict. Returns the number of views labelled and the
+    accuracy report (None without ``report``)."""
+    from ..config import config_from_dict
+
+    job = config_from_dict(LabelJob, data, source=context.config_path)
+    result = run_label_job(job, context.progress)
+    return {"views": len(result["labels"]["views"]), "accuracy": result["accuracy"]}

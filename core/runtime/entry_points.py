@@ -56,8 +56,8 @@ class EntryPoint:
 #: Every job a parent may start in a child process, by name.
 ENTRY_POINTS: dict[str, EntryPoint] = {
     "train": EntryPoint("core.methods.train_job", "child_job", watches_stop_file=True),
-    "priors": EntryPoint("core.commands.priors", "child_job"),
-    "labels": EntryPoint("core.commands.labels", "child_job"),
+    "priors": EntryPoint("core.priors.job", "child_job"),
+    "labels": EntryPoint("core.labels.pipeline", "child_job"),
     "scene": EntryPoint("esgs_addon.make_scene", "child_job", needs_bpy=True),
     "render_labels": EntryPoint("esgs_addon.render_labels", "child_job", needs_bpy=True),
     "results_scene": EntryPoint("esgs_addon.results_scene", "child_job", needs_bpy=True),

@@ -15,7 +15,7 @@ from esgs.core.runtime.child import read_config_data
 
 
 def test_the_config_file_round_trips_the_settings_dataclass(tmp_path):
-    from esgs.core.commands.priors import PriorsSettings
+    from esgs.core.priors.job import PriorsSettings
 
     settings = PriorsSettings(scene=tmp_path / "scene", method="ndn", weights=tmp_path / "w.pt", steps=7, seed=3)
     job = ChildJob("priors", settings, workdir=tmp_path / "job", command=["unused"])

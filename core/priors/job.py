@@ -1,0 +1,67 @@
+"""One priors job: compute a scene's prior maps with one method (sfm or ndn), the same for
+``esgs priors``, the Blender add-on and the bench (the ``"priors"`` job of the child-process
+runtime, :func:`child_job`)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+from ..formats.scene_dir import PriorSource, SceneDir, names
+from ..progress import ProgressCallback
+
+#: The prior sources a priors job computes.
+METHODS = names(PriorSource.computed())
+
+
+@dataclass
+class PriorsSettings:
+    """One priors job (what the Blender add-on and the bench run in a child process)."""
+
+    scene: Path = field(metadata={"help": "scene folder (images/ + sparse/0)"})
+    method: str = field(default="sfm", metadata={"help": "prior source to compute", "choices": METHODS})
+    max_error_px: float = field(default=2.0, metadata={"help": "sfm: drop points with a larger reprojection error"})
+    min_track_length: int = field(default=2, metadata={"help": "sfm: drop points seen in fewer views"})
+    weights: Optional[Path] = field(default=None, metadata={"help": "ndn: weights file or model folder (default: shipped)"})
+    steps: Optional[int] = field(default=None, metadata={"help": "ndn: DDIM steps (default: the model's)"})
+    seed: int = field(default=0, metadata={"help": "ndn: seed of the starting noise"})
+
+    def validate(self) -> None:
+        from ..errors import ConfigError
+
+        if self.method not in METHODS:
+            raise ConfigError(f"unknown prior method {self.method!r}", hint=f"choose one of {', '.join(METHODS)}")
+
+
+def compute_priors(settings: PriorsSettings, progress: ProgressCallback) -> tuple[int, Optional[Path]]:
+    """Write ``SCENE/priors/<method>/``; returns (views written, NDN weights used or None)."""
+    settings.validate()
+    if settings.method == "ndn":
+        from ..ndn.infer import write_ndn_priors
+        from ..ndn.shipped import resolve_default_weights
+
+        weights = resolve_default_weights(settings.weights)
+        count = write_ndn_priors(settings.scene, weights, steps=settings.steps, seed=settings.seed,
+                                 progress=progress)
+        return count, weights
+    from ..colmap import read_model
+    from .sfm import write_sfm_priors
+
+    model = read_model(settings.scene)
+    return write_sfm_priors(settings.scene, model, progress=progress, max_error_px=settings.max_error_px,
+                            min_track_length=settings.min_track_length), None
+
+
+def child_job(data: dict, context: Any) -> dict:
+    """The ``"priors"`` job of the child-process runtime: ``data`` is a :class:`PriorsSettings`
+    dict. The runtime turns a stop request into KeyboardInterrupt, on which the writers remove
+    their staging folders (the previous priors are kept). Returns ``{"views", "weights", "folder"}``."""
+    from ..config import config_from_dict
+    from ..progress import ProgressEvent
+
+    settings = config_from_dict(PriorsSettings, data, source=context.config_path)
+    count, weights = compute_priors(settings, context.progress)
+    folder = SceneDir(settings.scene).prior(settings.method)
+    line = f"wrote {settings.method} priors for {count} views to {folder}"
+    context.progress(ProgressEvent(count, count, f"{settings.method} priors", kind="done", message=line))
+    return {"views": count, "weights": None if weights is None else str(weights), "folder": str(folder)}
