@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 HELP = "train Gaussians on a COLMAP scene folder (images/ + sparse/0) into a run folder"
@@ -34,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     seen: set[str] = set()
     for name, settings_class in _settings_classes().items():
         group = parser.add_argument_group(f"method {name}", get_method(name).description)
-        fields = [f.name for f in __import__("dataclasses").fields(settings_class)]
+        fields = [f.name for f in dataclasses.fields(settings_class)]
         add_dataclass_arguments(group, settings_class, skip=tuple(f for f in fields if f in seen))
         seen.update(fields)
     switches = parser.add_argument_group("method switches", "older spellings of --method")
@@ -46,8 +47,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _method_flags_given(args: argparse.Namespace, settings_class: type) -> bool:
-    import dataclasses
-
     return any(getattr(args, f.name, None) is not None for f in dataclasses.fields(settings_class))
 
 

@@ -67,10 +67,11 @@ def esgs_config(scene: Path, out: Path, priors: str, **train_settings: Any) -> T
 
 
 def resolve(config: TrainConfig) -> TrainConfig:
-    """``config`` with ``method_config`` as its method's settings dataclass (a dict or None
-    becomes the dataclass, defaults filled in); ConfigError for an unknown method."""
-    config.method_config = get_method(config.method).settings_of(config)
-    return config
+    """A copy of ``config`` with ``method_config`` as its method's settings dataclass (a dict or
+    None becomes the dataclass, defaults filled in); ConfigError for an unknown method."""
+    import dataclasses
+
+    return dataclasses.replace(config, method_config=get_method(config.method).settings_of(config))
 
 
 def train_config_from_dict(data: dict, *, source: str | Path | None = None, saved: bool = True) -> TrainConfig:

@@ -18,6 +18,8 @@ from ..errors import ConfigError
 REFERENCE_ITERATIONS = 30_000
 
 BACKENDS = ("auto", "cpu", "reference", "cuda")
+#: ``sky`` values: a learned environment map (train/sky.py), or the constant background (3DGS).
+SKY_MODELS = ("envmap", "none")
 
 
 def _help(text: str, **extra) -> dict:
@@ -45,7 +47,7 @@ class TrainConfig:
     sky: str = field(default="envmap", metadata=_help(
         "what is behind the Gaussians: envmap = a learned environment map (the sky, trained by the photometric "
         "loss on every pixel; RUN/sky.json; docs/training.md), none = the constant background (plain 3DGS)",
-        choices=("envmap", "none")))
+        choices=SKY_MODELS))
     sky_degree: int = field(default=3, metadata=_help("spherical-harmonics degree of the sky model (0..3)"))
     sky_lr: float = field(default=0.05, metadata=_help(
         "Adam learning rate of the sky model (its colour in logit units, its directional bands)"))
@@ -153,8 +155,8 @@ class TrainConfig:
             raise ConfigError(f"lambda_dssim must be in [0, 1], got {self.lambda_dssim}")
         if len(self.background) != 3:
             raise ConfigError(f"background must have 3 values (RGB), got {len(self.background)}")
-        if self.sky not in ("envmap", "none"):
-            raise ConfigError(f"sky must be envmap or none, got {self.sky!r}")
+        if self.sky not in SKY_MODELS:
+            raise ConfigError(f"sky must be one of {', '.join(SKY_MODELS)}, got {self.sky!r}")
         if not 0 <= self.sky_degree <= 3:
             raise ConfigError(f"sky_degree must be in 0..3, got {self.sky_degree}")
         for name in ("sky_lr", "sky_alpha_weight"):

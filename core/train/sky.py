@@ -26,8 +26,6 @@ import torch
 from ..errors import CheckpointError
 from ..render.sh import num_sh_bases, sh_basis
 
-#: ``TrainConfig.sky`` values: a learned environment map, or a constant background (3DGS).
-SKY_MODELS = ("envmap", "none")
 SKY_FORMAT = "esgs-sky-1"
 
 

@@ -24,7 +24,7 @@ import math
 import signal
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Iterable, Optional, Sequence
 
@@ -149,7 +149,8 @@ class Trainer:
         if config.method != method.name:
             raise ConfigError(f"this run's method is {config.method!r} but the trainer was given {method.name!r}",
                               hint="train through esgs.core.methods.train(config), which looks the method up")
-        config.method_config = method.settings_of(config)
+        # a copy: the caller's config (a dict of settings, perhaps) is left as it was given
+        config = replace(config, method_config=method.settings_of(config))
         config.validate()
         if config.scene is None or config.out is None:
             raise ConfigError("both scene and out must be set", hint="esgs train SCENE --out RUN_DIR")
