@@ -9,7 +9,8 @@ importer (glTF's +Y up becomes Blender's +Z up), then, in one new collection:
   Cycles' shading normal is exactly Blender's vertex normal, as the ground-truth export
   (:func:`~.render_dataset.world_mesh_arrays`) writes it;
 * turns every material into its observed appearance: the base colour (texture) feeds an
-  Emission shader of strength 1, the world is black and there are no lamps, so with the
+  Emission shader of strength 1, the world is black (a Mars sky gradient for the ``mixed``
+  rig, whose rover views see the sky; it does not light emission) and there are no lamps, so with the
   Standard view transform a pixel shows the photograph's value (the landform's textures
   are photographs with the light already in them);
 * places the cameras of :func:`esgs.core.terrain.mesh_scene.make_mesh_rig`, ray casting the mesh
@@ -242,12 +243,18 @@ def build_mesh_scene(config: MeshSceneConfig, *, scene: bpy.types.Scene | None =
         for material in {m.as_pointer(): m for m in terrain.data.materials if m is not None}.values():
             make_emission_material(material)
 
-        world = bpy.data.worlds.new("ESGS black")
-        if world.node_tree is None:
-            world.use_nodes = True
-        background = next(node for node in world.node_tree.nodes if node.type == "BACKGROUND")
-        background.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
-        background.inputs["Strength"].default_value = 0.0
+        if config.rig.kind == "mixed":
+            # rover views see the sky: a Mars sky gradient (emission-only terrain is not lit by it)
+            from .mars_material import make_sky_world
+
+            world = make_sky_world("ESGS mesh sky", sky=True, sun_elevation_deg=90.0)
+        else:
+            world = bpy.data.worlds.new("ESGS black")
+            if world.node_tree is None:
+                world.use_nodes = True
+            background = next(node for node in world.node_tree.nodes if node.type == "BACKGROUND")
+            background.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
+            background.inputs["Strength"].default_value = 0.0
         scene.world = world
 
         report(ProgressEvent(2, total, "scene", message=f"placing {config.rig.views} '{config.rig.kind}' cameras"))

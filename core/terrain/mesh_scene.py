@@ -17,6 +17,12 @@ World frame: the mesh's own frame as Blender has it after import (glTF +Y up bec
 * ``orbit``: an arc of ``sweep_deg`` around a centre (default: the middle of the mesh's
   footprint), ``orbit_radius_m`` away and ``orbit_height_m`` above the surface there,
   every view aimed at the centre's surface point, with the same probe test.
+* ``mixed``: an aerial ``orbit`` (the first ``views - rover_views`` views) and a rover
+  ``traverse`` at mast height inside the orbit's circle (the last ``rover_views``), pitched
+  ``rover_pitch_deg`` so that the horizon and the sky are in frame: a rover view must see
+  the surface along the lower half of the image only, and the drive is kept when at least
+  ``min_sky_fraction`` of its probe rays (all rover views together) reach the sky. Held-out
+  views of such a scene (every 8th) include aerial and rover-height ones.
 """
 from __future__ import annotations
 
@@ -33,7 +39,7 @@ from .rigs import CameraPose, intrinsics, pose_matrix
 
 #: Mesh file types the Blender side can import.
 MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply")
-MESH_RIG_KINDS = ("traverse", "orbit")
+MESH_RIG_KINDS = ("traverse", "orbit", "mixed")
 _STREAM_MESH_RIG = 0x4D657368
 
 RayCaster = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -59,6 +65,9 @@ class MeshRigConfig:
     sweep_deg: float = field(default=90.0, metadata=_help("orbit: azimuth covered by the arc, degrees"))
     center_x_m: Optional[float] = field(default=None, metadata=_help("orbit: centre x (None = middle of the footprint)"))
     center_y_m: Optional[float] = field(default=None, metadata=_help("orbit: centre y (None = middle of the footprint)"))
+    rover_views: int = field(default=0, metadata=_help("mixed: how many views are rover-height views (0 = 40 % of views)"))
+    rover_pitch_deg: float = field(default=2.0, metadata=_help("mixed: rover views' pitch, degrees (near 0 shows the horizon)"))
+    min_sky_fraction: float = field(default=0.1, metadata=_help("mixed: least share of the rover views' probe rays that reach the sky"))
     min_clearance_m: float = field(default=1.0, metadata=_help("cameras stay at least this high above the surface below them"))
     probe_grid: int = field(default=9, metadata=_help("probe rays per image row and column when checking a view (corners included)"))
     max_attempts: int = field(default=300, metadata=_help("random placements tried before giving up"))
@@ -78,6 +87,12 @@ class MeshRigConfig:
         need(self.orbit_radius_m >= 0, "orbit_radius_m", "must not be negative (0 = automatic)")
         need(self.orbit_height_m >= 0, "orbit_height_m", "must not be negative (0 = automatic)")
         need(0 < self.sweep_deg <= 360, "sweep_deg", "must be in (0, 360] degrees")
+        need(isinstance(self.rover_views, int) and 0 <= self.rover_views < self.views, "rover_views",
+             "must be between 0 (automatic) and views - 1")
+        need(-89.0 <= self.rover_pitch_deg <= 89.0, "rover_pitch_deg", "must be between -89 and 89 degrees")
+        need(0.0 <= self.min_sky_fraction < 0.5, "min_sky_fraction", "must be in [0, 0.5)")
+        if self.kind == "mixed":
+            need(self.views >= 4, "views", "must be at least 4 for a mixed rig")
         need(self.min_clearance_m >= 0, "min_clearance_m", "must not be negative")
         need(self.probe_grid >= 2, "probe_grid", "must be at least 2")
         need(self.max_attempts >= 1, "max_attempts", "must be at least 1")
@@ -223,6 +238,10 @@ def make_mesh_rig(rig: MeshRigConfig, render: RenderConfig, cast: RayCaster, bou
         poses = _traverse(rig, render, cast, footprint, top_z, rng)
         hint = ("lower --views / rig.spacing_m or rig.border_margin_m, or raise rig.pitch_deg downwards "
                 "(views must see the surface in every direction)")
+    elif rig.kind == "mixed":
+        poses = _mixed(rig, render, cast, footprint, top_z, rng)
+        hint = ("change rig.rover_pitch_deg (up shows more sky), lower rig.min_sky_fraction, or change the "
+                "orbit (rig.orbit_radius_m, the centre)")
     else:
         poses = _orbit(rig, render, cast, footprint, top_z, rng)
         hint = "change rig.orbit_radius_m, rig.orbit_height_m or the centre"
@@ -234,16 +253,25 @@ def make_mesh_rig(rig: MeshRigConfig, render: RenderConfig, cast: RayCaster, bou
 
 
 def _traverse(rig: MeshRigConfig, render: RenderConfig, cast: RayCaster, footprint: Footprint, top_z: float,
-              rng: np.random.Generator) -> list[CameraPose] | None:
-    candidates = np.argwhere(footprint.inside_distance >= max(rig.border_margin_m, footprint.cell))
+              rng: np.random.Generator, *, views: Optional[int] = None, pitch_deg: Optional[float] = None,
+              region: Optional[np.ndarray] = None, sky: bool = False) -> list[CameraPose] | None:
+    """A drive of ``views`` (default rig.views) at ``pitch_deg`` (default rig.pitch_deg), started
+    in ``region`` (a footprint-shaped boolean grid; default everywhere). ``sky``: the views
+    need the surface along the lower half of the image only, and the drive is kept when at
+    least ``rig.min_sky_fraction`` of the probe rays miss the mesh."""
+    views = rig.views if views is None else views
+    allowed = footprint.inside_distance >= max(rig.border_margin_m, footprint.cell)
+    if region is not None:
+        allowed &= region
+    candidates = np.argwhere(allowed)
     if len(candidates) == 0:
         return None
-    pitch = math.radians(rig.pitch_deg)
+    pitch = math.radians(rig.pitch_deg if pitch_deg is None else pitch_deg)
     for _ in range(rig.max_attempts):
         row, col = candidates[rng.integers(len(candidates))]
         start = np.array([footprint.x0 + col * footprint.cell, footprint.y0 + row * footprint.cell])
         heading0 = rng.uniform(0.0, 2.0 * math.pi)
-        turns = rng.uniform(-1.0, 1.0, size=rig.views) * math.radians(rig.max_turn_deg)
+        turns = rng.uniform(-1.0, 1.0, size=views) * math.radians(rig.max_turn_deg)
         turns[0] = 0.0
         headings = heading0 + np.cumsum(turns)
         steps = rig.spacing_m * np.stack([np.cos(headings), np.sin(headings)], axis=1)
@@ -257,12 +285,59 @@ def _traverse(rig: MeshRigConfig, render: RenderConfig, cast: RayCaster, footpri
         if not np.all(np.isfinite(ground)):
             continue
         positions = np.concatenate([xy, (ground + rig.mast_height_m)[:, None]], axis=1)
-        poses = _poses(positions, headings, np.full(rig.views, pitch), render)
-        if _views_see_surface(poses, cast, rig.probe_grid, render.near_m):
-            for pose in poses:
-                pose.target = _central_hit(pose, cast)
-            return poses
+        poses = _poses(positions, headings, np.full(views, pitch), render)
+        if sky:
+            fraction = _sky_fraction(poses, cast, rig.probe_grid, render.near_m)
+            if fraction is None or fraction < rig.min_sky_fraction:
+                continue
+        elif not _views_see_surface(poses, cast, rig.probe_grid, render.near_m):
+            continue
+        for pose in poses:
+            pose.target = _central_hit(pose, cast)
+        return poses
     return None
+
+
+def _sky_fraction(poses: list[CameraPose], cast: RayCaster, grid: int, min_distance: float) -> Optional[float]:
+    """Share of the probe rays of ``poses`` that miss the mesh, or None when a ray in the lower
+    half of an image misses it or meets it nearer than ``min_distance``."""
+    pixels = _probe_pixels(poses[0].width, poses[0].height, grid)
+    lower = pixels[:, 1] >= poses[0].height / 2
+    missed = 0
+    for pose in poses:
+        rays = pose.pixel_rays(pixels)
+        distances = np.asarray(cast(np.repeat(pose.camera_center[None], len(rays), axis=0), rays), dtype=np.float64)
+        hit = np.isfinite(distances)
+        if not np.all(hit[lower]) or np.any(distances[hit] <= min_distance):
+            return None
+        missed += int((~hit).sum())
+    return missed / (len(poses) * len(pixels))
+
+
+def _mixed(rig: MeshRigConfig, render: RenderConfig, cast: RayCaster, footprint: Footprint, top_z: float,
+           rng: np.random.Generator) -> list[CameraPose] | None:
+    """Aerial orbit views, then rover views with sky driving inside the orbit's circle."""
+    import dataclasses
+
+    rover_views = rig.rover_views or max(1, round(0.4 * rig.views))
+    aerial = _orbit(dataclasses.replace(rig, kind="orbit", views=rig.views - rover_views), render, cast,
+                    footprint, top_z, rng)
+    if aerial is None:
+        return None
+    centre = aerial[0].target[:2]
+    radius = float(np.linalg.norm(aerial[0].camera_center[:2] - centre))
+    rows, cols = footprint.heights.shape
+    x = footprint.x0 + footprint.cell * np.arange(cols)
+    y = footprint.y0 + footprint.cell * np.arange(rows)
+    region = np.hypot(x[None, :] - centre[0], y[:, None] - centre[1]) <= radius
+    rover = _traverse(rig, render, cast, footprint, top_z, rng, views=rover_views, pitch_deg=rig.rover_pitch_deg,
+                      region=region, sky=True)
+    if rover is None:
+        return None
+    poses = aerial + rover
+    for index, pose in enumerate(poses):
+        pose.name = f"view_{index:03d}"
+    return poses
 
 
 def _orbit(rig: MeshRigConfig, render: RenderConfig, cast: RayCaster, footprint: Footprint, top_z: float,

@@ -28,11 +28,17 @@ class SceneJob:
     sfm: bool = field(default=False, metadata={"help": "also run pycolmap SfM on the renders into sparse_sfm/0"})
     overwrite: bool = field(default=False, metadata={"help": "replace an existing output folder (only once the new one is complete)"})
     mesh: str = field(default="", metadata={"help": "render this textured mesh (.glb/.gltf/.obj/.ply) instead of a synthetic preset (docs/mesh_scenes.md)"})
-    rig: str = field(default="traverse", metadata={"help": "with --mesh: camera layout", "choices": ("traverse", "orbit")})
+    rig: str = field(default="traverse", metadata={
+        "help": "with --mesh: camera layout (mixed = aerial orbit + rover views with sky)",
+        "choices": ("traverse", "orbit", "mixed")})
     mast_height_m: float = field(default=2.0, metadata={"help": "with --mesh --rig traverse: camera height above the surface, metres"})
     pitch_deg: float = field(default=-30.0, metadata={
         "help": "with --mesh --rig traverse: camera pitch in degrees (negative looks down; near 0 the views "
                 "show the horizon and the sky)"})
+    rover_views: int = field(default=0, metadata={
+        "help": "with --mesh --rig mixed: how many of the views are rover-height views (0 = 40 %%)"})
+    rover_pitch_deg: float = field(default=2.0, metadata={
+        "help": "with --mesh --rig mixed: rover views' pitch in degrees (the horizon and sky in frame)"})
 
     def validate(self) -> None:
         from ..errors import ConfigError
@@ -63,7 +69,8 @@ class SceneJob:
         if self.samples:
             render.samples = self.samples
         rig = MeshRigConfig(kind=self.rig, views=self.views or base.rig.views, mast_height_m=self.mast_height_m,
-                            pitch_deg=self.pitch_deg)
+                            pitch_deg=self.pitch_deg, rover_views=self.rover_views,
+                            rover_pitch_deg=self.rover_pitch_deg)
         config = MeshSceneConfig(mesh=str(Path(self.mesh).expanduser().resolve()), name=Path(self.mesh).stem,
                                  seed=self.seed if self.seed >= 0 else 0, rig=rig, render=render)
         config.validate()
