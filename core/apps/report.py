@@ -206,6 +206,39 @@ def geometry_scores(depth: Optional[np.ndarray], normal: Optional[np.ndarray], v
     return scores
 
 
+_UNSEEN = np.array([255, 0, 255], np.float32)  # magenta: ground no training view saw
+
+
+def unseen_ground_masks(run_dir: Path, stems: list[str]) -> dict[str, np.ndarray]:
+    """{stem: [H, W] bool} ground of each held-out view that no training view saw (the run's
+    Gaussians decide; see :mod:`esgs.core.train.coverage`). Empty when the run cannot be read."""
+    import torch
+
+    from ..train.coverage import training_depths, unseen_ground
+    from ..train.evaluate import load_run
+
+    _, data, model, backend, device = load_run(run_dir)
+    views = {view.stem: view for view in data.test}
+    with torch.no_grad():
+        params = model.render_params(model.max_sh_degree)
+        depths = training_depths(params, data.train, backend=backend, device=device)
+        return {stem: unseen_ground(params, views[stem], data.train, backend=backend, device=device,
+                                    train_depths=depths) for stem in stems if stem in views}
+
+
+def mark_unseen(image: np.ndarray, unseen: Optional[np.ndarray]) -> np.ndarray:
+    """``image`` with unseen ground tinted magenta and outlined (unchanged when nothing is unseen)."""
+    image = _rgb(image).copy()
+    if unseen is None or not unseen.any() or unseen.shape != image.shape[:2]:
+        return image
+    tinted = image.astype(np.float32)
+    tinted[unseen] = 0.55 * tinted[unseen] + 0.45 * _UNSEEN
+    tinted = tinted.round().astype(np.uint8)
+    contours, _ = cv2.findContours(unseen.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(tinted, contours, -1, (255, 0, 255), 1)
+    return tinted
+
+
 def _geometry_figure(config: Any, scene: Path, out: Path) -> tuple[str, dict[str, dict[str, float]]]:
     """Truth, the used priors and the ESGS run's rendered depth and normals, one held-out view.
 
@@ -364,13 +397,18 @@ def write_report(config: Any, scene: Path, runs: dict[str, dict], distances: dic
 
     # held-out renders beside the ground truth, with a magnified crop
     test_dir = RunDir(config.out / "runs" / "esgs").test_renders
-    for ground_truth_path in sorted(test_dir.glob("*_gt.png"))[:3]:
-        stem = ground_truth_path.name[: -len("_gt.png")]
-        images = [("ground truth", read_image(ground_truth_path))]
+    held_out = [path.name[: -len("_gt.png")] for path in sorted(test_dir.glob("*_gt.png"))[:3]]
+    try:
+        unseen_masks = unseen_ground_masks(config.out / "runs" / "esgs", held_out)
+    except Exception:  # noqa: BLE001 - the pictures still help without the marks
+        unseen_masks = {}
+    for stem in held_out:
+        unseen = unseen_masks.get(stem)
+        images = [("ground truth", read_image(test_dir / f"{stem}_gt.png"))]
         for name, folder in (("ESGS", "esgs"), ("3DGS", "3dgs")):
             path = RunDir(config.out / "runs" / folder).test_render(stem)
             if path.is_file():
-                images.append((name, read_image(path)))
+                images.append((name, mark_unseen(read_image(path), unseen)))
         height, width = images[0][1].shape[:2]
         box = (width // 2 - width // 8, height // 2 - height // 8, width // 4, height // 4)
         top = _hstack([_label(image, name) for name, image in images])
@@ -378,6 +416,9 @@ def write_report(config: Any, scene: Path, runs: dict[str, dict], distances: dic
         figure = out / f"heldout_{stem}.png"
         write_png(figure, _vstack([top, bottom]))
         lines += [f"## Held-out view `{stem}`", "", f"![held-out {stem}](report/{figure.name})", ""]
+        if unseen is not None and unseen.any():
+            lines += [f"Magenta on the renders: ground that no training view saw ({100 * unseen.mean():.1f} % of the "
+                      "view); no method can reconstruct it, so its colour there is a guess.", ""]
 
     snapshots = sorted((out / "snapshots").glob("step_*.png"))
     if snapshots:

@@ -61,3 +61,18 @@ def test_demo_config_is_checked():
         DemoConfig(views=2).validate()
     with pytest.raises(ConfigError, match="iterations"):
         DemoConfig(iterations=5).validate()
+
+
+def test_unseen_ground_is_tinted_and_outlined():
+    image = np.full((20, 30, 3), 100, np.uint8)
+    unseen = np.zeros((20, 30), bool)
+    unseen[5:15, 10:20] = True
+    marked = report.mark_unseen(image, unseen)
+    assert marked.shape == (20, 30, 3)
+    inner = marked[8:12, 13:17].reshape(-1, 3)
+    # tinted towards magenta inside (red and blue up, green down), untouched outside, outlined at the edge
+    assert np.all(inner[:, 0] > 100) and np.all(inner[:, 1] < 100) and np.all(inner[:, 2] > 100)
+    np.testing.assert_array_equal(marked[0:3, 0:5], image[0:3, 0:5])
+    np.testing.assert_array_equal(marked[5, 12], [255, 0, 255])
+    np.testing.assert_array_equal(report.mark_unseen(image, np.zeros((20, 30), bool)), image)
+    np.testing.assert_array_equal(report.mark_unseen(image, None), image)
