@@ -32,6 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="training method (default: 3dgs, or the method whose flags are given); "
                              "--method esgs starts from the full method for --priors (esgs.core.methods.full_esgs)")
     parser.add_argument("--list-methods", action="store_true", help="list the training methods and exit")
+    parser.add_argument("--vanilla", action="store_true",
+                        help="plain 3DGS as published, for comparisons with other tools: no sky model and no sky "
+                             "masks (--sky none --mask-source none; esgs.core.train.config.VANILLA_3DGS)")
     seen: set[str] = set()
     for name, settings_class in _settings_classes().items():
         group = parser.add_argument_group(f"method {name}", get_method(name).description)
@@ -111,6 +114,15 @@ def build_config(args: argparse.Namespace):
         settings = method.default_settings()
     if method.settings_class is not None:
         settings = dataclass_from_args(method.settings_class, args, base=settings)
+    if getattr(args, "vanilla", False):
+        from ..train.config import VANILLA_3DGS
+
+        clashing = [key for key, value in VANILLA_3DGS.items()
+                    if getattr(args, key, None) is not None and getattr(args, key) != value]
+        if clashing:
+            raise ConfigError(f"--vanilla sets {', '.join('--' + key.replace('_', '-') for key in clashing)} itself",
+                              hint="leave those flags out, or drop --vanilla")
+        config = dataclasses.replace(config, **VANILLA_3DGS)
     values = {**config_to_dict(config), "scene": str(args.scene), "method": name,
               "method_config": config_to_dict(settings) if settings is not None else None}
     return train_config_from_dict(values, saved=False)

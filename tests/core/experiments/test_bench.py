@@ -56,7 +56,8 @@ def test_suites_name_their_presets_and_the_plan_skips_methods_without_priors(tmp
     (bare / "sparse").mkdir(parents=True)
     tasks, notes = plan_bench({"tiny": (scene, 0), "bare": (bare, 1)}, tmp_path / "out", iterations=5, priors="gt")
     assert len([t for t in tasks if t.scene_name == "tiny"]) == len(METHODS)
-    assert {t.variant for t in tasks if t.scene_name == "bare"} == {"3DGS", "Mip-Splatting", "DropoutGS"}
+    assert {t.variant for t in tasks if t.scene_name == "bare"} == {"3DGS", "3DGS + sky model (our defaults)",
+                                                                   "Mip-Splatting", "DropoutGS"}
     assert len(notes) == 5 and all("bare" in note for note in notes)
     full = next(t for t in tasks if t.name == "tiny/esgs_full")
     assert full.config["method"] == "esgs"
@@ -76,7 +77,11 @@ def test_prior_rows_use_the_chosen_source_and_only_the_labelled_upper_bound_row_
     # the tiny scene has gt priors only: with the default (ndn) the ESGS rows have nothing to read
     tasks, notes = plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=5)
     planned = {t.name.split("/")[1]: t for t in tasks}
-    assert set(planned) == {"3dgs", "mip_splatting", "dropout_gs", UPPER_BOUND_KEY}
+    assert set(planned) == {"3dgs", "3dgs_sky", "mip_splatting", "dropout_gs", UPPER_BOUND_KEY}
+    # the published baselines run vanilla; the sky-model row and ESGS keep the defaults
+    for key in ("3dgs", "mip_splatting", "dropout_gs"):
+        assert planned[key].config["sky"] == "none" and planned[key].config["mask_source"] == "none"
+    assert "sky" not in planned["3dgs_sky"].config and "sky" not in planned[UPPER_BOUND_KEY].config
     assert planned[UPPER_BOUND_KEY].config["method_config"]["priors"] == "gt" and "upper bound" in planned[UPPER_BOUND_KEY].variant
     assert len(notes) == 4 and all("no ndn" in note for note in notes)
     with pytest.raises(ConfigError, match="labels"):

@@ -158,3 +158,24 @@ def test_the_train_command_lists_methods_and_starts_full_esgs_from_method_esgs(t
     args = parser.parse_args(["scene", "--out", str(tmp_path), "--priors", "gt", "--depth"])
     config = train_command.build_config(args)
     assert config.method == "esgs" and config.method_config.depth and not config.method_config.gpdfn
+
+
+def test_the_vanilla_switch_trains_plain_3dgs_and_refuses_clashing_flags(tmp_path):
+    import argparse
+
+    from esgs.core.commands import train as train_command
+    from esgs.core.errors import ConfigError
+    from esgs.core.train.config import VANILLA_3DGS, TrainConfig
+
+    parser = argparse.ArgumentParser()
+    train_command.add_arguments(parser)
+    default = train_command.build_config(parser.parse_args(["scene", "--out", str(tmp_path)]))
+    assert (default.sky, default.mask_source) == (TrainConfig.sky, TrainConfig.mask_source) == ("envmap", "auto")
+    plain = train_command.build_config(parser.parse_args(["scene", "--out", str(tmp_path), "--vanilla"]))
+    assert {key: getattr(plain, key) for key in VANILLA_3DGS} == VANILLA_3DGS
+    assert plain.iterations == default.iterations and plain.method == "3dgs"
+    # a flag saying the same is fine; one saying otherwise is an error naming it
+    same = parser.parse_args(["scene", "--out", str(tmp_path), "--vanilla", "--sky", "none"])
+    assert train_command.build_config(same).sky == "none"
+    with pytest.raises(ConfigError, match="--sky"):
+        train_command.build_config(parser.parse_args(["scene", "--out", str(tmp_path), "--vanilla", "--sky", "envmap"]))
