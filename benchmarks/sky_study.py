@@ -71,11 +71,13 @@ def measure(run_dir: Path, scene: Path) -> dict[str, Any]:
     return result
 
 
-def arms(names: list[str], alpha_weights: list[float]) -> dict[str, dict[str, Any]]:
+def arms(names: list[str], alpha_weights: list[float], surface_weights: list[float] = ()) -> dict[str, dict[str, Any]]:
     table = {"none": {"sky": "none", "mask_source": "none"}, "envmap": {}}
     chosen = {name: table[name] for name in names}
     for weight in alpha_weights:
         chosen[f"envmap-alpha{weight:g}"] = {"sky_alpha_weight": weight}
+    for weight in surface_weights:
+        chosen[f"envmap-surface{weight:g}"] = {"surface_alpha_weight": weight}
     return chosen
 
 
@@ -87,6 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--arms", nargs="*", default=["none", "envmap"])
     parser.add_argument("--alpha-weights", type=float, nargs="*", default=[])
+    parser.add_argument("--surface-alpha-weights", type=float, nargs="*", default=[])
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--measure-run", action="append", default=[], help="ARM/SCENE=RUN_DIR of an older run")
     parser.add_argument("--json", type=Path, default=None)
@@ -95,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for seed in args.seeds:
         for scene_name, scene in scenes.items():
-            for arm, settings in arms(args.arms, args.alpha_weights).items():
+            for arm, settings in arms(args.arms, args.alpha_weights, args.surface_alpha_weights).items():
                 out = args.out / scene_name / arm / f"seed{seed}"
                 config = {"iterations": args.iterations, "seed": seed, "threads": args.threads, "lpips": True,
                           "save_renders": True, "checkpoint_every": 0, **settings}

@@ -60,6 +60,9 @@ class TrainConfig:
     sky_alpha_weight: float = field(default=0.05, metadata=_help(
         "weight of mean(alpha) over sky pixels, where the mask source marks sky (gt, ndn): keeps Gaussians from "
         "painting the sky so the sky model does; 0 = off"))
+    surface_alpha_weight: float = field(default=0.0, metadata=_help(
+        "weight of mean(1 - alpha) over the pixels such masks mark as surface: keeps the ground opaque so the "
+        "sky model shows only through the sky; 0 = off"))
 
     # --- run control ----------------------------------------------------------------
     iterations: int = field(default=30_000, metadata=_help("training steps"))
@@ -165,7 +168,7 @@ class TrainConfig:
             raise ConfigError(f"sky must be one of {', '.join(SKY_MODELS)}, got {self.sky!r}")
         if not 0 <= self.sky_degree <= 3:
             raise ConfigError(f"sky_degree must be in 0..3, got {self.sky_degree}")
-        for name in ("sky_lr", "sky_alpha_weight"):
+        for name in ("sky_lr", "sky_alpha_weight", "surface_alpha_weight"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.test_every == 1:
@@ -202,7 +205,8 @@ class TrainConfig:
 #: with: a run folder or checkpoint whose config lacks one is read with this value, so an
 #: older run resumes as it was going (Gaussians in their old order) instead of changing.
 #: A dotted name ("esgs.sky_weight") is a setting of a section of the legacy layout below.
-PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0, "sky": "none", "mask_photometric": True}
+PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0, "sky": "none", "mask_photometric": True,
+                          "surface_alpha_weight": 0.0}
 
 #: Legacy layout (runs saved before methods were registered): the method's settings were
 #: the sections "esgs" (ESGSConfig) and "baselines" (Mip-Splatting and DropoutGS switches

@@ -317,6 +317,8 @@ class Trainer:
         self.optimizer.add_group("sky", list(self.sky.parameters()), config.sky_lr, per_gaussian=False)
         if config.sky_alpha_weight > 0 and marks_sky:
             self.add_loss_term(LossTerm("sky_alpha", config.sky_alpha_weight, _sky_alpha_term))
+        if config.surface_alpha_weight > 0 and marks_sky:
+            self.add_loss_term(LossTerm("surface_alpha", config.surface_alpha_weight, _surface_alpha_term))
 
     # --- checkpoints ---------------------------------------------------------------
     def _state(self) -> dict:
@@ -596,6 +598,17 @@ def _sky_alpha_term(context: LossContext) -> torch.Tensor:
     if not bool(sky.any()):
         return context.alpha.sum() * 0.0
     return context.alpha[..., 0][sky].mean()
+
+
+def _surface_alpha_term(context: LossContext) -> torch.Tensor:
+    """Mean (1 - alpha) over the view's surface pixels (mask True): the sky model shows only
+    through sky, so it cannot stand in for half-transparent ground."""
+    if context.mask is None:
+        return context.alpha.sum() * 0.0
+    surface = context.mask[..., 0]
+    if not bool(surface.any()):
+        return context.alpha.sum() * 0.0
+    return (1.0 - context.alpha[..., 0][surface]).mean()
 
 
 def _resume_state(run: RunDir, config: TrainConfig, method: Method) -> Optional[dict]:

@@ -145,6 +145,26 @@ def test_gaussians_are_kept_off_the_sky_where_the_masks_mark_it(fast_config, sky
     assert sky_alpha(1.0) < 0.8 * sky_alpha(0.0)
 
 
+def test_the_ground_is_kept_opaque_where_the_masks_mark_surface(fast_config, sky_scene, tmp_path):
+    from esgs.core.train.trainer import Trainer
+
+    def surface_gap(weight: float) -> float:
+        """Mean (1 - alpha) over the training views' surface pixels after 60 steps."""
+        trainer = Trainer(_config(fast_config, sky_scene, tmp_path / f"s{weight}", surface_alpha_weight=weight))
+        trainer.setup()
+        assert ("surface_alpha" in {term.name for term in trainer.loss_terms}) == (weight > 0)
+        for step in range(1, 61):
+            trainer.train_step(step)
+        gaps = []
+        with torch.no_grad():
+            for view in trainer.data.train:
+                alpha = trainer.render(trainer.gaussians.render_params(0), view).alpha[..., 0]
+                gaps.append(float(1.0 - alpha[view.mask[..., 0]].mean()))
+        return float(np.mean(gaps))
+
+    assert surface_gap(1.0) < 0.8 * surface_gap(0.0)
+
+
 def test_a_resumed_run_continues_its_sky_exactly(fast_config, sky_scene, tmp_path):
     from esgs.core.train import train
 
