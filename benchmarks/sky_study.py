@@ -71,6 +71,34 @@ def measure(run_dir: Path, scene: Path) -> dict[str, Any]:
     return result
 
 
+SUMMARY_KEYS = ("psnr", "ssim", "lpips", "sky_mae", "distance_mean", "n_gaussians", "psnr_sky_views",
+                "psnr_ground_views")
+
+
+def view_groups(row: dict[str, Any]) -> dict[str, Any]:
+    """Mean held-out PSNR of the views that show sky (rover-height views) and of those that do not."""
+    sky = [view["psnr"] for view in row.get("views", []) if view["sky_fraction"] > 0]
+    ground = [view["psnr"] for view in row.get("views", []) if view["sky_fraction"] == 0]
+    return {"psnr_sky_views": float(np.mean(sky)) if sky else None,
+            "psnr_ground_views": float(np.mean(ground)) if ground else None}
+
+
+def summarize(rows: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, float]]]:
+    """{"scene/arm": {figure: {mean, std, n}}} over the seeds of each scene and arm."""
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for row in rows:
+        groups.setdefault(f"{row['scene']}/{row['arm']}", []).append({**row, **view_groups(row)})
+    summary = {}
+    for name, members in groups.items():
+        summary[name] = {}
+        for key in SUMMARY_KEYS:
+            values = [m[key] for m in members if m.get(key) is not None]
+            if values:
+                summary[name][key] = {"mean": float(np.mean(values)), "std": float(np.std(values, ddof=1)) if len(values) > 1 else 0.0,
+                                      "n": len(values)}
+    return summary
+
+
 def arms(names: list[str], alpha_weights: list[float], surface_weights: list[float] = ()) -> dict[str, dict[str, Any]]:
     table = {"none": {"sky": "none", "mask_source": "none"}, "envmap": {}}
     chosen = {name: table[name] for name in names}
@@ -83,8 +111,8 @@ def arms(names: list[str], alpha_weights: list[float], surface_weights: list[flo
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", action="append", required=True, help="NAME=SCENE_DIR (repeat)")
-    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--scene", action="append", default=[], help="NAME=SCENE_DIR (repeat)")
+    parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--iterations", type=int, default=1000)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--arms", nargs="*", default=["none", "envmap"])
@@ -93,7 +121,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--measure-run", action="append", default=[], help="ARM/SCENE=RUN_DIR of an older run")
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--summarize", type=Path, nargs="+", default=None,
+                        help="print the summary of these study JSON files (rows merged) and exit")
     args = parser.parse_args(argv)
+    if args.summarize:
+        rows = [row for path in args.summarize for row in json.loads(path.read_text())["rows"]]
+        for name, figures in summarize(rows).items():
+            print(name, {key: f"{value['mean']:.4g} ± {value['std']:.2g} (n={value['n']})" for key, value in figures.items()})
+        return 0
+    if not args.scene or args.out is None:
+        parser.error("--scene and --out are required (unless --summarize)")
     scenes = dict(item.split("=", 1) for item in args.scene)
     rows = []
     for seed in args.seeds:
@@ -117,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({k: v for k, v in rows[-1].items() if k != "views"}), flush=True)
     if args.json is not None:
         atomic_write_json(args.json, {"command": " ".join(sys.argv), "iterations": args.iterations,
-                                      "scenes": scenes, "rows": rows})
+                                      "scenes": scenes, "rows": rows, "summary_over_seeds": summarize(rows)})
     return 0
 
 
