@@ -16,7 +16,9 @@ class ESGS_PT_main(bpy.types.Panel):
     bl_category = "ESGS"
 
     def draw(self, context: bpy.types.Context) -> None:
-        from ... import __version__
+        # the add-on's own top package: ``esgs`` in a checkout, ``bl_ext.<repository>.esgs`` as
+        # an installed extension (whose parent package has no version)
+        from .. import __version__
 
         self.layout.label(text=f"ESGS for Blender {__version__}")
 

@@ -1,0 +1,159 @@
+"""Every panel of the add-on and its preferences draw without an error, in the checkout
+(package ``esgs``) and as an installed extension (``bl_ext.user_default.esgs``), in the
+states a user meets: nothing chosen yet, a scene folder chosen, jobs running, a run failed.
+
+Drawing uses :class:`~tests.blender.panel_drawing.RecordingLayout` (every ``layout.*`` call
+checked against the real UILayout and recorded), so no window is needed.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+import esgs  # noqa: E402
+from esgs.core.apps import jobs  # noqa: E402
+from esgs.esgs_addon import gaussians_import, training_job  # noqa: E402
+from tests.blender import panel_drawing  # noqa: E402
+from tests.blender.panel_drawing import draw_everything, draw_panel  # noqa: E402
+
+REPO_ROOT = Path(esgs.__file__).resolve().parent
+NO_SCENE_HINT = "Import a COLMAP scene or choose its folder"
+
+
+def operators(calls) -> list[str]:
+    return [call.text for call in calls if call.name == "operator"]
+
+
+def labels(calls) -> list[str]:
+    return [call.text for call in calls if call.name == "label"]
+
+
+def props(calls) -> list[str]:
+    return [call.text for call in calls if call.name == "prop"]
+
+
+@pytest.fixture
+def scene_folder(tmp_path) -> Path:
+    folder = tmp_path / "scene"
+    (folder / "sparse" / "0").mkdir(parents=True)
+    (folder / "images").mkdir()
+    (folder / "priors" / "gt" / "depth").mkdir(parents=True)
+    return folder
+
+
+def test_every_panel_is_drawn():
+    drawn = draw_everything(esgs)
+    registered = {name for name in dir(bpy.types) if name.startswith("ESGS_PT_")}
+    assert registered and set(drawn) == registered | {"preferences"}
+    assert all(drawn.values()), [name for name, calls in drawn.items() if not calls]
+
+
+def test_nothing_chosen_yet():
+    drawn = draw_everything(esgs)
+    assert labels(drawn["ESGS_PT_main"]) == [f"ESGS for Blender {esgs.__version__}"]
+    assert {"esgs.generate_terrain", "esgs.render_dataset"} <= set(operators(drawn["ESGS_PT_terrain"]))
+    assert {"esgs.import_colmap", "esgs.export_colmap"} <= set(operators(drawn["ESGS_PT_import"]))
+    training = drawn["ESGS_PT_training"]
+    assert {"esgs.train", "esgs.compute_priors"} <= set(operators(training))
+    assert "esgs.train_cancel" not in operators(training) and "esgs.train_resume" not in operators(training)
+    assert NO_SCENE_HINT in labels(training)
+    assert {"scene_dir", "run_dir", "method", "iterations"} <= set(props(training))
+    assert "esgs.import_gaussians" in operators(drawn["ESGS_PT_results"])
+    assert "esgs.render_labels" in operators(drawn["ESGS_PT_labels"])
+    assert {"python_path", "threads", "output_dir"} <= set(props(drawn["preferences"]))
+
+
+def test_a_scene_folder_chosen(scene_folder):
+    bpy.context.scene.esgs.training.scene_dir = str(scene_folder)
+    training = draw_everything(esgs)["ESGS_PT_training"]
+    assert NO_SCENE_HINT not in labels(training)
+    assert "esgs.train" in operators(training)
+
+
+def test_esgs_method_jobs_running_and_a_failed_run(scene_folder, tmp_path):
+    settings = bpy.context.scene.esgs
+    settings.training.scene_dir = str(scene_folder)
+    settings.training.method = "esgs"
+    training = draw_everything(esgs)["ESGS_PT_training"]
+    assert {"depth", "normal", "gpdfn"} <= set(props(training))
+
+    training_job.copy_state(settings.training, jobs.JobState(status="running", step=3, total=10, loss=0.5,
+                                                             psnr=20.0, n_gaussians=100, eta_s=9.0))
+    settings.priors.status, settings.priors.total = "running", 4
+    training = draw_everything(esgs)["ESGS_PT_training"]
+    assert "esgs.train_cancel" in operators(training) and "esgs.compute_priors_cancel" in operators(training)
+    assert "esgs.train" not in operators(training)
+
+    training_job.copy_state(settings.training, jobs.JobState(status="failed", error="RuntimeError: " + "x" * 120))
+    settings.training.last_run_dir = str(tmp_path / "run")
+    settings.priors.status, settings.priors.last_method = "finished", "ndn"
+    training = draw_everything(esgs)["ESGS_PT_training"]
+    assert {"esgs.train", "esgs.train_resume"} <= set(operators(training))
+    assert "Last run: failed" in labels(training) and "Priors written: priors/ndn" in labels(training)
+
+
+def test_the_gaussians_panel_with_gaussians_selected(tmp_path):
+    from esgs.core.formats.ply import GaussianPly, write_gaussians_ply
+
+    write_gaussians_ply(tmp_path / "g.ply", GaussianPly(
+        means=np.zeros((2, 3)), normals=np.zeros((2, 3)), sh_dc=np.zeros((2, 3)), sh_rest=np.zeros((2, 0, 3)),
+        opacity_logit=np.ones(2), log_scales=np.zeros((2, 3)), quats_wxyz=np.tile([1.0, 0, 0, 0], (2, 1))))
+    bpy.context.view_layer.objects.active = gaussians_import.import_gaussians(tmp_path / "g.ply")
+    _, calls = draw_panel(bpy.types.ESGS_PT_results)
+    assert "esgs.compare_to_mesh" in operators(calls)
+    assert any(text.endswith(": 2 Gaussians") for text in labels(calls))
+
+
+def test_the_recorder_catches_what_blender_would_reject():
+    class Misspelt:
+        bl_idname = "misspelt"
+
+        def draw(self, context):
+            self.layout.prop(context.scene.esgs.training, "iteration")
+
+    class UnknownOperator(Misspelt):
+        def draw(self, context):
+            self.layout.operator("esgs.no_such_thing")
+
+    class BadIcon(Misspelt):
+        def draw(self, context):
+            self.layout.label(text="hello", icon="NO_SUCH_ICON")
+
+    for cls in (Misspelt, UnknownOperator, BadIcon):
+        with pytest.raises((AssertionError, KeyError)):
+            draw_panel(cls)
+
+
+def test_panels_draw_as_an_installed_extension(tmp_path, scene_folder):
+    """Blender loads an installed extension as ``bl_ext.<repository>.esgs``: the panels must
+    find everything by relative imports (the version label used to fail with
+    ``cannot import name '__version__' from 'bl_ext.user_default'``)."""
+    profile = tmp_path / "profile"
+    repository = profile / "extensions" / "user_default"
+    repository.mkdir(parents=True)
+    (repository / "esgs").symlink_to(REPO_ROOT, target_is_directory=True)
+    env = {**os.environ, "BLENDER_USER_RESOURCES": str(profile)}
+    env.pop("ESGS_PYTHON", None)
+    done = subprocess.run([sys.executable, panel_drawing.__file__, str(scene_folder)], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    assert result["addon_id"] == "bl_ext.user_default.esgs"
+    assert result["modules"] == []  # nothing of the add-on was imported as plain "esgs"
+    for state in ("no_scene", "scene_chosen"):
+        drawn = result[state]
+        assert drawn["ESGS_PT_main"]["labels"] == [f"ESGS for Blender {result['version']}"]
+        assert "esgs.train" in drawn["ESGS_PT_training"]["operators"]
+        assert "esgs.render_dataset" in drawn["ESGS_PT_terrain"]["operators"]
+        assert "python_path" in drawn["preferences"]["props"]
+    assert result["version"] == esgs.__version__
+    assert NO_SCENE_HINT in result["no_scene"]["ESGS_PT_training"]["labels"]
+    assert NO_SCENE_HINT not in result["scene_chosen"]["ESGS_PT_training"]["labels"]
