@@ -93,6 +93,13 @@ def find_scene_dir(scene: bpy.types.Scene, explicit: str = "",
     return folder
 
 
+def use_for_training(scene: bpy.types.Scene, scene_dir: str | Path) -> None:
+    """Make ``scene_dir`` the folder the Training section trains on and computes priors for
+    (``scene.esgs.training.scene_dir``): what Render Dataset and Import COLMAP do with the
+    folder they wrote or read, so the next step in the panel is Compute Priors or Train."""
+    scene.esgs.training.scene_dir = str(Path(scene_dir))
+
+
 def collection_of_scene_dir(scene: bpy.types.Scene, scene_dir: Path) -> Optional[bpy.types.Collection]:
     """The collection imported from ``scene_dir`` (for its placement), or None."""
     target = Path(scene_dir).resolve()

@@ -4,6 +4,7 @@ from __future__ import annotations
 import bpy
 
 from ..core.errors import ESGSError
+from ..esgs_addon import training_job
 from ..esgs_addon.colmap_scene import import_colmap_scene
 from ..esgs_addon.settings_colmap_import import options_from_properties
 from ._menu import menu_hooks
@@ -39,6 +40,9 @@ class ESGS_OT_import_colmap(bpy.types.Operator):
         except ESGSError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
+        folder = training_job.scene_dir_of_collection(result["collection"])
+        if folder is not None:
+            training_job.use_for_training(context.scene, folder)
         for warning in result["warnings"]:
             self.report({"WARNING"}, warning)
         if result["image_planes"]:

@@ -23,13 +23,14 @@ def find_scene_collection(context: bpy.types.Context) -> bpy.types.Collection:
 
 class ESGS_OT_render_dataset(BlockingJobOperator, bpy.types.Operator):
     """Render every camera of the synthetic scene with Cycles (CPU) and write the scene folder
-    (images, COLMAP model, depth/normal/mask priors, ground-truth mesh). Blocks until done"""
+    (images, COLMAP model, depth/normal/mask priors, ground-truth mesh), which Training then uses. Blocks until done"""
 
     bl_idname = "esgs.render_dataset"
     bl_label = "Render Dataset"
     bl_options = {"REGISTER"}
 
     def run_job(self, context, progress):
+        from ..esgs_addon import training_job
         from ..esgs_addon.render_dataset import render_dataset
         from ..esgs_addon.terrain_scene import scene_objects_from_collection
 
@@ -40,7 +41,8 @@ class ESGS_OT_render_dataset(BlockingJobOperator, bpy.types.Operator):
         out = render_dataset(objects, bpy.path.abspath(settings.output_dir), progress=progress,
                              sfm=settings.sfm, overwrite=settings.overwrite,
                              points_per_view=settings.points_per_view, scene=context.scene)
-        return f"Wrote scene folder {out}"
+        training_job.use_for_training(context.scene, out)
+        return f"Wrote scene folder {out}; Training now uses it"
 
 
 CLASSES = (ESGS_OT_render_dataset,)

@@ -253,6 +253,7 @@ def test_operator_imports_with_the_scene_settings(tmp_path):
     settings.image_plane_distance = 3.0
     settings.collection_name = "roof"
     assert bpy.ops.esgs.import_colmap(directory=str(scene_dir)) == {"FINISHED"}
+    assert bpy.context.scene.esgs.training.scene_dir == str(scene_dir)  # Training trains what was imported
     collection = bpy.data.collections["roof"]
     planes = [obj for obj in collection.objects if obj.type == "MESH"]
     assert len(planes) == 4
@@ -342,3 +343,9 @@ def test_example_script_saves_a_blend(tmp_path):
     failed = subprocess.run([sys.executable, str(REPO_ROOT / "examples" / "import_colmap.py"), str(tmp_path / "nothing")],
                             capture_output=True, text=True, timeout=120)
     assert failed.returncode == 1 and "folder not found" in failed.stderr
+
+
+def test_importing_a_model_folder_chooses_its_scene_for_training(tmp_path):
+    scene_dir = write_scene(tmp_path, synthetic_model())
+    assert bpy.ops.esgs.import_colmap(directory=str(scene_dir / "sparse" / "0")) == {"FINISHED"}
+    assert bpy.context.scene.esgs.training.scene_dir == str(scene_dir)  # the scene folder, not sparse/0

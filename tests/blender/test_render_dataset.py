@@ -225,9 +225,17 @@ def test_render_operator_writes_the_generated_scene(tmp_path):
     info = json.loads((tmp_path / "from_operator" / "scene.json").read_text())
     assert info["config"]["name"] == "rocky_slope" and info["grayscale"] is True  # a Navcam-like preset
     assert len(read_model(tmp_path / "from_operator").images) == 2
+    # the rendered folder leads into Training: it is the scene to compute priors for and train
+    assert bpy.context.scene.esgs.training.scene_dir == str(tmp_path / "from_operator")
+    assert bpy.ops.esgs.compute_priors.poll()
+    from esgs.esgs_addon.training_job import find_scene_dir
+
+    assert find_scene_dir(bpy.context.scene, bpy.context.scene.esgs.training.scene_dir) == tmp_path / "from_operator"
     # a second run into the same folder is refused and reported, not raised
+    bpy.context.scene.esgs.training.scene_dir = ""
     with pytest.raises(RuntimeError, match="already exists"):
         bpy.ops.esgs.render_dataset()
+    assert bpy.context.scene.esgs.training.scene_dir == ""  # a refused render chooses nothing
 
 
 def test_esgs_scene_command_end_to_end(tmp_path, capsys):
