@@ -23,8 +23,8 @@ class ESGS_AP_preferences(bpy.types.AddonPreferences):
 
     python_path: bpy.props.StringProperty(
         name="Trainer Python",
-        description="Python interpreter with torch and the esgs engine installed (empty: find the project's "
-                    ".venv, then $ESGS_PYTHON, then Blender's own Python)",
+        description="Python interpreter with torch and the esgs engine installed (empty: $ESGS_PYTHON, then "
+                    "the .venv in the extension's folder, then Blender's own Python, which has no torch)",
         subtype="FILE_PATH",
     )
     threads: bpy.props.IntProperty(

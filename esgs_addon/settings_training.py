@@ -13,11 +13,12 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 from collections.abc import Iterator
-from typing import Any
+from pathlib import Path
+from typing import Any, Optional
 
 import bpy
 
-from ..core.errors import ConfigError
+from ..core.errors import ConfigError, ESGSError
 from ..core.methods import full_esgs, get_method, method_names
 from ..core.formats.scene_dir import PriorSource
 from ..core.train.config import TrainConfig
@@ -36,9 +37,21 @@ ESGS_METHOD = "esgs"
 #: when ESGSConfig has one)
 ESGS_PARTS = ("depth", "normal", "consistency", "gpdfn")
 
+#: the panel's training steps: a run that ends in minutes on a CPU (about 0.15-0.5 s a step at
+#: 320x180, README "Known limitations"), where TrainConfig's default is the paper's 30,000 steps
+#: (hours on a CPU); the step schedules scale with it (docs/training.md)
+DEFAULT_ITERATIONS = 2000
+
+#: the method drop-down's help (TrainConfig's speaks of ``esgs train --list-methods``)
+METHOD_DESCRIPTION = "How to train: plain 3DGS, ESGS (depth/normal priors and GPDFN) or another published method"
+
 _TRAIN_EXTRA = {
-    "iterations": {"min": 1, "soft_max": 100_000},
-    "width": {"name": "Image width", "min": 0, "soft_max": 4096, "subtype": "PIXEL"},
+    "iterations": {"min": 1, "soft_max": 100_000, "default": DEFAULT_ITERATIONS,
+                   "description": "Training steps (the paper trains 30,000: hours on a CPU; the schedules scale "
+                                  "with the number of steps)"},
+    # the dataclass's help speaks of the command line's --resolution
+    "width": {"name": "Image width", "min": 0, "soft_max": 4096, "subtype": "PIXEL",
+              "description": "Width in pixels the images are trained at (0: their own size)"},
     "test_every": {"min": 0},
     "seed": {"min": 0},
     "max_minutes": {"min": 0.0},
@@ -54,10 +67,87 @@ def method_settings_classes() -> Iterator[tuple[str, type]]:
             yield name, settings_class
 
 
-def _prior_source_suggestions(self, context, edit_text: str):
-    # a string with suggestions rather than an enum: an enum cannot hold "" (= no priors),
-    # and .blend files saved before this kept the source as a string
-    return [(source.value, f"priors/{source.value}") for source in PriorSource]
+# --------------------------------------------------------------------------- prior source
+# ``priors`` (ESGSConfig's field) stays the stored string: scripts and .blend files saved
+# earlier set it, and "" means no priors, which an enum item cannot be. The panel shows
+# ``prior_source``, a drop-down over it of what the chosen scene folder holds.
+
+#: the ``prior_source`` item for "no priors" (``priors == ""``)
+NO_PRIORS = "NONE"
+
+#: the sources Compute Priors makes for any scene (ndn, sfm)
+COMPUTED_SOURCES = tuple(source.value for source in PriorSource.computed())
+
+_SOURCE_HELP = {
+    PriorSource.GT: "exact depth, normals and sky mask rendered with the synthetic scene",
+    PriorSource.LABELS: "depth and normals rendered from a mesh (the Labels section)",
+    PriorSource.NDN: "dense relative depth and normals from the NDN network",
+    PriorSource.SFM: "sparse depth at the COLMAP points each view observes",
+}
+
+
+def training_scene_dir(group: Any, context: Any = None) -> Optional[Path]:
+    """The scene folder Training would use now (:func:`.training_job.find_scene_dir`: the
+    panel's folder, else the imported scene's), or None when there is none yet."""
+    from .training_job import find_scene_dir
+
+    context = context or bpy.context
+    try:
+        return find_scene_dir(group.id_data, group.scene_dir, getattr(context, "active_object", None))
+    except ESGSError:
+        return None
+
+
+def prior_source_choices(group: Any, context: Any = None) -> list[tuple[str, str, str]]:
+    """``(identifier, name, description)`` of the prior sources the panel offers: none, each
+    ``priors/<source>`` folder the scene folder holds, the sources Compute Priors makes (ndn,
+    sfm) when not there yet, and the current choice even when its folder is gone."""
+    from ..core.priors.io import available_prior_sources
+
+    folder = training_scene_dir(group, context)
+    present = available_prior_sources(folder) if folder is not None else []
+    order = [source.value for source in PriorSource]
+    present.sort(key=lambda name: (order.index(name) if name in order else len(order), name))
+    items = [(NO_PRIORS, "None", "No prior maps (the consistency loss and GPDFN need none)")]
+    for name in present:
+        help_text = _SOURCE_HELP.get(PriorSource(name)) if name in order else None
+        items.append((name, name, f"priors/{name} of the scene folder" + (f": {help_text}" if help_text else "")))
+    for source in PriorSource.computed():
+        if source.value not in present:
+            items.append((source.value, f"{source.value} (compute first)",
+                          f"{_SOURCE_HELP[source]}; not in the scene folder yet: choose it, then press Compute Priors"))
+    if group.priors and group.priors not in {item[0] for item in items}:
+        items.append((group.priors, f"{group.priors} (missing)", f"the scene folder has no priors/{group.priors}"))
+    return items
+
+
+def _numbered(items: list[tuple[str, str, str]]) -> list[tuple[str, str, str, int]]:
+    # fixed numbers for the known sources, so the stored choice survives a changing list
+    order = [source.value for source in PriorSource]
+    return [(identifier, name, description,
+             0 if identifier == NO_PRIORS else order.index(identifier) + 1 if identifier in order else 100 + index)
+            for index, (identifier, name, description) in enumerate(items)]
+
+
+def _prior_source_items(self, context):
+    items = _numbered(prior_source_choices(self, context))
+    _prior_source_items.cache = items  # Blender keeps references to the strings of dynamic items
+    return items
+
+
+def _get_prior_source(self) -> int:
+    current = self.priors or NO_PRIORS
+    return next((number for identifier, _, _, number in _numbered(prior_source_choices(self))
+                 if identifier == current), 0)
+
+
+def _set_prior_source(self, value: int) -> None:
+    for identifier, name, _, number in _numbered(prior_source_choices(self)):
+        if number == value:
+            self.priors = "" if identifier == NO_PRIORS else identifier  # its update offers the full method
+            if identifier in COMPUTED_SOURCES and name.endswith("(compute first)"):
+                self.id_data.esgs.priors.method = identifier  # Compute Priors beside it makes what was chosen
+            return
 
 
 def _esgs_parts_on(group: Any) -> bool:
@@ -91,22 +181,25 @@ def _annotations() -> dict[str, Any]:
             name="Run folder", subtype="DIR_PATH",
             description="Folder the run is written to (empty: a new folder in the preferences' runs folder)"),
     }
-    method_field = next(fld for fld in dataclasses.fields(TrainConfig) if fld.name == "method")
     annotations["method"] = bpy.props.EnumProperty(
-        name="Method", description=method_field.metadata["help"],
+        name="Method", description=METHOD_DESCRIPTION,
         items=[(name, get_method(name).label, get_method(name).description) for name in method_names()],
         default=DEFAULT_METHOD, update=_offer_full_esgs)
     annotations.update(property_annotations(TrainConfig, _TRAIN_EXTRA, names=TRAIN_FIELDS))
     for method, settings_class in method_settings_classes():
         extra = {}
         if method == ESGS_METHOD:
-            extra = {"priors": {"search": _prior_source_suggestions, "search_options": {"SUGGESTION"},
-                                "update": _offer_full_esgs}}
+            extra = {"priors": {"update": _offer_full_esgs}}
         derived = property_annotations(settings_class, extra)
         clashes = set(derived) & set(annotations)
         if clashes:
             raise TypeError(f"settings of method {method!r} reuse the option names {sorted(clashes)}")
         annotations.update(derived)
+    if "priors" in annotations:
+        annotations["prior_source"] = bpy.props.EnumProperty(
+            name="Prior source", items=_prior_source_items, get=_get_prior_source, set=_set_prior_source,
+            description="Prior maps ESGS trains with: a priors/<source> folder of the scene folder, or one "
+                        "Compute Priors makes (ndn, sfm)")
     annotations["import_result"] = bpy.props.BoolProperty(
         name="Import result", description="Import the trained Gaussians when training finishes", default=True)
 

@@ -23,7 +23,7 @@ import bpy
 import numpy as np
 
 from ..core.apps import jobs
-from ..core.errors import DatasetError
+from ..core.errors import ConfigError, DatasetError
 from ..core.apps.jobs import JobState, TrainingJob
 from ..core.formats.scene_dir import PriorSource
 from ..core.train.config import TrainConfig
@@ -129,10 +129,57 @@ def training_config(settings: Any) -> TrainConfig:
     method = chosen_method(settings)
     method_config = method_settings(settings, method)
     if getattr(method_config, "priors", ""):
-        # a typo in the (free-text) source would otherwise surface as a missing folder deep in the child
+        # a typo in a source set by a script would otherwise surface as a missing folder deep in the child
         PriorSource.parse(method_config.priors, tuple(PriorSource))
+    elif getattr(method_config, "depth", False) or getattr(method_config, "normal", False):
+        # said here in the panel's words (the trainer's message names its command-line flag)
+        raise ConfigError("the depth and normal prior losses need prior maps",
+                          hint="choose a Prior source in the Training section, or switch Depth and Normal off")
     values.update(method=method, method_config=method_config)
     return TrainConfig(**values)
+
+
+def check_scene(scene_dir: str | Path, config: Optional[TrainConfig] = None,
+                run_dir: str | Path | None = None) -> None:
+    """Fail at once, in Blender, for what would make a new run fail in the child, before any
+    run folder is made (the messages name the panel's controls).
+
+    Raises:
+        DatasetError: ``scene_dir`` is not a scene folder (no COLMAP model or no images/), or
+            the prior source of ``config`` has no ``priors/<source>`` folder in it.
+        ConfigError: ``run_dir`` already holds a run.
+    """
+    from ..core.colmap.io import find_model_dir
+    from ..core.formats.run_dir import RunDir
+    from ..core.formats.scene_dir import SceneDir
+    from ..core.priors.io import available_prior_sources
+
+    scene_dir = Path(scene_dir)
+    where = "choose one as the Training section's Scene folder, or make one with Render Dataset or Import COLMAP"
+    if not scene_dir.is_dir():
+        raise DatasetError("the scene folder does not exist", path=scene_dir, hint=where)
+    try:
+        find_model_dir(scene_dir)
+    except DatasetError as error:
+        raise DatasetError(f"not a scene folder: {error.message}", path=scene_dir,
+                           hint=f"a scene folder holds images/ and sparse/0; {where}") from None
+    if not SceneDir(scene_dir).images.is_dir():
+        raise DatasetError("not a scene folder: it has no images/ folder", path=scene_dir,
+                           hint=f"a scene folder holds images/ and sparse/0; {where}")
+    source = getattr(getattr(config, "method_config", None), "priors", "")
+    if source and source not in available_prior_sources(scene_dir):
+        if source in (PriorSource.NDN, PriorSource.SFM):
+            hint = f"press Compute Priors with {source} first, or choose another Prior source"
+        elif source == PriorSource.LABELS:
+            hint = "render them in the Labels section first, or choose another Prior source"
+        else:
+            hint = "choose another Prior source (gt priors come with a rendered synthetic scene)"
+        raise DatasetError(f"the scene folder has no {source} priors", path=SceneDir(scene_dir).prior(source),
+                           hint=hint)
+    if run_dir is not None and RunDir(Path(run_dir)).exists():
+        raise ConfigError("the run folder already holds a run", path=run_dir,
+                          hint="press Resume Training to continue it, or choose another Run folder "
+                               "(empty: a new one)")
 
 
 def new_run_dir(scene_dir: Path) -> Path:
@@ -168,9 +215,13 @@ def start_training(scene_dir: str | Path, run_dir: str | Path | None = None, ite
         threads: CPU threads for the child (default: the preference).
 
     Raises:
-        ESGSError: a job is already running for this scene folder, or the trainer cannot start.
+        ESGSError: a new run's scene folder, priors or run folder would fail it (:func:`check_scene`;
+            nothing is written then), a job is already running for this scene folder, or the
+            trainer cannot start.
     """
     scene_dir = Path(scene_dir)
+    if not resume:
+        check_scene(scene_dir, config, run_dir)
     run_dir = Path(run_dir) if run_dir else new_run_dir(scene_dir)
     threads = preferences.trainer_threads() if threads is None else threads
     trainer = list(TRAINER_OVERRIDE) if TRAINER_OVERRIDE else jobs.child_command(python or preferences.trainer_python())

@@ -27,7 +27,7 @@ class ESGS_OT_compute_priors(bpy.types.Operator):
         try:
             folder = _scene_dir(context)
         except ESGSError:
-            cls.poll_message_set("Import a COLMAP scene or set the training's scene folder first")
+            cls.poll_message_set("Render Dataset, Import COLMAP or choose the Training section's Scene folder first")
             return False
         if priors_job.running_job(folder) is not None:
             cls.poll_message_set("Priors are being computed for this scene")

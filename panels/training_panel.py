@@ -3,14 +3,17 @@ from __future__ import annotations
 
 import bpy
 
-from ..core.errors import ESGSError
 from ..core.apps.jobs import format_duration
+from ..core.formats.scene_dir import SceneDir
 from ..core.methods import get_method
-from ..esgs_addon import interrupted_jobs, settings_training, training_job
+from ..esgs_addon import interrupted_jobs, settings_training
 from ..esgs_addon.properties import property_values
 from ._section import ESGSSection
 
 ORDER = 110  # after the import panel
+
+#: shown while there is no scene folder to train on
+NO_SCENE = "Render Dataset, Import COLMAP or choose a Scene folder"
 
 
 class ESGS_PT_training(ESGSSection, bpy.types.Panel):
@@ -27,19 +30,18 @@ class ESGS_PT_training(ESGSSection, bpy.types.Panel):
         column = layout.column()
         column.enabled = not running
         column.prop(settings, "scene_dir")
-        if not settings.scene_dir:
-            try:
-                folder = training_job.find_scene_dir(context.scene, "", context.active_object)
-                column.label(text=f"Scene: {folder.name}", icon="FILE_FOLDER")
-            except ESGSError:
-                column.label(text="Import a COLMAP scene or choose its folder", icon="INFO")
+        scene_dir = settings_training.training_scene_dir(settings, context)
+        if scene_dir is None:
+            column.label(text=NO_SCENE, icon="INFO")
+        elif not settings.scene_dir:
+            column.label(text=f"Scene: {scene_dir.name}", icon="FILE_FOLDER")
         column.prop(settings, "run_dir")
         column.prop(settings, "method")
         column.prop(settings, "iterations")
         column.prop(settings, "width")
         method = settings_training.chosen_method(settings)
         if method == settings_training.ESGS_METHOD:
-            _draw_esgs(column.box(), settings, context.scene.esgs.priors)
+            _draw_esgs(column.box(), settings, context.scene.esgs.priors, scene_dir)
         else:
             _draw_method_settings(column, settings, method)
             # prior maps also give plain runs their sky masks (TrainConfig.mask_source), so
@@ -83,12 +85,19 @@ class ESGS_PT_training(ESGSSection, bpy.types.Panel):
                 box.label(text=line, icon="ERROR" if index == 0 else "NONE")
 
 
-def _draw_esgs(layout: bpy.types.UILayout, settings, priors) -> None:
+def _draw_esgs(layout: bpy.types.UILayout, settings, priors, scene_dir) -> None:
     """ESGS's parts: the prior source (and its computation), each part's switch and weight."""
     layout.label(text="ESGS")
-    layout.prop(settings, "priors")
+    layout.prop(settings, "prior_source")
     if not settings.priors:
         layout.label(text="Choose a prior source for the full method", icon="INFO")
+    elif scene_dir is not None and not SceneDir(scene_dir).has_prior_maps(settings.priors, "depth") \
+            and not SceneDir(scene_dir).has_prior_maps(settings.priors, "normal"):
+        if settings.priors in settings_training.COMPUTED_SOURCES:
+            text = f"No {settings.priors} priors yet: press Compute Priors ({settings.priors})"
+        else:
+            text = f"The scene folder has no {settings.priors} priors: choose another source"
+        layout.label(text=text, icon="ERROR")
     _draw_priors(layout, priors)
     for part in settings_training.ESGS_PARTS:
         row = layout.row(align=True)

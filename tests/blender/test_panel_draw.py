@@ -22,10 +22,11 @@ import esgs  # noqa: E402
 from esgs.core.apps import jobs  # noqa: E402
 from esgs.esgs_addon import gaussians_import, training_job  # noqa: E402
 from tests.blender import panel_drawing  # noqa: E402
+from esgs.panels.training_panel import NO_SCENE  # noqa: E402
 from tests.blender.panel_drawing import draw_everything, draw_panel  # noqa: E402
 
 REPO_ROOT = Path(esgs.__file__).resolve().parent
-NO_SCENE_HINT = "Import a COLMAP scene or choose its folder"
+NO_SCENE_HINT = NO_SCENE
 
 
 def operators(calls) -> list[str]:

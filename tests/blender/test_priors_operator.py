@@ -117,7 +117,7 @@ def test_errors_are_reported_and_leave_nothing_behind(ndn_scene, tmp_path):
     settings = bpy.context.scene.esgs.priors
     training = bpy.context.scene.esgs.training
 
-    with pytest.raises(RuntimeError, match="Import a COLMAP scene"):  # poll says why
+    with pytest.raises(RuntimeError, match="Render Dataset, Import COLMAP or choose"):  # poll says why
         bpy.ops.esgs.compute_priors()
 
     empty = tmp_path / "empty"

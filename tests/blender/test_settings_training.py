@@ -34,8 +34,14 @@ def test_every_option_has_its_dataclass_fields_default_and_help():
                                                "consistency", "gpdfn", "depth_weight", "fused_k", "mip_filter_3d",
                                                "dropout_rate"}
     for fld, prop in derived:
-        assert prop.description == fld.metadata["help"], fld.name
+        # the panel's own words where the dataclass's speak of command-line flags
+        help_text = settings_training._TRAIN_EXTRA.get(fld.name, {}).get("description", fld.metadata["help"])
+        assert prop.description == help_text, fld.name
+        assert "--" not in prop.description, fld.name
         default = prop.default
+        if fld.name == "iterations":
+            assert default == settings_training.DEFAULT_ITERATIONS < fld.default  # minutes on a CPU, not hours
+            continue
         if prop.type == "FLOAT":
             assert default == pytest.approx(fld.default, rel=1e-6), fld.name
         else:
@@ -45,14 +51,15 @@ def test_every_option_has_its_dataclass_fields_default_and_help():
     method = _properties()["method"]
     assert [item.identifier for item in method.enum_items] == list(method_names())
     assert [item.name for item in method.enum_items] == [get_method(name).label for name in method_names()]
-    assert method.description == next(f for f in dataclasses.fields(TrainConfig) if f.name == "method").metadata["help"]
+    assert method.description == settings_training.METHOD_DESCRIPTION and "--" not in method.description
 
 
 def test_a_fresh_scene_trains_plain_3dgs_with_the_trainers_defaults():
     config = training_job.training_config(bpy.context.scene.esgs.training)
     assert (config.method, config.method_config) == ("3dgs", None)
     for name in settings_training.TRAIN_FIELDS:
-        assert getattr(config, name) == getattr(TrainConfig(), name), name  # floats come back exactly
+        expected = settings_training.DEFAULT_ITERATIONS if name == "iterations" else getattr(TrainConfig(), name)
+        assert getattr(config, name) == expected, name  # floats come back exactly
 
 
 def _other_value(fld: dataclasses.Field, prop):
@@ -117,7 +124,8 @@ def test_the_panel_draws_the_chosen_methods_settings():
 
     settings.method = "esgs"
     record = draw(ESGS_PT_training)
-    assert {"priors", *settings_training.ESGS_PARTS} <= set(props(record))
+    assert {"prior_source", *settings_training.ESGS_PARTS} <= set(props(record))
+    assert "priors" not in props(record)  # the stored string is not typed in: a drop-down sets it
     assert "depth_weight" not in props(record)  # a weight shows beside its switched-on part
     assert ("label", "Choose a prior source for the full method") in record
     settings.priors = "gt"
@@ -126,3 +134,44 @@ def test_the_panel_draws_the_chosen_methods_settings():
     settings.method = "mip-splatting"
     shown = props(draw(ESGS_PT_training))
     assert {"mip_filter_3d", "mip_filter_2d", "mip_frustum_margin"} <= set(shown) and "depth" not in shown
+
+
+def test_the_prior_source_offers_what_the_scene_folder_holds(tmp_path):
+    from esgs.panels.training_panel import ESGS_PT_training
+
+    settings = bpy.context.scene.esgs.training
+    settings.method = "esgs"
+    offered = lambda: {identifier: name for identifier, name, _ in settings_training.prior_source_choices(settings)}
+    # no scene folder yet: none, or one that Compute Priors will make
+    assert list(offered()) == ["NONE", "ndn", "sfm"]
+    with pytest.raises(TypeError):
+        settings.prior_source = "gt"
+
+    scene = tmp_path / "scene"
+    for folder in ("priors/labels/normal", "priors/gt/depth", "priors/empty", "sparse/0", "images"):
+        (scene / folder).mkdir(parents=True)
+    settings.scene_dir = str(scene)
+    assert offered() == {"NONE": "None", "gt": "gt", "labels": "labels", "ndn": "ndn (compute first)",
+                         "sfm": "sfm (compute first)"}  # folders with maps, most faithful first
+    settings.prior_source = "labels"
+    assert (settings.priors, settings.prior_source) == ("labels", "labels")
+    assert settings.depth and settings.gpdfn  # a source chosen with every part off: the full method
+    settings.prior_source = "NONE"
+    assert (settings.priors, settings.prior_source) == ("", "NONE")
+
+    # a source not computed yet is offered and makes Compute Priors compute it
+    bpy.context.scene.esgs.priors.method = "ndn"
+    settings.prior_source = "sfm"
+    assert settings.priors == "sfm" and bpy.context.scene.esgs.priors.method == "sfm"
+    labels = [entry[1] for entry in draw(ESGS_PT_training) if entry[0] == "label"]
+    assert "No sfm priors yet: press Compute Priors (sfm)" in labels
+    (scene / "priors" / "sfm" / "depth").mkdir(parents=True)
+    assert offered()["sfm"] == "sfm"
+    assert not any(entry[1].startswith("No sfm priors") for entry in draw(ESGS_PT_training) if entry[0] == "label")
+
+    # a source set by a script (or an older .blend) whose folder is gone stays shown, marked
+    settings.priors = "gt"
+    (scene / "priors" / "gt" / "depth").rmdir()
+    assert offered()["gt"] == "gt (missing)" and settings.prior_source == "gt"
+    labels = [entry[1] for entry in draw(ESGS_PT_training) if entry[0] == "label"]
+    assert "The scene folder has no gt priors: choose another source" in labels

@@ -72,10 +72,10 @@ def fake_trainer(tmp_path, monkeypatch):
 
 @pytest.fixture
 def scene_dir(tmp_path) -> Path:
-    folder = tmp_path / "scene"
-    (folder / "sparse" / "0").mkdir(parents=True)
-    (folder / "images").mkdir()
-    return folder
+    """A scene folder as the trainer reads it: images/ and a COLMAP model in sparse/0."""
+    from tests.blender.colmap_helpers import synthetic_model, write_scene
+
+    return write_scene(tmp_path, synthetic_model(), name="scene")
 
 
 def colmap_collection(folder: Path, name: str = "scene"):
@@ -134,6 +134,7 @@ def test_failure_shows_the_trainers_message(tmp_path, fake_trainer, scene_dir, m
     settings.iterations = 3
     settings.depth = True
     settings.priors = "gt"
+    (scene_dir / "priors" / "gt" / "depth").mkdir(parents=True)
     objects_before = len(bpy.data.objects)
     with pytest.raises(RuntimeError, match="ran out of memory"):
         bpy.ops.esgs.train()
@@ -157,6 +158,42 @@ def test_no_scene_folder_is_a_clear_error():
         bpy.ops.esgs.train()
     with pytest.raises(RuntimeError, match="no earlier run"):
         bpy.ops.esgs.train_resume()
+
+
+def test_a_folder_that_is_not_a_scene_fails_before_any_run_folder(tmp_path, fake_trainer):
+    not_a_scene = tmp_path / "photos"
+    (not_a_scene / "images").mkdir(parents=True)
+    settings = bpy.context.scene.esgs.training
+    settings.scene_dir = str(not_a_scene)
+    for run_dir in (str(tmp_path / "run"), ""):  # a named run folder, and a new one in the runs folder
+        settings.run_dir = run_dir
+        with pytest.raises(RuntimeError, match="not a scene folder: no COLMAP model") as raised:
+            bpy.ops.esgs.train()
+        assert "Scene folder" in str(raised.value) and "--" not in str(raised.value)
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["fake_trainer.py", "photos"]  # no run folder
+    assert settings.status == "" and settings.last_run_dir == ""
+
+
+def test_missing_priors_and_a_used_run_folder_are_said_in_panel_words(tmp_path, fake_trainer, scene_dir):
+    settings = bpy.context.scene.esgs.training
+    settings.scene_dir, settings.run_dir, settings.method = str(scene_dir), str(tmp_path / "run"), "esgs"
+    settings.prior_source = "ndn"  # offered although not computed yet: it is what Compute Priors makes
+    assert settings.priors == "ndn" and bpy.context.scene.esgs.priors.method == "ndn"
+    with pytest.raises(RuntimeError, match="no ndn priors.*press Compute Priors with ndn") as raised:
+        bpy.ops.esgs.train()
+    assert "--" not in str(raised.value) and not (tmp_path / "run").exists()
+
+    assert settings.depth and settings.normal  # choosing the source gave the full method
+    settings.prior_source = "NONE"  # its prior losses stay on, without a source now
+    with pytest.raises(RuntimeError, match="choose a Prior source in the Training section") as raised:
+        bpy.ops.esgs.train()
+    assert "--" not in str(raised.value) and not (tmp_path / "run").exists()
+
+    settings.depth = settings.normal = False
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "config.json").write_text("{}")  # a run the trainer wrote
+    with pytest.raises(RuntimeError, match="already holds a run.*Resume Training"):
+        bpy.ops.esgs.train()
 
 
 def test_scene_folder_from_the_imported_collection(scene_dir, tmp_path):
