@@ -78,6 +78,7 @@ def _check_call(name: str, args: tuple, kwargs: dict) -> None:
             assert prop[2:-2] in data.keys(), f"no custom property {prop}"
         elif hasattr(data, "bl_rna"):
             assert prop in data.bl_rna.properties, f"{type(data).__name__} has no property {prop!r}"
+            getattr(data, prop)  # Blender reads the value to draw it (a getter or dynamic enum runs)
         else:
             assert hasattr(data, prop), prop
     if name == "operator":
@@ -183,7 +184,10 @@ def main(argv: list[str]) -> None:
     settings = bpy.context.scene.esgs
     result: dict[str, Any] = {"no_scene": _summary(draw_everything(addon))}
     settings.training.scene_dir = argv[0]
+    settings.training.method = "esgs"  # its prior-source drop-down lists the scene folder's priors
     result["scene_chosen"] = _summary(draw_everything(addon))
+    result["prior_sources"] = [item[0] for item in importlib.import_module(
+        f"{addon.__name__}.esgs_addon.settings_training").prior_source_choices(settings.training)]
     result["modules"] = sorted(name for name in sys.modules if name == "esgs" or name.startswith("esgs."))
     result["addon_id"] = preferences_class(addon).bl_idname
     result["version"] = addon.__version__
