@@ -9,7 +9,9 @@ the triangles, not on a vertex sample), both ways:
 
 and summarises them as statistics, with and without an opacity filter (nearly transparent
 Gaussians barely show in renders, so both figures are reported with the threshold used),
-plus precision / recall / F-score at a distance threshold.
+plus precision / recall / F-score at a distance threshold. Given the training cameras,
+completeness and recall count only the part of the surface they saw (:mod:`.visibility`),
+and the threshold can scale with the scene (:func:`.visibility.scene_threshold`).
 
 Everything takes and returns numpy arrays and plain dicts; no bpy. Units are the scene's
 (metres for synthetic scenes).
@@ -18,11 +20,12 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Optional, Sequence
 
 import numpy as np
 
 from ..errors import ConfigError, DatasetError
+from .visibility import CameraView, sample_visibility, scene_threshold
 
 _CHUNK_PAIRS = 2_000_000  # point/triangle pairs evaluated at once (~300 MB of float64 temporaries)
 
@@ -287,8 +290,8 @@ class MeshComparison:
 
 def compare_points_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, *,
                            opacities: Optional[np.ndarray] = None, opacity_min: float = 0.5,
-                           threshold_m: float = 0.05, n_surface_samples: int = 100_000,
-                           seed: int = 0) -> MeshComparison:
+                           threshold_m: Optional[float] = 0.05, n_surface_samples: int = 100_000,
+                           seed: int = 0, cameras: Optional[Sequence[CameraView]] = None) -> MeshComparison:
     """Compare Gaussian centres with a ground-truth mesh.
 
     Args:
@@ -297,17 +300,26 @@ def compare_points_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
         opacities: [N] activated opacities in [0, 1]; None treats every Gaussian as opaque.
         opacity_min: Gaussians below this opacity are left out of the filtered figures.
         threshold_m: distance under which a centre (precision) or a surface sample
-            (recall) counts as matched.
+            (recall) counts as matched; None: scaled to the scene by
+            :func:`~.visibility.scene_threshold` (1 % of the median camera-to-surface
+            distance with cameras, 0.5 % of the mesh's bounding-box diagonal without).
         n_surface_samples: surface samples for completeness and recall.
         seed: seed of the surface sampling, recorded in the summary.
+        cameras: the training cameras (:class:`~.visibility.CameraView`, same frame). When
+            given, completeness and recall count only the surface samples they saw
+            (:func:`~.visibility.visible_surface_samples`): a reconstruction cannot cover
+            what no image shows. None: the whole mesh counts.
 
     Returns:
         A :class:`MeshComparison`; ``summary`` holds ``gaussians_to_mesh`` (all
         centres), ``gaussians_to_mesh_filtered``, ``mesh_to_gaussians`` (surface samples
-        to filtered centres), ``precision``, ``recall``, ``fscore`` and the settings used.
+        to filtered centres), ``precision``, ``recall``, ``fscore``, ``threshold_m`` and
+        ``threshold_rule``, and the settings used. With cameras also ``recall_scope``
+        ("visible"), ``n_cameras``, ``n_visible_samples``, ``visible_fraction`` and
+        ``recall_whole_mesh`` (recall over every sample, for reference).
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    if threshold_m <= 0:
+    if threshold_m is not None and threshold_m <= 0:
         raise ConfigError(f"the distance threshold must be positive, got {threshold_m}")
     if n_surface_samples <= 0:
         raise ConfigError(f"the number of surface samples must be positive, got {n_surface_samples}")
@@ -321,9 +333,19 @@ def compare_points_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
     distances = point_to_mesh_distances(points, vertices, faces)
     samples = sample_mesh_surface(vertices, faces, n_surface_samples, seed=seed)
     completeness = nearest_point_distances(samples, points[kept])
+    visible = np.ones(len(samples), dtype=bool)
+    viewing_distance = None
+    if cameras is not None:
+        vertices_array, faces_array = _check_mesh(vertices, faces)
+        visible, viewing_distance = sample_visibility(vertices_array, faces_array, samples, list(cameras))
+    if threshold_m is None:
+        threshold_m, rule = scene_threshold(viewing_distance, np.asarray(vertices, dtype=np.float64))
+    else:
+        rule = "given"
     filtered = distances[kept]
     precision = float(np.mean(filtered <= threshold_m)) if len(filtered) else 0.0
-    recall = float(np.mean(completeness <= threshold_m))
+    seen_completeness = completeness[visible]
+    recall = float(np.mean(seen_completeness <= threshold_m)) if len(seen_completeness) else 0.0
     fscore = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
     summary = {
         "units": "scene units (metres for synthetic scenes)",
@@ -331,15 +353,24 @@ def compare_points_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
         "opacity_min": float(opacity_min) if opacities is not None else None,
         "n_gaussians_filtered": int(kept.sum()),
         "threshold_m": float(threshold_m),
+        "threshold_rule": rule,
         "n_surface_samples": int(n_surface_samples),
         "seed": int(seed),
+        "recall_scope": "whole mesh" if cameras is None else "surface seen by the training cameras",
         "gaussians_to_mesh": distance_statistics(distances),
         "gaussians_to_mesh_filtered": distance_statistics(filtered),
-        "mesh_to_gaussians": distance_statistics(completeness if len(filtered) else np.zeros(0)),
+        "mesh_to_gaussians": distance_statistics(seen_completeness if len(filtered) else np.zeros(0)),
         "precision": precision,
         "recall": recall,
         "fscore": float(fscore),
     }
+    if cameras is not None:
+        summary.update({
+            "n_cameras": len(list(cameras)),
+            "n_visible_samples": int(visible.sum()),
+            "visible_fraction": float(visible.mean()),
+            "recall_whole_mesh": float(np.mean(completeness <= threshold_m)),
+        })
     return MeshComparison(distances=distances, kept=kept, summary=summary)
 
 
