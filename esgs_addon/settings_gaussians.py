@@ -36,8 +36,14 @@ class ESGS_PG_gaussians(bpy.types.PropertyGroup):
         name="Opacity min", description="Gaussians below this opacity are left out of the filtered figures",
         default=0.5, min=0.0, max=1.0)
     threshold: bpy.props.FloatProperty(
-        name="Threshold", description="Distance under which a point counts as matched (precision, recall)",
-        default=0.05, min=1e-6, subtype="DISTANCE", precision=4)
+        name="Threshold", description="Distance under which a point counts as matched (precision, recall). "
+        "0: scale with the scene, 1% of the median distance from the training cameras to the surface they saw "
+        "(without cameras 0.5% of the mesh's bounding-box diagonal)",
+        default=0.0, min=0.0, subtype="DISTANCE", precision=4)
+    seen_surface_only: bpy.props.BoolProperty(
+        name="Seen surface only", description="Count recall and completeness only over the part of the mesh the "
+        "training cameras of the Gaussians' run saw (in a camera's view and not hidden); off: the whole mesh",
+        default=True)
     surface_samples: bpy.props.IntProperty(
         name="Surface samples", description="Points sampled on the mesh for completeness and recall",
         default=100_000, min=100)

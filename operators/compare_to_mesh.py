@@ -4,7 +4,7 @@ from __future__ import annotations
 import bpy
 
 from ..core.errors import ESGSError
-from ..esgs_addon.compare_mesh import compare_to_mesh
+from ..esgs_addon.compare_mesh import compare_to_mesh, describe
 from ..esgs_addon.gaussians_import import is_gaussian_object
 
 
@@ -36,7 +36,9 @@ class ESGS_OT_compare_to_mesh(bpy.types.Operator):
             return {"CANCELLED"}
         try:
             summary = compare_to_mesh(gaussians, mesh, opacity_min=settings.compare_opacity_min,
-                                      threshold_m=settings.threshold, n_surface_samples=settings.surface_samples,
+                                      threshold_m=settings.threshold or None,
+                                      n_surface_samples=settings.surface_samples,
+                                      cameras="training" if settings.seen_surface_only else None,
                                       out_json=bpy.path.abspath(settings.report_path) if settings.report_path else None)
         except ESGSError as error:
             self.report({"ERROR"}, str(error))
@@ -46,9 +48,8 @@ class ESGS_OT_compare_to_mesh(bpy.types.Operator):
             self.report({"ERROR"}, f"The comparison needs {error.name or 'a missing package'}: {error}")
             return {"CANCELLED"}
         stats = summary["gaussians_to_mesh_filtered"]
-        mean = f"{stats['mean']:.4g}" if stats["mean"] is not None else "n/a"
-        self.report({"INFO"}, f"Mean distance {mean} (opacity >= {settings.compare_opacity_min:g}), "
-                              f"F-score {summary['fscore']:.3f} at {settings.threshold:g}")
+        mean = f"{stats['mean']:.4g} m" if stats["mean"] is not None else "n/a"
+        self.report({"INFO"}, f"Mean distance {mean} (opacity >= {settings.compare_opacity_min:g}); {describe(summary)}")
         return {"FINISHED"}
 
 

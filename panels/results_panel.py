@@ -45,6 +45,9 @@ class ESGS_PT_results(ESGSSection, bpy.types.Panel):
         box.prop(settings, "mesh")
         box.prop(settings, "compare_opacity_min")
         box.prop(settings, "threshold")
+        if settings.threshold == 0:
+            box.label(text="Threshold 0: scaled to the scene (1% of the viewing distance)", icon="INFO")
+        box.prop(settings, "seen_surface_only")
         box.prop(settings, "surface_samples")
         box.prop(settings, "report_path")
         box.operator("esgs.compare_to_mesh", icon="DRIVER_DISTANCE")
@@ -70,8 +73,19 @@ def draw_summary(layout: bpy.types.UILayout, summary: dict) -> None:
         grid = layout.grid_flow(columns=3, even_columns=True)
         for key in ("mean", "std", "median", "p95", "rms", "max"):
             grid.label(text=f"{key} {stats[key]:.4g}")
-    layout.label(text=f"At {summary.get('threshold_m', 0):g}: precision {summary.get('precision', 0):.3f}, "
+    layout.label(text=f"At {summary.get('threshold_m', 0):.4g} m: precision {summary.get('precision', 0):.3f}, "
                       f"recall {summary.get('recall', 0):.3f}, F {summary.get('fscore', 0):.3f}")
+    rule = summary.get("threshold_rule")
+    if rule and rule != "given":
+        layout.label(text=f"Threshold: {rule}")
+    if summary.get("n_visible_samples") is not None:
+        layout.label(text=f"Recall over the {summary.get('visible_fraction', 0):.0%} of the mesh the "
+                          f"{summary.get('n_cameras', 0)} training cameras saw", icon="HIDE_OFF")
+        layout.label(text=f"(whole mesh: recall {summary.get('recall_whole_mesh', 0):.3f})")
+    else:
+        layout.label(text="Recall over the whole mesh (no training cameras known)", icon="INFO")
+    if summary.get("legend"):
+        layout.label(text=f"Heat map legend: '{summary['legend']}' (metres)", icon="COLOR")
 
 
 CLASSES = (ESGS_PT_results,)

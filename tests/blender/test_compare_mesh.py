@@ -158,3 +158,77 @@ def test_operator_reports_a_missing_dependency(tmp_path, monkeypatch):
     bpy.context.view_layer.objects.active = obj
     with pytest.raises(RuntimeError, match="needs scipy"):
         bpy.ops.esgs.compare_to_mesh(mesh=plane.name)
+
+
+def seen_half_scene(tmp_path):
+    """A 20 x 10 m ground plane whose training cameras (straight down from 5 m, 90 degree
+    field of view) see only the half x < 0; a run folder naming the scene; Gaussians that
+    cover exactly that half."""
+    from esgs.core.colmap.geometry import matrix_to_quat_wxyz
+    from esgs.core.colmap.io import write_model
+    from esgs.core.colmap.model import Camera, ColmapModel, Image
+    from tests.blender.colmap_helpers import look_at
+
+    scene = tmp_path / "scene"
+    (scene / "images").mkdir(parents=True)
+    pose = look_at(np.array([-5.0, 0.0, 5.0]), np.array([-5.0, 0.0, 0.0]), down_hint=np.array([0.0, -1.0, 0.0]))
+    images = {index: Image(index, name, 1, matrix_to_quat_wxyz(pose[:3, :3]), pose[:3, 3])
+              for index, name in enumerate(("a.png", "b.png", "c.png"), start=1)}
+    write_model(ColmapModel(cameras={1: Camera(1, "PINHOLE", 200, 200, np.array([100.0, 100.0, 100.0, 100.0]))},
+                            images=images, points={}), scene / "sparse" / "0")
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"scene": str(scene), "test_every": 0}))
+    plane = mesh_object("ground truth", np.array([[-10, -5, 0], [10, -5, 0], [10, 5, 0], [-10, 5, 0]], float),
+                        np.array([[0, 1, 2], [0, 2, 3]]))
+    xx, yy = np.meshgrid(np.arange(-10.0, 0.0, 0.04) + 0.02, np.arange(-5.0, 5.0, 0.04) + 0.02)
+    means = np.column_stack([xx.ravel(), yy.ravel(), np.zeros(xx.size)])
+    obj = gaussians_import.import_gaussians(gaussians_file(tmp_path / "g.ply", means))
+    obj["esgs_run_dir"] = str(run)
+    return plane, obj
+
+
+def test_compare_counts_recall_over_the_seen_surface_and_shows_a_legend(tmp_path, capfd):
+    plane, obj = seen_half_scene(tmp_path)
+    settings = bpy.context.scene.esgs.gaussians
+    assert settings.threshold == 0.0 and settings.seen_surface_only  # the defaults: scaled, seen surface
+    settings.mesh = plane
+    settings.surface_samples = 4000
+    bpy.context.view_layer.objects.active = obj
+    capfd.readouterr()
+    assert bpy.ops.esgs.compare_to_mesh() == {"FINISHED"}
+    printed = capfd.readouterr()
+    report = printed.out + printed.err
+    summary = compare_mesh.last_comparison(obj)
+    assert summary["recall"] > 0.97 and summary["recall_whole_mesh"] == pytest.approx(0.5, abs=0.05)
+    assert summary["visible_fraction"] == pytest.approx(0.5, abs=0.05) and summary["n_cameras"] == 3
+    assert "3 training views of scene" in summary["cameras"]
+    # 1 % of the median distance from (-5, 0, 5) to the half it sees: between 5 and 8.7 m
+    assert 0.05 < summary["threshold_m"] < 0.087
+    assert f"at {summary['threshold_m']:.4g} m (1% of the median camera-to-surface distance" in report
+    assert f"recall over the {summary['visible_fraction']:.0%} of the mesh the training cameras saw" in report
+
+    # the heat map's legend: colour bar and labels in metres, beside the cloud, in its collection
+    distance_max = gaussian_nodes.display_input(obj, "Distance Max")
+    bar, *labels = compare_mesh.legend_objects(obj)
+    assert bar.type == "MESH" and bar.name == summary["legend"]
+    assert bar[compare_mesh.PROP_LEGEND_MIN] == 0.0
+    assert bar[compare_mesh.PROP_LEGEND_MAX] == pytest.approx(distance_max)
+    assert compare_mesh.LEGEND_COLOUR_ATTRIBUTE in bar.data.color_attributes
+    assert {label.data.body for label in labels} == {"0 m", f"{distance_max:.3g} m", "distance to mesh"}
+    for legend_object in [bar] + labels:
+        assert legend_object.parent == obj
+        assert set(legend_object.users_collection) == set(obj.users_collection)
+    # a second comparison replaces the legend rather than adding one
+    compare_mesh.compare_to_mesh(obj, plane, n_surface_samples=1000, threshold_m=0.1)
+    assert len(compare_mesh.legend_objects(obj)) == 4  # the bar and its three labels
+
+
+def test_compare_without_training_cameras_says_so(tmp_path):
+    plane, obj = seen_half_scene(tmp_path)
+    del obj["esgs_run_dir"]
+    summary = compare_mesh.compare_to_mesh(obj, plane, n_surface_samples=2000)
+    assert summary["recall_scope"] == "whole mesh" and summary["recall"] == pytest.approx(0.5, abs=0.05)
+    assert "no training cameras known" in summary["cameras"]
+    assert "diagonal" in summary["threshold_rule"]
+    assert "recall over the whole mesh" in compare_mesh.describe(summary)
