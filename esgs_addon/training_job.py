@@ -232,16 +232,146 @@ def start_training(scene_dir: str | Path, run_dir: str | Path | None = None, ite
 
 def wait_for_training(job: TrainingJob, *, report: Callable[[str], None] = print,
                       interval_s: float = 2.0) -> JobState:
-    """Block until ``job`` ends, reporting its progress (one line every ``interval_s``)."""
+    """Block until ``job`` ends, reporting its progress (one line every ``interval_s``; the
+    last line names the held-out figures of a finished run, see :func:`status_line`)."""
     last = [0.0]
 
     def show(state: JobState) -> None:
         now = time.monotonic()
         if now - last[0] >= interval_s or not state.active:
             last[0] = now
-            report(f"ESGS train: {state.summary()}")
+            report(f"ESGS train: {status_line(state, job.run_dir)}")
 
     return job.wait(on_update=show, poll_s=min(0.5, interval_s))
+
+
+#: the PSNR the trainer reports while it trains: a running mean over the views it just fitted
+TRAINING_PSNR_LABEL = "training PSNR (last views)"
+HELD_OUT_LABEL = "held-out"
+
+
+def psnr_label(stage: str) -> str:
+    """What the PSNR of a progress event of ``stage`` measures: the evaluation after training
+    (stage ``eval``) renders the held-out views, training the views it is fitting."""
+    return f"{HELD_OUT_LABEL} PSNR" if stage == "eval" else TRAINING_PSNR_LABEL
+
+
+def status_line(state: JobState, run_dir: str | Path | None = None) -> str:
+    """One line for a console or status bar, each PSNR under its own label.
+
+    While the job runs: status, step, loss, the PSNR of the current stage (see
+    :func:`psnr_label`), Gaussians, ETA. Once it ended with a run folder: the last training
+    PSNR and the held-out PSNR / SSIM / LPIPS of ``metrics.json`` (:func:`run_results`),
+    never the one under the other's name.
+    """
+    parts = [state.status]
+    if state.total:
+        parts.append(f"step {state.step}/{state.total}")
+    if state.loss is not None:
+        parts.append(f"loss {state.loss:.4g}")
+    results = run_results(run_dir) if run_dir is not None and not state.active else None
+    if results is not None:
+        parts.extend(format_results(results))
+    elif state.psnr is not None and state.active:
+        parts.append(f"{psnr_label(state.stage)} {state.psnr:.2f} dB")
+    if state.n_gaussians is not None:
+        parts.append(f"{state.n_gaussians:,} Gaussians")
+    if state.eta_s is not None and state.active:
+        parts.append(f"ETA {jobs.format_duration(state.eta_s)}")
+    if state.error:
+        parts.append(f"error: {state.error}")
+    return "  ".join(parts)
+
+
+def run_results(run_dir: str | Path) -> Optional[dict[str, Any]]:
+    """What a run measured, from its folder; None when it holds neither figure.
+
+    Returns ``{"held_out": metrics.json's content or None, "training_psnr": the last PSNR the
+    trainer reported while training (events.jsonl) or None, "comparison": the summary of the
+    last Compare to Mesh of a Gaussian object imported from this run (or metrics.json's
+    ``distances``), or None, "has_ground_truth_mesh": whether the run's scene folder has
+    mesh/ground_truth.ply}``. ``held_out["split"]`` is ``"train"`` when the scene had no
+    held-out views and the training views were evaluated instead.
+    """
+    import json
+
+    from ..core.formats.run_dir import RunDir
+
+    run = RunDir(Path(run_dir))
+    held_out = None
+    try:
+        held_out = json.loads(run.metrics.read_text())
+    except (OSError, ValueError):
+        pass
+    training_psnr = None
+    try:
+        with open(run.events, encoding="utf-8", errors="replace") as handle:
+            for line in handle:
+                try:
+                    event = json.loads(line)
+                except ValueError:
+                    continue
+                metrics = event.get("metrics") if isinstance(event, dict) else None
+                if isinstance(metrics, dict) and event.get("stage") == "train" \
+                        and event.get("kind", "progress") == "progress" and metrics.get("psnr") is not None:
+                    training_psnr = float(metrics["psnr"])
+    except OSError:
+        pass
+    comparison = (held_out or {}).get("distances") if isinstance(held_out, dict) else None
+    if comparison is None:
+        comparison = run_comparison(run.root)
+    if held_out is None and training_psnr is None and comparison is None:
+        return None
+    has_mesh = False
+    try:
+        config = json.loads(run.config.read_text())
+        if config.get("scene"):
+            from ..core.formats.scene_dir import SceneDir
+
+            has_mesh = SceneDir(Path(config["scene"])).ground_truth_mesh.is_file()
+    except (OSError, ValueError, AttributeError):
+        pass
+    return {"held_out": held_out if isinstance(held_out, dict) else None, "training_psnr": training_psnr,
+            "comparison": comparison, "has_ground_truth_mesh": has_mesh}
+
+
+def run_comparison(run_dir: str | Path) -> Optional[dict[str, Any]]:
+    """The last Compare to Mesh summary of a Gaussian object imported from ``run_dir``, or None."""
+    from .compare_mesh import last_comparison
+
+    target = str(Path(run_dir))
+    for obj in getattr(bpy.data, "objects", ()):
+        if obj.get(PROP_RUN_DIR) and str(Path(obj[PROP_RUN_DIR])) == target:
+            summary = last_comparison(obj)
+            if summary:
+                return summary
+    return None
+
+
+def format_results(results: dict[str, Any]) -> list[str]:
+    """Short labelled phrases of :func:`run_results`: training PSNR, held-out PSNR / SSIM /
+    LPIPS (with the number of views), distances to the mesh."""
+    parts = []
+    if results.get("training_psnr") is not None:
+        parts.append(f"{TRAINING_PSNR_LABEL} {results['training_psnr']:.2f} dB")
+    held_out = results.get("held_out") or {}
+    if held_out.get("psnr") is not None:
+        label = HELD_OUT_LABEL if held_out.get("split", "test") == "test" else "training-view (no held-out split)"
+        figures = [f"PSNR {held_out['psnr']:.2f} dB"]
+        if held_out.get("ssim") is not None:
+            figures.append(f"SSIM {held_out['ssim']:.3f}")
+        if held_out.get("lpips") is not None:
+            figures.append(f"LPIPS {held_out['lpips']:.3f}")
+        views = held_out.get("views_count")
+        parts.append(f"{label} {', '.join(figures)}" + (f" ({views} views)" if views else ""))
+    comparison = results.get("comparison") or {}
+    stats = comparison.get("gaussians_to_mesh_filtered") or comparison.get("gaussians_to_mesh") or {}
+    if stats.get("mean") is not None:
+        text = f"mean distance to mesh {stats['mean']:.3g} m"
+        if comparison.get("fscore") is not None and comparison.get("threshold_m") is not None:
+            text += f", F-score {comparison['fscore']:.3f} at {comparison['threshold_m']:.3g} m"
+        parts.append(text)
+    return parts
 
 
 def import_run_result(run_dir: str | Path, scene: Optional[bpy.types.Scene] = None,

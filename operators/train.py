@@ -41,9 +41,16 @@ def _run(operator, context, resume: bool) -> set[str]:
 
     return finish_headless_job(
         operator, job, settings, wait=training_job.wait_for_training, copy_state=training_job.copy_state,
-        name="Training", success_message=lambda state: f"Training finished: {job.run_dir}",
+        name="Training", success_message=lambda state: finished_message(job.run_dir),
         after_success=import_result if settings.import_result else None,
         after_success_failure="Training finished but importing failed")
+
+
+def finished_message(run_dir) -> str:
+    """``Training finished: RUN`` and the run's figures, each under its name (held-out or training)."""
+    results = training_job.run_results(run_dir)
+    figures = training_job.format_results(results) if results else []
+    return "; ".join([f"Training finished: {run_dir}"] + figures)
 
 
 class ESGS_OT_train(bpy.types.Operator):

@@ -6,7 +6,7 @@ import bpy
 from ..core.apps.jobs import format_duration
 from ..core.formats.scene_dir import SceneDir
 from ..core.methods import get_method
-from ..esgs_addon import interrupted_jobs, settings_training
+from ..esgs_addon import interrupted_jobs, settings_training, training_job
 from ..esgs_addon.properties import property_values
 from ._section import ESGSSection
 
@@ -65,7 +65,8 @@ class ESGS_PT_training(ESGSSection, bpy.types.Panel):
             if settings.loss >= 0:
                 grid.label(text=f"Loss {settings.loss:.4g}")
             if settings.psnr >= 0:
-                grid.label(text=f"PSNR {settings.psnr:.2f} dB")
+                # evaluation after training measures held-out views; training its own views
+                grid.label(text=f"{_sentence(training_job.psnr_label(settings.stage))} {settings.psnr:.2f} dB")
             if settings.n_gaussians >= 0:
                 grid.label(text=f"{settings.n_gaussians:,} Gaussians")
             if settings.eta_s >= 0:
@@ -79,10 +80,54 @@ class ESGS_PT_training(ESGSSection, bpy.types.Panel):
             row.operator("esgs.train_resume", icon="FILE_REFRESH")
         if settings.status:
             layout.label(text=f"Last run: {settings.status}", icon="CHECKMARK" if settings.status == "finished" else "INFO")
+        if settings.status == "finished" and settings.last_run_dir:
+            results = training_job.run_results(settings.last_run_dir)
+            if results is not None:
+                draw_run_results(layout.box(), results)
         if settings.error:
             box = layout.box()
             for index, line in enumerate(_wrap(settings.error, 48)):
                 box.label(text=line, icon="ERROR" if index == 0 else "NONE")
+
+
+def draw_run_results(layout: bpy.types.UILayout, results: dict) -> None:
+    """A finished run's figures (:func:`~..esgs_addon.training_job.run_results`), each under
+    its name: held-out PSNR / SSIM / LPIPS, the last training PSNR, distances to the mesh."""
+    held_out = results.get("held_out") or {}
+    if held_out.get("psnr") is not None:
+        views = held_out.get("views_count")
+        if held_out.get("split", "test") == "test":
+            title = f"Held-out views ({views} not trained on)" if views else "Held-out views"
+        else:
+            title = "Training views (the scene has no held-out split)"
+        layout.label(text=title, icon="IMAGE_REFERENCE")
+        grid = layout.grid_flow(columns=3, even_columns=True)
+        prefix = "Held-out " if held_out.get("split", "test") == "test" else ""
+        grid.label(text=f"{prefix}PSNR {held_out['psnr']:.2f} dB")
+        if held_out.get("ssim") is not None:
+            grid.label(text=f"{prefix}SSIM {held_out['ssim']:.3f}")
+        if held_out.get("lpips") is not None:
+            grid.label(text=f"{prefix}LPIPS {held_out['lpips']:.3f}")
+        elif held_out.get("lpips_unavailable"):
+            grid.label(text="LPIPS n/a")
+    else:
+        layout.label(text="No held-out figures (evaluation off or not finished)", icon="INFO")
+    if results.get("training_psnr") is not None:
+        layout.label(text=f"{_sentence(training_job.TRAINING_PSNR_LABEL)}: {results['training_psnr']:.2f} dB")
+    comparison = results.get("comparison") or {}
+    stats = comparison.get("gaussians_to_mesh_filtered") or comparison.get("gaussians_to_mesh") or {}
+    if stats.get("mean") is not None:
+        layout.label(text="Distances to the ground-truth mesh", icon="DRIVER_DISTANCE")
+        grid = layout.grid_flow(columns=2, even_columns=True)
+        grid.label(text=f"Mean {stats['mean']:.3g} m")
+        if stats.get("median") is not None:
+            grid.label(text=f"Median {stats['median']:.3g} m")
+        if comparison.get("fscore") is not None:
+            grid.label(text=f"F-score {comparison['fscore']:.3f}")
+        if comparison.get("threshold_m") is not None:
+            grid.label(text=f"at {comparison['threshold_m']:.3g} m")
+    elif results.get("has_ground_truth_mesh"):
+        layout.label(text="Distances: import the result, then Gaussians > Compare to Mesh", icon="INFO")
 
 
 def _draw_esgs(layout: bpy.types.UILayout, settings, priors, scene_dir) -> None:
@@ -136,6 +181,11 @@ def _draw_priors(layout: bpy.types.UILayout, priors) -> None:
             layout.label(text=line, icon="ERROR" if index == 0 else "NONE")
     elif priors.status == "finished":
         layout.label(text=f"Priors written: priors/{priors.last_method}", icon="CHECKMARK")
+
+
+def _sentence(text: str) -> str:
+    """``text`` with its first letter capitalised (``str.capitalize`` would lower "PSNR")."""
+    return text[:1].upper() + text[1:]
 
 
 def _wrap(text: str, width: int) -> list[str]:

@@ -101,6 +101,31 @@ def test_esgs_method_jobs_running_and_a_failed_run(scene_folder, tmp_path):
     assert "Last run: failed" in labels(training) and "Priors written: priors/ndn" in labels(training)
 
 
+def test_progress_names_the_psnr_of_each_stage(scene_folder):
+    settings = bpy.context.scene.esgs.training
+    settings.scene_dir = str(scene_folder)
+    training_job.copy_state(settings, jobs.JobState(status="running", step=3, total=10, stage="train", psnr=29.0))
+    assert "Training PSNR (last views) 29.00 dB" in labels(draw_everything(esgs)["ESGS_PT_training"])
+    # the evaluation after training renders the held-out views
+    training_job.copy_state(settings, jobs.JobState(status="running", step=1, total=3, stage="eval", psnr=12.8))
+    training = labels(draw_everything(esgs)["ESGS_PT_training"])
+    assert "Held-out PSNR 12.80 dB" in training and not any(text.startswith("Training PSNR") for text in training)
+
+
+def test_a_finished_run_without_held_out_views_says_so(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "metrics.json").write_text(json.dumps({"split": "train", "views_count": 4, "psnr": 30.0, "ssim": 0.9,
+                                                  "lpips": None, "lpips_unavailable": "disabled"}))
+    settings = bpy.context.scene.esgs.training
+    training_job.copy_state(settings, jobs.JobState(status="finished", step=10, total=10))
+    settings.last_run_dir = str(run)
+    training = labels(draw_everything(esgs)["ESGS_PT_training"])
+    assert "Training views (the scene has no held-out split)" in training
+    assert "PSNR 30.00 dB" in training and "LPIPS n/a" in training
+    assert not any(text.startswith("Held-out") for text in training)
+
+
 def test_the_gaussians_panel_with_gaussians_selected(tmp_path):
     from esgs.core.formats.ply import GaussianPly, write_gaussians_ply
 

@@ -34,6 +34,7 @@ FAKE_TRAINER = textwrap.dedent(
     parser.add_argument("--result", required=True)
     parser.add_argument("--stop-file", required=True)
     parser.add_argument("--crash", action="store_true")
+    parser.add_argument("--evaluate", action="store_true")
     args = parser.parse_args()
     config = json.loads(Path(args.config).read_text())
     iterations = config["iterations"]
@@ -55,9 +56,19 @@ FAKE_TRAINER = textwrap.dedent(
     write_gaussians_ply(out / "point_cloud.ply", GaussianPly(
         means=means, normals=np.zeros((16, 3)), sh_dc=np.zeros((16, 3)), sh_rest=np.zeros((16, 0, 3)),
         opacity_logit=np.full(16, 3.0), log_scales=np.full((16, 3), -3.0), quats_wxyz=np.tile([1.0, 0, 0, 0], (16, 1))))
+    done = {"n_gaussians": 16}
+    if args.evaluate:
+        # like the real trainer: held-out metrics in metrics.json and in the done event
+        (out / "config.json").write_text(json.dumps(config))
+        (out / "metrics.json").write_text(json.dumps({"split": "test", "views_count": 2, "psnr": 12.5, "ssim": 0.4,
+                                                      "lpips": 0.5, "views": []}))
+        with open(args.events, "a") as events:
+            events.write(json.dumps({"step": 2, "total": 2, "stage": "eval", "metrics": {"psnr": 12.5},
+                                     "kind": "progress"}) + "\\n")
+        done.update(psnr=12.5, ssim=0.4, lpips=0.5)
     with open(args.events, "a") as events:
         events.write(json.dumps({"step": iterations, "total": iterations, "stage": "train",
-                                 "metrics": {"n_gaussians": 16}, "kind": "done", "message": "completed"}) + "\\n")
+                                 "metrics": done, "kind": "done", "message": "completed"}) + "\\n")
     """
 )
 
@@ -275,7 +286,7 @@ def test_panels_draw_progress_and_results(tmp_path):
     training_job.copy_state(settings, state)
     record = draw_panel(ESGS_PT_training)
     assert ("progress", "40 / 100") in record
-    assert ("label", "PSNR 21.50 dB") in record and ("label", "ETA 1:15") in record
+    assert ("label", "Training PSNR (last views) 21.50 dB") in record and ("label", "ETA 1:15") in record
     assert ("operator", "esgs.train_cancel") in record
 
     training_job.copy_state(settings, jobs.JobState(status="failed", error="boom: out of memory"))
@@ -292,11 +303,12 @@ def test_panels_draw_progress_and_results(tmp_path):
         quats_wxyz=np.array([[1.0, 0, 0, 0]])))
     obj = gaussians_import.import_gaussians(tmp_path / "g.ply")
     bpy.context.view_layer.objects.active = obj
-    compare_mesh.compare_to_mesh(obj, plane_mesh(), n_surface_samples=200)
+    compare_mesh.compare_to_mesh(obj, plane_mesh(), n_surface_samples=200, threshold_m=0.05)
     record = draw_panel(ESGS_PT_results)
     labels = [text for kind, text in record if kind == "label"]
     assert "mean 0.02" in labels
-    assert any(text.startswith("At 0.05: precision 1.000") for text in labels)
+    assert any(text.startswith("At 0.05 m: precision 1.000") for text in labels)
+    assert "Recall over the whole mesh (no training cameras known)" in labels
     assert sum(1 for kind, text in record if kind == "prop" and text.startswith('["')) == 8  # display + heat map
 
 
@@ -375,3 +387,38 @@ def test_preferences_are_keyed_by_the_root_package(tmp_path, monkeypatch):
     fake.python_path = str(tmp_path / "missing")
     with pytest.raises(Exception, match="does not exist"):
         preferences.trainer_python()
+
+
+def test_a_finished_run_reports_and_shows_held_out_figures_apart_from_training_psnr(tmp_path, fake_trainer, scene_dir,
+                                                                                   monkeypatch, capfd):
+    from tests.blender.panel_drawing import draw_panel
+
+    monkeypatch.setattr(training_job, "TRAINER_OVERRIDE", list(training_job.TRAINER_OVERRIDE) + ["--evaluate"])
+    settings = bpy.context.scene.esgs.training
+    settings.scene_dir = str(scene_dir)
+    settings.run_dir = str(tmp_path / "run")
+    settings.iterations = 5
+    capfd.readouterr()
+    assert bpy.ops.esgs.train() == {"FINISHED"}
+    printed = capfd.readouterr()
+    output = printed.out + printed.err
+    # the last console line and the operator's report name each PSNR for what it measures
+    assert "training PSNR (last views) 25.00 dB" in output
+    assert "held-out PSNR 12.50 dB, SSIM 0.400, LPIPS 0.500 (2 views)" in output
+    assert "training PSNR (last views) 12.50" not in output
+
+    _, calls = draw_panel(bpy.types.ESGS_PT_training)
+    labels = [call.text for call in calls if call.name == "label"]
+    assert "Held-out views (2 not trained on)" in labels
+    assert {"Held-out PSNR 12.50 dB", "Held-out SSIM 0.400", "Held-out LPIPS 0.500"} <= set(labels)
+    assert "Training PSNR (last views): 25.00 dB" in labels
+    assert not any(label.startswith("Mean ") for label in labels)  # no comparison yet
+
+    # after Compare to Mesh on the imported result, its distances join the figures
+    obj = bpy.context.view_layer.objects.active
+    summary = compare_mesh.compare_to_mesh(obj, plane_mesh(), threshold_m=0.05, n_surface_samples=500, cameras=None)
+    _, calls = draw_panel(bpy.types.ESGS_PT_training)
+    labels = [call.text for call in calls if call.name == "label"]
+    mean = summary["gaussians_to_mesh_filtered"]["mean"]
+    assert f"Mean {mean:.3g} m" in labels and f"F-score {summary['fscore']:.3f}" in labels
+
