@@ -298,6 +298,44 @@ def run_results(run_dir: str | Path) -> Optional[dict[str, Any]]:
     from ..core.formats.run_dir import RunDir
 
     run = RunDir(Path(run_dir))
+    held_out, training_psnr = _run_files(run)
+    comparison = (held_out or {}).get("distances") if isinstance(held_out, dict) else None
+    if comparison is None:
+        comparison = run_comparison(run.root)
+    if held_out is None and training_psnr is None and comparison is None:
+        return None
+    has_mesh = False
+    try:
+        config = json.loads(run.config.read_text())
+        if config.get("scene"):
+            from ..core.formats.scene_dir import SceneDir
+
+            has_mesh = SceneDir(Path(config["scene"])).ground_truth_mesh.is_file()
+    except (OSError, ValueError, AttributeError):
+        pass
+    return {"held_out": held_out if isinstance(held_out, dict) else None, "training_psnr": training_psnr,
+            "comparison": comparison, "has_ground_truth_mesh": has_mesh}
+
+
+_RUN_FILES_CACHE: dict[str, tuple[tuple, tuple[Optional[dict], Optional[float]]]] = {}
+
+
+def _run_files(run: Any) -> tuple[Optional[dict], Optional[float]]:
+    """(metrics.json's content, the last training PSNR of events.jsonl), cached on the files'
+    sizes and times: the panel asks at every redraw and a long run's events file is large."""
+    import json
+
+    def stamp(path: Path) -> tuple:
+        try:
+            info = path.stat()
+            return info.st_size, info.st_mtime_ns
+        except OSError:
+            return (None, None)
+
+    key = (stamp(run.metrics), stamp(run.events))
+    cached = _RUN_FILES_CACHE.get(str(run.root))
+    if cached is not None and cached[0] == key:
+        return cached[1]
     held_out = None
     try:
         held_out = json.loads(run.metrics.read_text())
@@ -317,22 +355,9 @@ def run_results(run_dir: str | Path) -> Optional[dict[str, Any]]:
                     training_psnr = float(metrics["psnr"])
     except OSError:
         pass
-    comparison = (held_out or {}).get("distances") if isinstance(held_out, dict) else None
-    if comparison is None:
-        comparison = run_comparison(run.root)
-    if held_out is None and training_psnr is None and comparison is None:
-        return None
-    has_mesh = False
-    try:
-        config = json.loads(run.config.read_text())
-        if config.get("scene"):
-            from ..core.formats.scene_dir import SceneDir
-
-            has_mesh = SceneDir(Path(config["scene"])).ground_truth_mesh.is_file()
-    except (OSError, ValueError, AttributeError):
-        pass
-    return {"held_out": held_out if isinstance(held_out, dict) else None, "training_psnr": training_psnr,
-            "comparison": comparison, "has_ground_truth_mesh": has_mesh}
+    value = (held_out if isinstance(held_out, dict) else None, training_psnr)
+    _RUN_FILES_CACHE[str(run.root)] = (key, value)
+    return value
 
 
 def run_comparison(run_dir: str | Path) -> Optional[dict[str, Any]]:
