@@ -32,9 +32,11 @@ What it does:
 - Peak resident memory and CPU time (user + system, setup included) of each child from
   ``wait4``; CPU seconds per step depend less on the machine's load than wall-clock ones.
 - Quality: both output PLYs are loaded with our PLY reader and rendered with our renderer
-  on the same held-out views, each over the background it was trained with (ours black,
-  OpenSplat's the nerfstudio colour it composites onto), and measured with our PSNR/SSIM
-  (and LPIPS with ``--lpips`` when its weights are cached).
+  on the same held-out views, each over what it was trained with (ours: its sky model,
+  ``RUN/sky.json``, or black with ``--sky none`` / ``--vanilla``; OpenSplat's the nerfstudio
+  colour it composites onto), and measured with our PSNR/SSIM (and LPIPS with ``--lpips``
+  when its weights are cached). ``--ours-args`` passes further flags to ``esgs train``
+  (``--ours-args=--vanilla`` for plain 3DGS); ``--json`` writes the figures.
 - Cost model per trainer: least-squares fit of the median step time of each 10-step
   window against the window's mean Gaussian count, ``seconds = fixed + per_gaussian * N``;
   the ratio ours/OpenSplat is given at the Gaussian counts both runs went through.
@@ -261,7 +263,7 @@ def run_trainers(args: argparse.Namespace, scene: Path, opensplat_scene: Path, w
         command=[sys.executable, "-m", "esgs.core", "train", str(scene), "--out", str(ours_dir),
                  "--iterations", str(args.iterations), "--width", str(args.width), "--threads", str(args.threads),
                  "--seed", str(args.seed), "--backend", "cpu", "--checkpoint-every", "0", "--progress-every", "1",
-                 "--no-evaluate", "--quiet"],
+                 "--no-evaluate", "--quiet", *args.ours_args.split()],
         log=work / "ours.log", ply=RunDir(ours_dir).point_cloud)
     opensplat_dir = work / "opensplat"
     opensplat_dir.mkdir(parents=True, exist_ok=True)
@@ -361,7 +363,8 @@ def early_late(run: ChildRun, until: float = float("inf"), cpu: bool = False) ->
 
 def evaluate(run: ChildRun, scene: Path, width: int, background: tuple[float, float, float], threads: int,
              use_lpips: bool, renders: Path) -> dict:
-    """Our PSNR/SSIM(/LPIPS) of ``run.ply`` on the scene's held-out views, rendered by our CPU rasterizer."""
+    """Our PSNR/SSIM(/LPIPS) of ``run.ply`` on the scene's held-out views, rendered by our CPU rasterizer
+    (over the sky model saved beside the PLY, if any)."""
     import torch
 
     from esgs.core.formats.ply import read_gaussians_ply
@@ -372,9 +375,15 @@ def evaluate(run: ChildRun, scene: Path, width: int, background: tuple[float, fl
     torch.set_num_threads(threads)
     data = load_scene_data(scene, width=width, test_every=8, mask_source="none")
     model = GaussianModel.from_ply(read_gaussians_ply(run.ply))
+    sky = None
+    sky_file = run.ply.parent / "sky.json"
+    if sky_file.is_file():
+        from esgs.core.train.sky import load_sky
+
+        sky = load_sky(sky_file)
     return evaluate_model(model, data, backend="cpu", background=torch.tensor(background, dtype=torch.float32),
                           sh_degree=model.max_sh_degree, renders_dir=renders, use_lpips=use_lpips,
-                          num_threads=threads)
+                          num_threads=threads, sky=sky)
 
 
 def _ratio(a: float, b: float) -> str:
@@ -480,6 +489,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--opensplat-schedule", choices=("scaled", "default"), default="scaled",
                         help="scale OpenSplat's step-based settings to --iterations as ours are, or keep its defaults")
     parser.add_argument("--lpips", action="store_true", help="also LPIPS (needs cached weights)")
+    parser.add_argument("--ours-args", default="", help="further flags for esgs train, e.g. --ours-args=--vanilla")
+    parser.add_argument("--json", type=Path, default=None, help="write the figures (both runs) to this JSON file")
     args = parser.parse_args(argv)
 
     binary = args.opensplat
@@ -507,6 +518,17 @@ def main(argv: list[str] | None = None) -> int:
     summary = {run.name: {"steps": run.steps, "times": run.times, "counts": run.counts, "peak_rss_mib": run.peak_rss_mib, "cpu_s": run.cpu_s, "cpu_times": run.cpu_times,
                           "wall_s": run.wall_s, "metrics": run.metrics, "command": run.command} for run in (ours, theirs)}
     (work / "summary.json").write_text(json.dumps(summary))
+    if args.json is not None:
+        from esgs.core.io_utils import atomic_write_json
+
+        atomic_write_json(args.json, {
+            "command": "python benchmarks/bench_vs_opensplat.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+            "opensplat_version": version, "scene": str(scene), "held_out": test_names,
+            "iterations": args.iterations, "threads": args.threads, "width": args.width,
+            "runs": {run.name: {"command": run.command, "metrics": run.metrics, "wall_s": run.wall_s,
+                                "cpu_s": run.cpu_s, "peak_rss_mib": run.peak_rss_mib,
+                                "final_gaussians": run.counts[-1] if run.counts else None}
+                     for run in (ours, theirs)}})
     print(f"\nper-step timelines: {work / 'summary.json'}; load average at end: {os.getloadavg()}", flush=True)
     return 0
 
