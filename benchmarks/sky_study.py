@@ -99,6 +99,36 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, float
     return summary
 
 
+def acceptance(rows: list[dict[str, Any]], default: str = "envmap", baseline: str = "none",
+               before: str = "before") -> dict[str, dict[str, Any]]:
+    """The outdoor-scene acceptance per scene (issue #22), from the seed means of ``rows``:
+    aerial (no-sky) views' PSNR at least the baseline's, sky views' at least +3 dB over it,
+    SSIM and LPIPS no worse, sky MAE <= 0.05, and the opaque Gaussians no farther from the mesh
+    than the ``before`` arm's (the code that dropped masked pixels), when that arm was measured."""
+    summary = summarize(rows)
+    verdicts = {}
+    for scene in sorted({row["scene"] for row in rows}):
+        ours, theirs = summary.get(f"{scene}/{default}"), summary.get(f"{scene}/{baseline}")
+        if not ours or not theirs:
+            continue
+        mean = lambda table, key: table[key]["mean"] if key in table else None  # noqa: E731
+        checks: dict[str, Any] = {}
+        if mean(ours, "psnr_ground_views") is not None:
+            checks["ground_views_psnr"] = mean(ours, "psnr_ground_views") >= mean(theirs, "psnr_ground_views")
+        if mean(ours, "psnr_sky_views") is not None:
+            checks["sky_views_psnr_plus_3db"] = mean(ours, "psnr_sky_views") >= mean(theirs, "psnr_sky_views") + 3.0
+        checks["ssim"] = mean(ours, "ssim") >= mean(theirs, "ssim")
+        if mean(ours, "lpips") is not None and mean(theirs, "lpips") is not None:
+            checks["lpips"] = mean(ours, "lpips") <= mean(theirs, "lpips")
+        if mean(ours, "sky_mae") is not None:
+            checks["sky_mae_below_0.05"] = mean(ours, "sky_mae") <= 0.05
+        earlier = summary.get(f"{scene}/{before}")
+        if earlier and mean(earlier, "distance_mean") is not None:
+            checks["distance_not_above_before"] = mean(ours, "distance_mean") <= mean(earlier, "distance_mean")
+        verdicts[scene] = {"checks": checks, "met": all(checks.values())}
+    return verdicts
+
+
 def arms(names: list[str], alpha_weights: list[float], surface_weights: list[float] = ()) -> dict[str, dict[str, Any]]:
     table = {"none": {"sky": "none", "mask_source": "none"}, "envmap": {}}
     chosen = {name: table[name] for name in names}
@@ -128,6 +158,8 @@ def main(argv: list[str] | None = None) -> int:
         rows = [row for path in args.summarize for row in json.loads(path.read_text())["rows"]]
         for name, figures in summarize(rows).items():
             print(name, {key: f"{value['mean']:.4g} ± {value['std']:.2g} (n={value['n']})" for key, value in figures.items()})
+        for scene, verdict in acceptance(rows).items():
+            print(f"acceptance {scene}: {'met' if verdict['met'] else 'NOT met'} {verdict['checks']}")
         return 0
     if not args.scene or args.out is None:
         parser.error("--scene and --out are required (unless --summarize)")
@@ -154,7 +186,8 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({k: v for k, v in rows[-1].items() if k != "views"}), flush=True)
     if args.json is not None:
         atomic_write_json(args.json, {"command": " ".join(sys.argv), "iterations": args.iterations,
-                                      "scenes": scenes, "rows": rows, "summary_over_seeds": summarize(rows)})
+                                      "scenes": scenes, "rows": rows, "summary_over_seeds": summarize(rows),
+                                      "acceptance": acceptance(rows)})
     return 0
 
 
