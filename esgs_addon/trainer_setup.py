@@ -116,11 +116,12 @@ def environment_python(env_dir: str | os.PathLike) -> Optional[Path]:
     return python if python.is_file() else None
 
 
-def detect_variant(which: Callable[[str], Optional[str]] = shutil.which,
-                   platform: str = sys.platform) -> tuple[str, str]:
+def detect_variant(which: Optional[Callable[[str], Optional[str]]] = None,
+                   platform: Optional[str] = None) -> tuple[str, str]:
     """``(variant, reason)``: ``cuda`` when ``nvidia-smi`` is on the PATH (not on macOS, which
     has no CUDA), else ``cpu``."""
-    if platform == "darwin":
+    which = which or shutil.which
+    if (platform or sys.platform) == "darwin":
         return "cpu", "macOS: PyTorch uses the CPU (and Apple's GPU through MPS) with the standard build"
     smi = which("nvidia-smi")
     if smi:
@@ -585,3 +586,9 @@ class SetupJob:
         """Wait for the end; True when it ended."""
         self._thread.join(timeout)
         return not self._thread.is_alive()
+
+
+def format_elapsed(seconds: float) -> str:
+    """``75`` -> ``"1:15"``."""
+    minutes, secs = divmod(int(seconds), 60)
+    return f"{minutes}:{secs:02d}"

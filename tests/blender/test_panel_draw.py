@@ -69,7 +69,8 @@ def test_nothing_chosen_yet():
     assert {"scene_dir", "run_dir", "method", "iterations"} <= set(props(training))
     assert "esgs.import_gaussians" in operators(drawn["ESGS_PT_results"])
     assert "esgs.render_labels" in operators(drawn["ESGS_PT_labels"])
-    assert {"python_path", "threads", "output_dir"} <= set(props(drawn["preferences"]))
+    assert {"python_path", "threads", "output_dir", "torch_variant", "wheel_dir"} <= set(props(drawn["preferences"]))
+    assert {"esgs.trainer_setup", "esgs.trainer_check", "esgs.trainer_remove"} <= set(operators(drawn["preferences"]))
 
 
 def test_a_scene_folder_chosen(scene_folder):
@@ -180,6 +181,11 @@ def test_panels_draw_as_an_installed_extension(tmp_path, scene_folder):
         assert "esgs.train" in drawn["ESGS_PT_training"]["operators"]
         assert "esgs.render_dataset" in drawn["ESGS_PT_terrain"]["operators"]
         assert "python_path" in drawn["preferences"]["props"]
+        assert {"esgs.trainer_setup", "esgs.trainer_check", "esgs.trainer_remove"} <= set(
+            drawn["preferences"]["operators"])
+        # the set-up's folder is the extension's user directory of this profile
+        assert any(text.startswith("Not set up: ") and ".user/user_default/esgs/trainer" in text
+                   for text in drawn["preferences"]["labels"])
     assert result["version"] == esgs.__version__
     assert NO_SCENE_HINT in result["no_scene"]["ESGS_PT_training"]["labels"]
     assert NO_SCENE_HINT not in result["scene_chosen"]["ESGS_PT_training"]["labels"]
