@@ -52,6 +52,12 @@ def test_build_linux_package(tmp_path):
     assert any(n.startswith("esgs_addon/") for n in names)
     assert "panels/main.py" in names
     assert "core/ndn/weights/ndn_mars.pt" in names  # the NDN prior works out of the box
+    # Preferences > Set Up Trainer installs the trainer from the extension's own files
+    assert {"requirements-trainer.txt", "esgs_addon/trainer_setup.py", "operators/trainer_setup.py"} <= names
+    with zipfile.ZipFile(zips[0]) as archive:
+        shipped = archive.read("requirements-trainer.txt").decode()
+    assert shipped == (packaging.REPO_ROOT / packaging.TRAINER_REQUIREMENTS).read_text()
+    assert "torch==" in shipped and "\nbpy" not in shipped
     wheel_files = sorted(n for n in names if n.startswith("wheels/"))
     assert wheel_files and all(("manylinux" in n or n.endswith("-any.whl")) for n in wheel_files), wheel_files
     assert manifest["platforms"] == ["linux-x64"]

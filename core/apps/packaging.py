@@ -21,6 +21,8 @@ from pathlib import Path
 from ..errors import ConfigError, ESGSError
 
 REPO_ROOT = Path(__file__).resolve().parents[2]  # core/apps/packaging.py -> the repository (package) root
+#: the trainer's pinned runtime; Preferences > Set Up Trainer installs it from inside the extension
+TRAINER_REQUIREMENTS = "requirements-trainer.txt"
 
 # Blender platform name -> substrings of compatible wheel platform tags
 _PLATFORM_TAGS = {
@@ -167,6 +169,8 @@ def build_extension(output_dir: Path, *, platform: str | None = "linux-x64", sou
             if src.is_file():
                 (stage / rel).parent.mkdir(parents=True, exist_ok=True)
                 shutil.copy2(src, stage / rel)
+        if not (stage / TRAINER_REQUIREMENTS).is_file():  # untracked or deleted: Set Up Trainer would fail
+            shutil.copy2(source_dir / TRAINER_REQUIREMENTS, stage / TRAINER_REQUIREMENTS)
         (stage / "wheels").mkdir(exist_ok=True)
         for path in wheel_paths:
             shutil.copy2(path, stage / "wheels" / path.name)
