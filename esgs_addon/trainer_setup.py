@@ -155,8 +155,9 @@ def requirement_name(line: str) -> str:
 
 
 def _pip(python: str, *args: str) -> tuple[str, ...]:
+    # 2 retries, not pip's 5 with back-off: an unreachable index then fails in about a minute, not many
     return (python, "-m", "pip", "install", "--disable-pip-version-check", "--no-input", "--progress-bar", "off",
-            *args)
+            "--retries", "2", *args)
 
 
 def _source_args(find_links: Sequence[Path], index_url: Optional[str], default_index: Optional[str]) -> list[str]:
@@ -372,7 +373,7 @@ def run_command(command: SetupCommand, *, on_line: Callable[[str], None], cancel
 
 def _failure(command: SetupCommand, returncode: int, output: Sequence[str]) -> TrainerSetupError:
     text = "\n".join(output)
-    last = next((line.strip() for line in reversed(output) if line.strip()), "no output")
+    last = next((line.strip() for line in reversed(output) if line.strip()), "no output")[:200]
     if command.kind in ("torch", "requirements"):
         if any(marker in text for marker in _UNREACHABLE_MARKERS):
             return TrainerSetupError(f"{command.label}: the package index could not be reached ({last})",
