@@ -129,13 +129,16 @@ def acceptance(rows: list[dict[str, Any]], default: str = "envmap", baseline: st
     return verdicts
 
 
-def arms(names: list[str], alpha_weights: list[float], surface_weights: list[float] = ()) -> dict[str, dict[str, Any]]:
+def arms(names: list[str], alpha_weights: list[float], surface_weights: list[float] = (),
+         sky_degrees: list[int] = ()) -> dict[str, dict[str, Any]]:
     table = {"none": {"sky": "none", "mask_source": "none"}, "envmap": {}}
     chosen = {name: table[name] for name in names}
     for weight in alpha_weights:
         chosen[f"envmap-alpha{weight:g}"] = {"sky_alpha_weight": weight}
     for weight in surface_weights:
         chosen[f"envmap-surface{weight:g}"] = {"surface_alpha_weight": weight}
+    for degree in sky_degrees:
+        chosen[f"envmap-degree{degree}"] = {"sky_degree": degree}
     return chosen
 
 
@@ -148,6 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--arms", nargs="*", default=["none", "envmap"])
     parser.add_argument("--alpha-weights", type=float, nargs="*", default=[])
     parser.add_argument("--surface-alpha-weights", type=float, nargs="*", default=[])
+    parser.add_argument("--sky-degrees", type=int, nargs="*", default=[])
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--measure-run", action="append", default=[], help="ARM/SCENE=RUN_DIR of an older run")
     parser.add_argument("--json", type=Path, default=None)
@@ -167,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for seed in args.seeds:
         for scene_name, scene in scenes.items():
-            for arm, settings in arms(args.arms, args.alpha_weights, args.surface_alpha_weights).items():
+            for arm, settings in arms(args.arms, args.alpha_weights, args.surface_alpha_weights, args.sky_degrees).items():
                 out = args.out / scene_name / arm / f"seed{seed}"
                 config = {"iterations": args.iterations, "seed": seed, "threads": args.threads, "lpips": True,
                           "save_renders": True, "checkpoint_every": 0, **settings}
