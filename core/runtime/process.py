@@ -57,6 +57,8 @@ class JobState:
 
     ``step``/``total`` come from the latest progress event; ``loss``, ``psnr``,
     ``n_gaussians`` and ``eta_s`` from its metrics (None until the child reports them).
+    ``psnr_held_out``: the PSNR came from evaluation on held-out views (an ``eval`` stage or the
+    final ``done`` event), not from the training views.
     ``error`` is set when ``status`` is ``"failed"``: the child's error message, or the
     last lines it printed.
     """
@@ -67,6 +69,7 @@ class JobState:
     stage: str = ""
     loss: Optional[float] = None
     psnr: Optional[float] = None
+    psnr_held_out: bool = False
     n_gaussians: Optional[int] = None
     eta_s: Optional[float] = None
     message: str = ""
@@ -95,7 +98,7 @@ class JobState:
         if self.loss is not None:
             parts.append(f"loss {self.loss:.4g}")
         if self.psnr is not None:
-            parts.append(f"PSNR {self.psnr:.2f} dB")
+            parts.append(f"{'held-out' if self.psnr_held_out else 'training'} PSNR {self.psnr:.2f} dB")
         if self.n_gaussians is not None:
             parts.append(f"{self.n_gaussians:,} Gaussians")
         if self.eta_s is not None and self.active:
@@ -485,6 +488,7 @@ class ChildJob:
                 state.loss = _number(metrics["loss"])
             if "psnr" in metrics:
                 state.psnr = _number(metrics["psnr"])
+                state.psnr_held_out = event.stage == "eval" or event.kind == "done"
             if "n_gaussians" in metrics:
                 count = _number(metrics["n_gaussians"])
                 state.n_gaussians = int(count) if count is not None else None

@@ -239,8 +239,22 @@ def test_partial_lines_are_not_parsed_early(tmp_path):
 
 def test_summary_and_duration():
     state = jobs.JobState(status=jobs.RUNNING, step=3, total=10, loss=0.25, psnr=21.456, n_gaussians=12345, eta_s=3725)
-    assert state.summary() == "running  step 3/10  loss 0.25  PSNR 21.46 dB  12,345 Gaussians  ETA 1:02:05"
+    assert state.summary() == "running  step 3/10  loss 0.25  training PSNR 21.46 dB  12,345 Gaussians  ETA 1:02:05"
     assert jobs.format_duration(65) == "1:05"
+
+
+def test_the_psnr_of_the_final_event_is_labelled_held_out(tmp_path):
+    job = jobs.TrainingJob(tmp_path, tmp_path / "run", iterations=10, trainer=["x"])
+    job.events_path.parent.mkdir(parents=True)
+    train = {"step": 5, "total": 10, "stage": "train", "kind": "progress", "metrics": {"psnr": 25.0}}
+    done = {"step": 10, "total": 10, "stage": "train", "kind": "done", "metrics": {"psnr": 21.0}}
+    job.events_path.write_text(json.dumps(train) + "\n")
+    offset, pending = job._read_events(0, b"")
+    assert not job.state().psnr_held_out and "training PSNR 25.00" in job.state().summary()
+    with job.events_path.open("a") as handle:
+        handle.write(json.dumps(done) + "\n")
+    job._read_events(offset, pending)
+    assert job.state().psnr_held_out and "held-out PSNR 21.00" in job.state().summary()
 
 
 def test_cancel_without_waiting_returns_at_once(tmp_path, fake_trainer, scene):
