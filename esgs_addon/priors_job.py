@@ -213,5 +213,10 @@ def start_polling(scene_name: str, key: str) -> None:
     ``esgs.priors`` settings and the window manager's progress bar (UI only)."""
     from .training_job import follow_job
 
+    def owns(scene: Any, job: PriorsJob) -> bool:
+        settings = scene.esgs.priors
+        return bool(settings.last_scene_dir) and Path(settings.last_scene_dir) == job.scene_dir \
+            and settings.last_method == job.method
+
     follow_job(scene_name, key, lambda scene, state: copy_state(scene.esgs.priors, state),
-               lambda scene, job, state: job.cleanup())
+               lambda scene, job, state: job.cleanup(), owns=owns)

@@ -463,29 +463,61 @@ def _redraw_views() -> None:
 
 
 def follow_job(scene_name: str, key: str, on_state: Callable[[Any, Any], None],
-               on_end: Optional[Callable[[Any, Any, Any], None]] = None) -> None:
+               on_end: Optional[Callable[[Any, Any, Any], None]] = None,
+               owns: Optional[Callable[[Any, Any], bool]] = None) -> None:
     """Follow the background job of ``key`` with a timer (UI only): each poll passes the scene
     (or None once it is gone) and the job's state to ``on_state`` and moves the window
-    manager's progress bar; when the job ends, ``on_end(scene, job, state)`` runs once."""
-    window_manager = bpy.context.window_manager
-    window_manager.progress_begin(0, 1000)
+    manager's progress bar; when the job ends, ``on_end(scene, job, state)`` runs once.
+
+    The timer follows the job ``key`` names now (the one just started), not a later one
+    started under the same key before its next poll (Resume pressed within half a second
+    of the end): that job has its own timer, and two would each import its result.
+
+    The scene is the one the job was started from, found by its ``session_uid`` (renamed or
+    not), or, in a file loaded since, the scene of that name for which ``owns(scene, job)``
+    holds (the same file reopened); a scene of the same name in another file is not the
+    job's: it gets neither the state nor the result."""
+    def progress(call: str, *args: int) -> None:
+        # the window manager of now: loading a file replaces it, and a removed one raises
+        # (which would end the timer: no state, no import, no clean-up after a file load)
+        window_manager = getattr(bpy.context, "window_manager", None)
+        if window_manager is not None:
+            getattr(window_manager, call)(*args)
+
+    progress("progress_begin", 0, 1000)
+    followed = jobs.get_job(key)
+    started_from = bpy.data.scenes.get(scene_name)
+    uid = started_from.session_uid if started_from is not None else None
+
+    def find_scene() -> Any:
+        for scene in bpy.data.scenes:
+            if uid is not None and scene.session_uid == uid:
+                return scene
+        scene = bpy.data.scenes.get(scene_name)
+        return scene if scene is not None and owns is not None and owns(scene, followed) else None
 
     def poll() -> Optional[float]:
         job = jobs.get_job(key)
-        scene = bpy.data.scenes.get(scene_name)
-        if job is None:
-            window_manager.progress_end()
+        scene = find_scene()
+        if job is None or followed is None:
+            progress("progress_end")
             return None
-        state = job.state()
+        state = followed.state()
+        if job is not followed and not state.active:
+            # a new job of the key replaced this ended one: its own timer shows it (settings,
+            # progress bar); this one only ends its own job
+            if on_end is not None:
+                on_end(scene, followed, state)
+            return None
         if scene is not None:
             on_state(scene, state)
-        window_manager.progress_update(int(state.fraction * 1000))
+        progress("progress_update", int(state.fraction * 1000))
         _redraw_views()
         if state.active:
             return POLL_INTERVAL_S
-        window_manager.progress_end()
+        progress("progress_end")
         if on_end is not None:
-            on_end(scene, job, state)
+            on_end(scene, followed, state)
         return None
 
     bpy.app.timers.register(poll, first_interval=POLL_INTERVAL_S, persistent=True)
@@ -508,4 +540,5 @@ def start_polling(scene_name: str, key: str, import_result: bool = True) -> None
         except Exception as error:  # noqa: BLE001 - a timer must not raise; show it instead
             scene.esgs.training.error = f"training finished but importing failed: {error}"
 
-    follow_job(scene_name, key, lambda scene, state: copy_state(scene.esgs.training, state), import_at_end)
+    follow_job(scene_name, key, lambda scene, state: copy_state(scene.esgs.training, state), import_at_end,
+               owns=lambda scene, job: scene.esgs.training.last_run_dir == str(job.run_dir))
