@@ -113,6 +113,10 @@ def train_run(scene: Path, out: Path, backend: str, iterations: int, seed: int, 
         config = TrainConfig(scene=scene, out=out, **settings)
     if backend == "cuda" and torch.cuda.is_available():
         torch.cuda.reset_peak_memory_stats()
+    if Path(out).exists():  # a rerun trains afresh instead of refusing and measuring the old run
+        import shutil
+
+        shutil.rmtree(out)
     tick = time.perf_counter()
     result = train(config)
     wall_s = time.perf_counter() - tick
@@ -210,7 +214,7 @@ def merge(parts: list[Path], mesh: Path, target: Path) -> int:
 
     vertices, faces = load_mesh(mesh)
     merged: dict[str, Any] = {
-        "what": "cuda (gsplat 1.5.3) vs cpu backend on one GPU machine, same scene, seeds and settings; "
+        "what": "cuda (gsplat, version in each part's environment) vs cpu backend on one GPU machine, same scene, seeds and settings; "
                 "distances: opaque centres (opacity >= 0.5) to the true mesh, metres",
         "command": "python benchmarks/bench_cuda.py --merge " + " ".join(str(part) for part in parts)
                    + f" --mesh {mesh} --json {target}",
@@ -221,7 +225,9 @@ def merge(parts: list[Path], mesh: Path, target: Path) -> int:
         data = json.loads(part.read_text())
         merged["parts"].append({key: data.get(key) for key in ("command", "environment", "compile", "step_seconds",
                                                                "total_s", "iterations", "seeds", "scene")})
-        merged.setdefault("agreement", data.get("agreement"))
+        if merged.get("agreement") is None and isinstance(data.get("agreement"), dict) \
+                and "error" not in data["agreement"]:
+            merged["agreement"] = data["agreement"]
         for name, row in data.items():
             if not name.startswith("train_") or name.endswith("_centres") or not isinstance(row, dict):
                 continue

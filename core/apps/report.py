@@ -210,20 +210,33 @@ _UNSEEN = np.array([255, 0, 255], np.float32)  # magenta: ground no training vie
 
 
 def unseen_ground_masks(run_dir: Path, stems: list[str]) -> dict[str, np.ndarray]:
-    """{stem: [H, W] bool} ground of each held-out view that no training view saw (the run's
-    Gaussians decide; see :mod:`esgs.core.train.coverage`). Empty when the run cannot be read."""
+    """{stem: [H, W] bool} ground of each held-out view that no training view saw (see
+    :mod:`esgs.core.train.coverage`): the view's true depth where the scene has it (gt priors),
+    else its rendered depth, tested against the training views' rendered depth."""
     import torch
 
+    from ..priors import load_prior_maps
     from ..train.coverage import training_depths, unseen_ground
     from ..train.evaluate import load_run
 
-    _, data, model, backend, device = load_run(run_dir)
+    config, data, model, backend, device = load_run(run_dir)
     views = {view.stem: view for view in data.test}
+    truth = SceneDir(Path(config.scene)).has_prior_maps(PriorSource.GT, "depth")
+    masks = {}
     with torch.no_grad():
         params = model.render_params(model.max_sh_degree)
         depths = training_depths(params, data.train, backend=backend, device=device)
-        return {stem: unseen_ground(params, views[stem], data.train, backend=backend, device=device,
-                                    train_depths=depths) for stem in stems if stem in views}
+        for stem in stems:
+            if stem not in views:
+                continue
+            view = views[stem]
+            depth = surface = None
+            if truth:
+                maps = load_prior_maps(Path(config.scene), PriorSource.GT, view.name, size=(view.width, view.height))
+                depth, surface = maps.depth, maps.mask
+            masks[stem] = unseen_ground(params, view, data.train, backend=backend, device=device, train_depths=depths,
+                                        depth=depth, surface=surface)
+    return masks
 
 
 def mark_unseen(image: np.ndarray, unseen: Optional[np.ndarray]) -> np.ndarray:
@@ -400,7 +413,8 @@ def write_report(config: Any, scene: Path, runs: dict[str, dict], distances: dic
     held_out = [path.name[: -len("_gt.png")] for path in sorted(test_dir.glob("*_gt.png"))[:3]]
     try:
         unseen_masks = unseen_ground_masks(config.out / "runs" / "esgs", held_out)
-    except Exception:  # noqa: BLE001 - the pictures still help without the marks
+    except Exception as error:  # noqa: BLE001 - the pictures still help without the marks
+        print(f"warning: the report's held-out pictures have no unseen-ground marks: {error}", flush=True)
         unseen_masks = {}
     for stem in held_out:
         unseen = unseen_masks.get(stem)

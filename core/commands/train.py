@@ -33,8 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "--method esgs starts from the full method for --priors (esgs.core.methods.full_esgs)")
     parser.add_argument("--list-methods", action="store_true", help="list the training methods and exit")
     parser.add_argument("--vanilla", action="store_true",
-                        help="plain 3DGS as published, for comparisons with other tools: no sky model and no sky "
-                             "masks (--sky none --mask-source none; esgs.core.train.config.VANILLA_3DGS)")
+                        help="the published method's own settings, for comparisons with other tools (with the "
+                             "default method: plain 3DGS): no sky model and no sky masks (--sky none --mask-source "
+                             "none; esgs.core.train.config.VANILLA_3DGS)")
     seen: set[str] = set()
     for name, settings_class in _settings_classes().items():
         group = parser.add_argument_group(f"method {name}", get_method(name).description)
@@ -115,14 +116,20 @@ def build_config(args: argparse.Namespace):
     if method.settings_class is not None:
         settings = dataclass_from_args(method.settings_class, args, base=settings)
     if getattr(args, "vanilla", False):
-        from ..train.config import VANILLA_3DGS
+        from ..train.config import VANILLA_3DGS, vanilla
 
+        if base is not None and args.resume and any(getattr(base, key) != value for key, value in VANILLA_3DGS.items()):
+            raise ConfigError("--vanilla cannot change a run that is being resumed: it keeps the settings it started with",
+                              path=args.out, hint="drop --vanilla, or start a new run in another --out folder")
         clashing = [key for key, value in VANILLA_3DGS.items()
                     if getattr(args, key, None) is not None and getattr(args, key) != value]
+        # settings of the sky model that --vanilla turns off: giving them would do nothing
+        clashing += [key for key in ("sky_alpha_weight", "surface_alpha_weight", "sky_degree", "sky_lr")
+                     if getattr(args, key, None) is not None]
         if clashing:
-            raise ConfigError(f"--vanilla sets {', '.join('--' + key.replace('_', '-') for key in clashing)} itself",
-                              hint="leave those flags out, or drop --vanilla")
-        config = dataclasses.replace(config, **VANILLA_3DGS)
+            raise ConfigError(f"--vanilla sets {', '.join('--' + key.replace('_', '-') for key in clashing)} itself "
+                              "or turns it off", hint="leave those flags out, or drop --vanilla")
+        config = vanilla(config)
     values = {**config_to_dict(config), "scene": str(args.scene), "method": name,
               "method_config": config_to_dict(settings) if settings is not None else None}
     return train_config_from_dict(values, saved=False)

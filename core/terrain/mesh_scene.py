@@ -18,11 +18,12 @@ World frame: the mesh's own frame as Blender has it after import (glTF +Y up bec
   footprint), ``orbit_radius_m`` away and ``orbit_height_m`` above the surface there,
   every view aimed at the centre's surface point, with the same probe test.
 * ``mixed``: an aerial ``orbit`` (the first ``views - rover_views`` views) and a rover
-  ``traverse`` at mast height inside the orbit's circle (the last ``rover_views``), pitched
-  ``rover_pitch_deg`` so that the horizon and the sky are in frame: a rover view must see
-  the surface along the lower half of the image only, and the drive is kept when at least
-  ``min_sky_fraction`` of its probe rays (all rover views together) reach the sky. Held-out
-  views of such a scene (every 8th) include aerial and rover-height ones.
+  ``traverse`` at mast height that starts inside the orbit's circle (the last
+  ``rover_views``), pitched ``rover_pitch_deg`` so that the horizon and the sky are in frame:
+  a rover view must meet the surface with every probe ray of the lower half of the image that
+  points more than 5 degrees below the horizon, and the drive is kept when at least
+  ``min_sky_fraction`` of its probe rays (all rover views together) reach the sky. With
+  enough views (36: every 8th held out) the held-out views include aerial and rover ones.
 """
 from __future__ import annotations
 
@@ -87,12 +88,12 @@ class MeshRigConfig:
         need(self.orbit_radius_m >= 0, "orbit_radius_m", "must not be negative (0 = automatic)")
         need(self.orbit_height_m >= 0, "orbit_height_m", "must not be negative (0 = automatic)")
         need(0 < self.sweep_deg <= 360, "sweep_deg", "must be in (0, 360] degrees")
-        need(isinstance(self.rover_views, int) and 0 <= self.rover_views < self.views, "rover_views",
-             "must be between 0 (automatic) and views - 1")
+        need(isinstance(self.rover_views, int) and self.rover_views >= 0, "rover_views", "must not be negative")
         need(-89.0 <= self.rover_pitch_deg <= 89.0, "rover_pitch_deg", "must be between -89 and 89 degrees")
         need(0.0 <= self.min_sky_fraction < 0.5, "min_sky_fraction", "must be in [0, 0.5)")
         if self.kind == "mixed":
             need(self.views >= 4, "views", "must be at least 4 for a mixed rig")
+            need(self.rover_views < self.views, "rover_views", "must be below views (0 = automatic)")
         need(self.min_clearance_m >= 0, "min_clearance_m", "must not be negative")
         need(self.probe_grid >= 2, "probe_grid", "must be at least 2")
         need(self.max_attempts >= 1, "max_attempts", "must be at least 1")
@@ -240,14 +241,16 @@ def make_mesh_rig(rig: MeshRigConfig, render: RenderConfig, cast: RayCaster, bou
                 "(views must see the surface in every direction)")
     elif rig.kind == "mixed":
         poses = _mixed(rig, render, cast, footprint, top_z, rng)
-        hint = ("change rig.rover_pitch_deg (up shows more sky), lower rig.min_sky_fraction, or change the "
-                "orbit (rig.orbit_radius_m, the centre)")
+        hint = ("change rig.rover_pitch_deg (up shows more sky, down more ground), lower rig.min_sky_fraction, "
+                "lower rig.border_margin_m, or change the orbit (rig.orbit_radius_m, the centre)")
     else:
         poses = _orbit(rig, render, cast, footprint, top_z, rng)
         hint = "change rig.orbit_radius_m, rig.orbit_height_m or the centre"
     if poses is None:
+        needs = ("aerial views must see only surface; rover views must see the ground below the horizon "
+                 "and the sky above it" if rig.kind == "mixed" else "every view must see only surface")
         raise DatasetError(f"could not place {rig.views} '{rig.kind}' cameras over the mesh in {rig.max_attempts} "
-                           "attempts (every view must stay inside the outline and see only surface)",
+                           f"attempts (every view must stay inside the outline; {needs})",
                            path=source, hint=hint)
     return poses
 
@@ -298,9 +301,15 @@ def _traverse(rig: MeshRigConfig, render: RenderConfig, cast: RayCaster, footpri
     return None
 
 
+#: a rover view's probe rays this far below the horizon must meet the surface (5 degrees: within
+#: 23 m of a 2 m mast on flat ground; rays nearer the horizon may pass the mesh's far edge)
+_GROUND_RAY_MIN_DEPRESSION = math.sin(math.radians(5.0))
+
+
 def _sky_fraction(poses: list[CameraPose], cast: RayCaster, grid: int, min_distance: float) -> Optional[float]:
-    """Share of the probe rays of ``poses`` that miss the mesh, or None when a ray in the lower
-    half of an image misses it or meets it nearer than ``min_distance``."""
+    """Share of the probe rays of ``poses`` that miss the mesh, or None when a ray of the lower
+    half of an image that points more than 5 degrees below the horizon misses it, or when
+    any ray meets it nearer than ``min_distance``."""
     pixels = _probe_pixels(poses[0].width, poses[0].height, grid)
     lower = pixels[:, 1] >= poses[0].height / 2
     missed = 0
@@ -308,7 +317,8 @@ def _sky_fraction(poses: list[CameraPose], cast: RayCaster, grid: int, min_dista
         rays = pose.pixel_rays(pixels)
         distances = np.asarray(cast(np.repeat(pose.camera_center[None], len(rays), axis=0), rays), dtype=np.float64)
         hit = np.isfinite(distances)
-        if not np.all(hit[lower]) or np.any(distances[hit] <= min_distance):
+        ground = lower & (rays[:, 2] < -_GROUND_RAY_MIN_DEPRESSION)
+        if not np.all(hit[ground]) or np.any(distances[hit] <= min_distance):
             return None
         missed += int((~hit).sum())
     return missed / (len(poses) * len(pixels))

@@ -36,7 +36,7 @@ class SceneJob:
         "help": "with --mesh --rig traverse: camera pitch in degrees (negative looks down; near 0 the views "
                 "show the horizon and the sky)"})
     rover_views: int = field(default=0, metadata={
-        "help": "with --mesh --rig mixed: how many of the views are rover-height views (0 = 40 %%)"})
+        "help": "with --mesh --rig mixed: how many of the views are rover-height views (0 = 40 percent)"})
     rover_pitch_deg: float = field(default=2.0, metadata={
         "help": "with --mesh --rig mixed: rover views' pitch in degrees (the horizon and sky in frame)"})
 

@@ -6,7 +6,10 @@ sky colour or the hole there for an error of the method. :func:`unseen_ground` f
 pixels from the trained Gaussians alone, so it works on real scenes without ground truth:
 
 1. render the view's expected depth and alpha; pixels with alpha >= ``min_alpha`` are
-   surface, lifted to world points with the view's intrinsics and pose;
+   surface, lifted to world points with the view's intrinsics and pose. Ground no training
+   view saw is often rendered thin (low alpha, the sky model showing through), so when the
+   scene has true depth (synthetic scenes: ``priors/gt``) the caller passes it instead and
+   every pixel its mask calls surface is tested;
 2. render each training view's depth once and project every point into it: the point is
    seen when it lands inside that image, in front of the camera, and within
    ``depth_tolerance`` (relative) of the depth the training view renders there (so ground
@@ -35,17 +38,24 @@ def _render_depth(params: Any, view: View, *, backend: str, device: torch.device
 def unseen_ground(params: Any, view: View, train_views: Sequence[View], *, backend: str = "cpu",
                   device: torch.device | str = "cpu", min_alpha: float = 0.5, depth_tolerance: float = 0.05,
                   num_threads: Optional[int] = None,
-                  train_depths: Optional[list[tuple[torch.Tensor, torch.Tensor]]] = None) -> np.ndarray:
+                  train_depths: Optional[list[tuple[torch.Tensor, torch.Tensor]]] = None,
+                  depth: Optional[np.ndarray] = None, surface: Optional[np.ndarray] = None) -> np.ndarray:
     """[H, W] bool: surface pixels of ``view`` that none of ``train_views`` sees.
 
     ``params``: the run's :class:`~.gaussians.RenderParams`. ``train_depths``: the training
     views' rendered (depth, alpha), when the caller has them already (one render per view
-    serves every held-out view).
+    serves every held-out view). ``depth`` [H, W] and ``surface`` [H, W] bool: the view's true
+    depth and surface mask, used instead of its rendered depth when given.
     """
     device = torch.device(device)
     with torch.no_grad():
-        depth, alpha = _render_depth(params, view, backend=backend, device=device, num_threads=num_threads)
-        surface = (alpha >= min_alpha) & (depth > 0)
+        if depth is not None:
+            depth = torch.as_tensor(np.asarray(depth, dtype=np.float32))
+            valid = torch.as_tensor(np.asarray(surface, dtype=bool)) if surface is not None else torch.ones_like(depth, dtype=torch.bool)
+            surface = valid & (depth > 0)
+        else:
+            depth, alpha = _render_depth(params, view, backend=backend, device=device, num_threads=num_threads)
+            surface = (alpha >= min_alpha) & (depth > 0)
         rows, cols = torch.nonzero(surface, as_tuple=True)
         if len(rows) == 0:
             return np.zeros((view.height, view.width), dtype=bool)

@@ -179,3 +179,16 @@ def test_the_vanilla_switch_trains_plain_3dgs_and_refuses_clashing_flags(tmp_pat
     assert train_command.build_config(same).sky == "none"
     with pytest.raises(ConfigError, match="--sky"):
         train_command.build_config(parser.parse_args(["scene", "--out", str(tmp_path), "--vanilla", "--sky", "envmap"]))
+    with pytest.raises(ConfigError, match="--sky-alpha-weight"):
+        train_command.build_config(parser.parse_args(["scene", "--out", str(tmp_path), "--vanilla",
+                                                      "--sky-alpha-weight", "0.1"]))
+    # a saved run with the sky model is not turned vanilla on resume
+    from esgs.core.config import config_to_dict
+    from esgs.core.formats.run_dir import RunDir
+    from esgs.core.io_utils import atomic_write_json
+
+    run = tmp_path / "run"
+    run.mkdir()
+    atomic_write_json(RunDir(run).config, {**config_to_dict(default), "scene": "scene", "out": str(run)})
+    with pytest.raises(ConfigError, match="resumed"):
+        train_command.build_config(parser.parse_args(["scene", "--out", str(run), "--resume", "--vanilla"]))

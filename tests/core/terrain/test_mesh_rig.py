@@ -95,3 +95,21 @@ def test_mixed_rig_rover_views_count_and_errors():
     with pytest.raises(DatasetError, match="could not place") as error:
         make_mesh_rig(_mixed(rover_pitch_deg=-60.0, max_attempts=20), _render(), bowl_cast, BOUNDS_MIN, BOUNDS_MAX)
     assert "rover_pitch_deg" in str(error.value.hint)
+
+
+def test_mixed_rig_is_placed_on_flat_ground_with_the_default_pitch():
+    def plane_cast(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """A flat 400 m square at z = 0 (inf where a ray misses it)."""
+        o, d = np.asarray(origins, float), np.asarray(directions, float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(d[:, 2] < 0, -o[:, 2] / d[:, 2], np.inf)
+        hit = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+        inside = (np.abs(hit[:, 0]) <= 200) & (np.abs(hit[:, 1]) <= 200)
+        return np.where(np.isfinite(t) & inside & (t > 0), t, np.inf)
+
+    rig = MeshRigConfig(kind="mixed", views=8, orbit_radius_m=30.0, orbit_height_m=20.0, border_margin_m=10.0,
+                        probe_grid=9, max_attempts=100)
+    poses = make_mesh_rig(rig, _render(), plane_cast, np.array([-200.0, -200.0, 0.0]), np.array([200.0, 200.0, 0.0]),
+                          seed=0)
+    rover = poses[-3:]  # 40 % of 8 views, rounded
+    assert all(abs(pose.camera_center[2] - rig.mast_height_m) < 1e-9 for pose in rover)

@@ -61,3 +61,30 @@ def test_ground_hidden_behind_nearer_relief_in_training_views_is_unseen():
     assert unseen[rows, 5:12].mean() < 0.02  # the strip itself: seen
     # with the relief test off (tolerance huge) the hidden part would count as seen
     assert unseen_ground(params, _view(0, 3.0), [_view(1, 0.0)], depth_tolerance=10.0)[rows, 18:23].mean() < 0.05
+
+
+def test_true_depth_replaces_the_rendered_one_when_given():
+    params = _plane().render_params(0)
+    held_out, train = _view(0, 0.0), [_view(1, -6.0)]
+    # the truth says there is ground at z = 5 over the whole image, also where the model has nothing
+    unseen = unseen_ground(params, held_out, train, depth=np.full((32, 64), 5.0), surface=np.ones((32, 64), bool))
+    rows = slice(12, 20)
+    assert unseen[rows, :12].mean() > 0.95  # world x < -5: the training view renders nothing there
+    assert unseen[rows, 42:47].mean() > 0.95  # world x > 2: outside the training view
+    assert unseen[rows, 18:37].mean() < 0.02
+    # pixels the truth calls sky are never marked
+    sky = np.zeros((32, 64), bool)
+    assert not unseen_ground(params, held_out, train, depth=np.full((32, 64), 5.0), surface=sky).any()
+
+
+def test_the_report_marks_the_held_out_views_of_a_trained_run(fast_config, tmp_path):
+    from esgs.core.apps.report import unseen_ground_masks
+    from esgs.core.train import train
+
+    result = train(fast_config(out=tmp_path / "run", iterations=20))
+    masks = unseen_ground_masks(result.run_dir, ["view_000", "view_008", "view_001", "no_such_view"])
+    assert set(masks) == {"view_000", "view_008"}  # every 8th view is held out; view_001 trained
+    for mask in masks.values():
+        assert mask.dtype == bool and mask.shape == (24, 32)
+        # the plane is seen from every training view: at most a thin border is unseen
+        assert mask.mean() < 0.25
