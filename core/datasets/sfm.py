@@ -66,6 +66,27 @@ class SfmOptions:
             raise ConfigError("refine_intrinsics=False needs camera_params (the known intrinsics)")
 
 
+def choose_model(names_by_model: dict, images_dir: Path) -> Any:
+    """The key of the one model to keep from incremental mapping's models {key: image names}.
+
+    The mapper may start a second model from pairs left over after the first, holding images
+    the first one has registered already: such models add nothing and are dropped. Models
+    with images of their own are disconnected groups: a :class:`DatasetError` naming them.
+    """
+    largest = max(names_by_model, key=lambda key: len(names_by_model[key]))
+    covered = set(names_by_model[largest])
+    separate = {key: names for key, names in names_by_model.items() if key != largest and not set(names) <= covered}
+    if separate:
+        groups = {largest: names_by_model[largest], **separate}
+        sizes = ", ".join(f"{len(v)} images (e.g. {v[0]})" for v in groups.values())
+        raise DatasetError(
+            f"SfM found {len(groups)} disconnected models: {sizes}",
+            path=images_dir,
+            hint="the groups do not overlap enough; add linking images or process each group separately",
+        )
+    return largest
+
+
 def _median_triangulation_angle_deg(reconstruction) -> float:
     """Median over 3D points of the largest angle between two rays of its track (degrees)."""
     centres = {image_id: np.asarray(image.projection_center()) for image_id, image in reconstruction.images.items() if image.has_pose}
@@ -227,14 +248,8 @@ def _run_sfm(files: list[Path], images_dir: Path, out_dir: Path, options: SfmOpt
         names_by_model = {
             key: sorted(image.name for image in r.images.values() if image.has_pose) for key, r in reconstructions.items()
         }
-        if len(reconstructions) > 1:
-            sizes = ", ".join(f"{len(v)} images (e.g. {v[0]})" for v in names_by_model.values())
-            raise DatasetError(
-                f"SfM found {len(reconstructions)} disconnected models: {sizes}",
-                path=images_dir,
-                hint="the groups do not overlap enough; add linking images or process each group separately",
-            )
-        key, reconstruction = next(iter(reconstructions.items()))
+        key = choose_model(names_by_model, images_dir)
+        reconstruction = reconstructions[key]
         registered = names_by_model[key]
         unregistered = sorted(set(f.name for f in files) - set(registered))
         angle = _median_triangulation_angle_deg(reconstruction)

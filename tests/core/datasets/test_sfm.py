@@ -84,3 +84,15 @@ def test_rendered_scene_is_reconstructed(rendered_scene, tmp_path):
         assert angle < 0.5, name
     for name in names:
         assert (tmp_path / "sfm" / "images" / name).is_file()
+
+
+def test_a_second_model_of_images_already_registered_is_dropped_and_separate_groups_are_refused(tmp_path):
+    from esgs.core.datasets.sfm import choose_model
+    from esgs.core.errors import DatasetError
+
+    main = [f"view_{i:03d}.png" for i in range(14)]
+    # incremental mapping restarted from leftover pairs: 2 images the main model holds already
+    assert choose_model({0: ["view_003.png", "view_004.png"], 1: main}, tmp_path) == 1
+    with pytest.raises(DatasetError, match="2 disconnected models: 14 images") as error:
+        choose_model({0: main, 1: ["view_020.png", "view_021.png", "view_003.png"]}, tmp_path)
+    assert str(tmp_path) in str(error.value)
