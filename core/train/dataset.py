@@ -174,10 +174,10 @@ class _Undistorter:
         return undistort_image(pixels, camera, pinhole, maps=maps, interpolation="nearest" if nearest else "linear")
 
 
-def load_scene_data(scene: str | Path, *, images_dir: str = "images", resolution: int = 1, width: int = 0,
-                    test_every: int = 8, mask_source: str = "auto") -> SceneData:
-    """Read a COLMAP scene folder into train/test :class:`View` lists (see the module docstring)."""
-    from ..colmap.io import read_model
+def check_scene_folder(scene: str | Path, images_dir: str = "images") -> None:
+    """The cheap checks of a scene folder (it exists, has its image folder and a COLMAP model):
+    a :class:`DatasetError` naming what is missing, before anything is written for a run."""
+    from ..colmap.io import find_model_dir
 
     scene = Path(scene)
     if not scene.is_dir():
@@ -185,6 +185,17 @@ def load_scene_data(scene: str | Path, *, images_dir: str = "images", resolution
     folder = scene / images_dir
     if not folder.is_dir():
         raise DatasetError("scene has no image folder", path=folder, hint="COLMAP scenes keep their images in images/")
+    find_model_dir(scene)
+
+
+def load_scene_data(scene: str | Path, *, images_dir: str = "images", resolution: int = 1, width: int = 0,
+                    test_every: int = 8, mask_source: str = "auto") -> SceneData:
+    """Read a COLMAP scene folder into train/test :class:`View` lists (see the module docstring)."""
+    from ..colmap.io import read_model
+
+    scene = Path(scene)
+    check_scene_folder(scene, images_dir)
+    folder = scene / images_dir
     # The project's checked parser gives the same model as pycolmap (tests/core/test_colmap_io.py)
     # without importing pycolmap (~56 MiB resident) or building its per-point objects.
     model = read_model(scene, use_pycolmap=False)

@@ -37,7 +37,7 @@ from ..io_utils import atomic_write_json
 from ..progress import JsonLinesProgress, ProgressCallback, ProgressEvent, combine
 from .checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint, save_checkpoint
 from .config import TrainConfig, run_config_from_dict
-from .dataset import SceneData, load_scene_data
+from .dataset import SceneData, check_scene_folder, load_scene_data
 from .dataset import View
 from .gaussians import GaussianModel, RenderParams
 from .hooks import StepContext, TrainHook
@@ -480,6 +480,8 @@ class Trainer:
     def run(self) -> TrainResult:
         """Train (or continue) the run and return its result."""
         config = self.config
+        # a scene that cannot be read fails here, before the run folder is made (nothing left behind)
+        check_scene_folder(config.scene, config.images_dir)
         checkpoint_state = None
         if config.resume:
             checkpoint_state = _resume_state(self.run_dir, config, self.method)

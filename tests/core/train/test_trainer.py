@@ -297,3 +297,16 @@ def test_a_stop_file_saves_a_checkpoint_and_ends_the_run_as_interrupted(fast_con
     assert result.status == "interrupted" and 10 <= result.step < 40
     assert list_checkpoints(config.out / "checkpoints")[-1][0] == result.step
     assert not stop.exists()  # consumed, so a resume is not stopped again at once
+
+
+def test_a_scene_that_cannot_be_read_leaves_no_run_folder(fast_config, tmp_path):
+    from esgs.core.errors import DatasetError
+    from esgs.core.train import train
+
+    for scene in (tmp_path / "no_such_scene", tmp_path):  # missing; a folder without images/ and a model
+        out = tmp_path / "run_of_nothing"
+        with pytest.raises(DatasetError):
+            train(fast_config(scene=scene, out=out))
+        assert not out.exists()
+    # the same --out then trains once the scene is right
+    assert train(fast_config(out=tmp_path / "run_of_nothing", iterations=2)).status == "completed"
