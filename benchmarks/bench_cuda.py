@@ -40,6 +40,8 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from esgs.core.formats.run_dir import RunDir
+
 STARTED = time.monotonic()
 GPU = torch.device("cuda")
 
@@ -134,7 +136,7 @@ def train_run(scene: Path, out: Path, backend: str, iterations: int, seed: int, 
 def save_centres(run_dir: Path, target: Path) -> dict:
     from esgs.core.formats.ply import read_gaussians_ply
 
-    gaussians = read_gaussians_ply(run_dir / "point_cloud.ply")
+    gaussians = read_gaussians_ply(RunDir(run_dir).point_cloud)
     keep = 1.0 / (1.0 + np.exp(-gaussians.opacity_logit.reshape(-1))) >= 0.5
     np.savez_compressed(target, centres=gaussians.means[keep].astype(np.float32))
     return {"file": target.name, "opaque": int(keep.sum()), "all": int(len(keep))}
@@ -291,11 +293,11 @@ def main(argv: list[str] | None = None) -> int:
             parser.error("an esgs arm needs --esgs-priors")
         _step(results, name, args.json,
               lambda b=backend, p=priors, r=run_dir, s=seed: train_run(args.scene, r, b, args.iterations, s, threads, p))
-        if (run_dir / "point_cloud.ply").is_file():
+        if RunDir(run_dir).point_cloud.is_file():
             _step(results, name + "_centres", args.json,
                   lambda r=run_dir, n=name: save_centres(r, args.json.parent / f"{n}_centres.npz"))
         if (backend == "cpu" and not args.no_agreement and "agreement" not in results
-                and (run_dir / "point_cloud.ply").is_file()):
+                and RunDir(run_dir).point_cloud.is_file()):
             _step(results, "agreement", args.json, lambda r=run_dir: agreement(r))
     results["total_s"] = round(time.monotonic() - STARTED, 1)
     _write(args.json, results)

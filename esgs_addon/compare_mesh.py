@@ -72,12 +72,13 @@ def training_cameras(gaussian_obj: bpy.types.Object,
         scene folder or COLMAP model can be found.
     """
     from ..core.colmap.io import find_model_dir, read_model
+    from ..core.formats.run_dir import RunDir
     from . import training_job
 
     scene_dir, test_every = None, DEFAULT_TEST_EVERY
     run_dir = gaussian_obj.get(PROP_RUN_DIR)
     if run_dir:
-        config_path = Path(run_dir) / "config.json"
+        config_path = RunDir(Path(run_dir)).config
         try:
             config = json.loads(config_path.read_text())
         except (OSError, ValueError):
