@@ -176,3 +176,45 @@ def test_cli_reports_and_writes_json(tmp_path, capsys):
     assert report["n_gaussians_filtered"] == 40 and report["precision"] == 1.0
     assert json.loads(capsys.readouterr().out) == report
     assert main(["compare", str(mesh_path), str(mesh_path)]) == 2  # a mesh is not a Gaussian PLY
+
+
+def test_cli_restricts_recall_to_what_the_training_cameras_saw(tmp_path, capsys):
+    from esgs.core.cli import main
+    from esgs.core.colmap.geometry import matrix_to_quat_wxyz
+    from esgs.core.colmap.io import write_model
+    from esgs.core.colmap.model import Camera, ColmapModel, Image
+    from esgs.core.formats.ply import GaussianPly, write_gaussians_ply
+
+    # a 4 x 2 m plane; two training cameras look straight down at its x < 0 half
+    vertices, faces = grid_plane(cells=8)
+    vertices = vertices * np.array([2.0, 1.0, 1.0])
+    mesh_path = tmp_path / "gt.ply"
+    trimesh.Trimesh(vertices, faces, process=False).export(mesh_path)
+    pose = np.eye(4)
+    pose[:3, :3] = np.diag([1.0, -1.0, -1.0])  # looking down -z, image y along world -y
+    images = {}
+    for index, x in enumerate((-1.0, -1.0, -1.0)):  # image 0 is held out, 1 and 2 train
+        centre = np.array([x, 0.0, 1.0])
+        images[index + 1] = Image(index + 1, f"{index:03d}.png", 1, matrix_to_quat_wxyz(pose[:3, :3]),
+                                  -pose[:3, :3] @ centre)
+    model = ColmapModel(cameras={1: Camera(1, "PINHOLE", 200, 200, np.array([100.0, 100.0, 100.0, 100.0]))},
+                        images=images, points={})
+    write_model(model, tmp_path / "scene" / "sparse" / "0")
+    n = 4000
+    rng = np.random.default_rng(2)
+    means = np.column_stack([rng.uniform(-2.0, 0.0, n), rng.uniform(-1.0, 1.0, n), np.zeros(n)])
+    write_gaussians_ply(tmp_path / "g.ply", GaussianPly(
+        means=means, normals=np.zeros((n, 3)), sh_dc=np.zeros((n, 3)), sh_rest=np.zeros((n, 0, 3)),
+        opacity_logit=np.full(n, 5.0), log_scales=np.zeros((n, 3)), quats_wxyz=np.tile([1.0, 0, 0, 0], (n, 1))))
+    assert main(["compare", str(tmp_path / "g.ply"), str(mesh_path), "--samples", "4000"]) == 0
+    whole = json.loads(capsys.readouterr().out)
+    assert main(["compare", str(tmp_path / "g.ply"), str(mesh_path), "--samples", "4000", "--threshold", "0.05",
+                 "--scene", str(tmp_path / "scene")]) == 0
+    seen = json.loads(capsys.readouterr().out)
+    assert whole["recall"] == pytest.approx(0.5, abs=0.05) and whole["threshold_m"] == 0.05
+    assert seen["recall"] > 0.95 and seen["n_cameras"] == 2 and seen["scene"] == str(tmp_path / "scene")
+    # without --threshold the match distance follows the scene: 1 % of the ~1 m viewing distance
+    assert main(["compare", str(tmp_path / "g.ply"), str(mesh_path), "--samples", "4000",
+                 "--scene", str(tmp_path / "scene")]) == 0
+    scaled = json.loads(capsys.readouterr().out)
+    assert 0.009 < scaled["threshold_m"] < 0.015 and "camera-to-surface" in scaled["threshold_rule"]
