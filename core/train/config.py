@@ -20,6 +20,7 @@ REFERENCE_ITERATIONS = 30_000
 BACKENDS = ("auto", "cpu", "reference", "cuda")
 #: ``sky`` values: a learned environment map (train/sky.py), or the constant background (3DGS).
 SKY_MODELS = ("envmap", "none")
+GRAYSCALE_MODES = ("auto", "on", "off")
 
 #: The settings that make a run plain 3DGS as published (``esgs train --vanilla``; the bench's
 #: baseline rows): the constant background instead of the sky model, no sky masks (so no
@@ -60,6 +61,9 @@ class TrainConfig:
     sky_alpha_weight: float = field(default=0.05, metadata=_help(
         "weight of mean(alpha) over sky pixels, where the mask source marks sky (gt, ndn): keeps Gaussians from "
         "painting the sky so the sky model does; 0 = off"))
+    grayscale: str = field(default="auto", metadata=_help(
+        "keep the Gaussians' colours grey (equal SH coefficients in R, G and B) so a panchromatic camera "
+        "(Navcam) gives no colour casts: auto = when every training image is grey", choices=GRAYSCALE_MODES))
     surface_alpha_weight: float = field(default=0.0, metadata=_help(
         "weight of mean(1 - alpha) over the pixels such masks mark as surface: keeps the ground opaque so the "
         "sky model shows only through the sky; 0 = off"))
@@ -164,6 +168,8 @@ class TrainConfig:
             raise ConfigError(f"lambda_dssim must be in [0, 1], got {self.lambda_dssim}")
         if len(self.background) != 3:
             raise ConfigError(f"background must have 3 values (RGB), got {len(self.background)}")
+        if self.grayscale not in GRAYSCALE_MODES:
+            raise ConfigError(f"grayscale must be one of {', '.join(GRAYSCALE_MODES)}, got {self.grayscale!r}")
         if self.sky not in SKY_MODELS:
             raise ConfigError(f"sky must be one of {', '.join(SKY_MODELS)}, got {self.sky!r}")
         if not 0 <= self.sky_degree <= 3:
@@ -206,7 +212,7 @@ class TrainConfig:
 #: older run resumes as it was going (Gaussians in their old order) instead of changing.
 #: A dotted name ("esgs.sky_weight") is a setting of a section of the legacy layout below.
 PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0, "sky": "none", "mask_photometric": True,
-                          "surface_alpha_weight": 0.0}
+                          "surface_alpha_weight": 0.0, "grayscale": "off"}
 
 #: Legacy layout (runs saved before methods were registered): the method's settings were
 #: the sections "esgs" (ESGSConfig) and "baselines" (Mip-Splatting and DropoutGS switches

@@ -290,8 +290,15 @@ class Trainer:
         else:
             self.gaussians = self._initial_gaussians()
         self.gaussians.to(self.device)
+        self.grayscale = config.grayscale == "on" or (
+            config.grayscale == "auto" and all(_is_grey(view.image) for view in self.data.train))
+        if self.grayscale:
+            self.message("every training image is grey: the Gaussians' colours are kept grey (--grayscale off to "
+                         "learn colours)" if config.grayscale == "auto" else "colours are kept grey (--grayscale on)")
         self._build_optimizer()
         self._setup_sky()
+        if self.grayscale:
+            self._make_grey()
         self.strategy.setup(StrategyContext(gaussians=self.gaussians, optimizer=self.optimizer, extent=self.data.extent,
                                             device=self.device, generator=self.generator, message=self.message))
         self.sampler = ViewSampler(len(self.data.train), config.seed)
@@ -301,6 +308,17 @@ class Trainer:
             self._load_state(checkpoint)
         # loading left ~100 MiB of freed heap (decoded files, the COLMAP model's objects)
         release_free_memory()
+
+    def _make_grey(self) -> None:
+        """Project the colour parameters (SH of the Gaussians and of the sky) onto grey:
+        each coefficient's R, G and B become their mean."""
+        with torch.no_grad():
+            tensors = [self.gaussians.params["sh_dc"], self.gaussians.params["sh_rest"]]
+            if self.sky is not None:
+                tensors += list(self.sky.parameters())
+            for tensor in tensors:
+                if tensor.numel() and tensor.shape[-1] == 3:
+                    tensor.copy_(tensor.mean(dim=-1, keepdim=True).expand_as(tensor))
 
     def _setup_sky(self) -> None:
         """The sky model and its loss on the mask source's sky pixels (see :mod:`.sky`)."""
@@ -409,6 +427,8 @@ class Trainer:
         psnr = -10.0 * math.log10(max(mse, 1e-12))
         self.optimizer.step()
         self.optimizer.zero_grad()
+        if self.grayscale:
+            self._make_grey()
 
         for report in self.strategy.step_post_optimizer(step):
             for hook in self.hooks:
@@ -600,6 +620,11 @@ def _sky_alpha_term(context: LossContext) -> torch.Tensor:
     if not bool(sky.any()):
         return context.alpha.sum() * 0.0
     return context.alpha[..., 0][sky].mean()
+
+
+def _is_grey(image: torch.Tensor) -> bool:
+    """Whether an [H, W, 3] image has equal channels everywhere (a grey camera stored as RGB)."""
+    return bool((image[..., 0] == image[..., 1]).all() and (image[..., 1] == image[..., 2]).all())
 
 
 def _surface_alpha_term(context: LossContext) -> torch.Tensor:

@@ -310,3 +310,30 @@ def test_a_scene_that_cannot_be_read_leaves_no_run_folder(fast_config, tmp_path)
         assert not out.exists()
     # the same --out then trains once the scene is right
     assert train(fast_config(out=tmp_path / "run_of_nothing", iterations=2)).status == "completed"
+
+
+def test_grey_images_train_grey_gaussians(fast_config, tiny_scene, tmp_path):
+    import shutil
+
+    import numpy as np
+
+    from esgs.core.formats.imageio import read_image, write_png
+    from esgs.core.train.trainer import Trainer
+
+    grey = tmp_path / "grey_scene"
+    shutil.copytree(tiny_scene, grey)
+    for path in sorted((grey / "images").iterdir()):
+        image = read_image(path)[..., :3].astype(np.float64)
+        write_png(path, np.repeat(image.mean(axis=-1, keepdims=True).round().astype(np.uint8), 3, axis=-1))
+
+    def colour_spread(scene, **settings) -> float:
+        trainer = Trainer(fast_config(scene=scene, out=tmp_path / f"run_{scene.name}_{len(settings)}", **settings))
+        trainer.setup()
+        for step in range(1, 21):
+            trainer.train_step(step)
+        sh = torch.cat([trainer.gaussians.params["sh_dc"], trainer.gaussians.params["sh_rest"]], dim=1)
+        return float((sh - sh.mean(dim=-1, keepdim=True)).abs().max())
+
+    assert colour_spread(grey) < 1e-6  # auto: every image is grey
+    assert colour_spread(grey, grayscale="off") > 1e-4  # learning colours drifts off grey
+    assert colour_spread(tiny_scene) > 1e-4  # colour images keep their colours
