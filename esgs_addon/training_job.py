@@ -264,23 +264,14 @@ def status_line(state: JobState, run_dir: str | Path | None = None) -> str:
     PSNR and the held-out PSNR / SSIM / LPIPS of ``metrics.json`` (:func:`run_results`),
     never the one under the other's name.
     """
-    parts = [state.status]
-    if state.total:
-        parts.append(f"step {state.step}/{state.total}")
-    if state.loss is not None:
-        parts.append(f"loss {state.loss:.4g}")
     results = run_results(run_dir) if run_dir is not None and not state.active else None
     if results is not None:
-        parts.extend(format_results(results))
+        psnr_parts = format_results(results)
     elif state.psnr is not None and state.active:
-        parts.append(f"{psnr_label(state.stage)} {state.psnr:.2f} dB")
-    if state.n_gaussians is not None:
-        parts.append(f"{state.n_gaussians:,} Gaussians")
-    if state.eta_s is not None and state.active:
-        parts.append(f"ETA {jobs.format_duration(state.eta_s)}")
-    if state.error:
-        parts.append(f"error: {state.error}")
-    return "  ".join(parts)
+        psnr_parts = [f"{psnr_label(state.stage)} {state.psnr:.2f} dB"]
+    else:
+        psnr_parts = []
+    return state.summary(psnr_parts)
 
 
 def run_results(run_dir: str | Path) -> Optional[dict[str, Any]]:

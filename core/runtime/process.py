@@ -90,14 +90,19 @@ class JobState:
     def active(self) -> bool:
         return self.status in ACTIVE_STATUSES
 
-    def summary(self) -> str:
-        """One line for a status bar or a console: ``step 120/500 loss 0.0312 ...``."""
+    def summary(self, psnr_parts: Optional[list[str]] = None) -> str:
+        """One line for a status bar or a console: ``step 120/500 loss 0.0312 ...``.
+
+        ``psnr_parts``: what to show in place of the PSNR (a caller with the run's own figures,
+        e.g. the add-on's held-out metrics); None: this state's PSNR under its label."""
         parts = [self.status]
         if self.total:
             parts.append(f"step {self.step}/{self.total}")
         if self.loss is not None:
             parts.append(f"loss {self.loss:.4g}")
-        if self.psnr is not None:
+        if psnr_parts is not None:
+            parts.extend(psnr_parts)
+        elif self.psnr is not None:
             parts.append(f"{'held-out' if self.psnr_held_out else 'training'} PSNR {self.psnr:.2f} dB")
         if self.n_gaussians is not None:
             parts.append(f"{self.n_gaussians:,} Gaussians")
