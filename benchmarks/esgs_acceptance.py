@@ -227,6 +227,9 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--esgs-option", action="append", default=[], metavar="KEY=VALUE",
                         help="set an ESGSConfig field on every ESGS row, e.g. depth_weight=3 (repeat; use its own --out)")
+    parser.add_argument("--train-defaults", action="store_true",
+                        help="train with today's defaults (sky model, masks from --mask-source auto) instead of the "
+                             "study's historical --mask-source none")
     parser.add_argument("--doc", type=Path, default=None)
     parser.add_argument("--report-only", action="store_true", help="rewrite the report from finished runs")
     args = parser.parse_args()
@@ -239,12 +242,13 @@ def main() -> int:
         name, _, path = item.partition("=")
         sources[name] = Path(path)
     scenes = {name: sfm_variant(path, root, name) for name, path in sources.items()}
-    for source in ("ndn", "labels"):
+    for source in ("ndn", "labels", "auto"):
         if source in args.sources:
             for scene in scenes.values():
                 ensure_computed_priors(scene, source)
-    train = {"width": args.width, "threads": args.threads, "backend": "auto", "lpips": True, "mask_source": "none",
-             "save_renders": False}
+    train = {"width": args.width, "threads": args.threads, "backend": "auto", "lpips": True, "save_renders": False}
+    if not args.train_defaults:
+        train["mask_source"] = "none"  # the study's historical setting: photometric loss on whole images
     tasks = plan_runs(scenes, args.out, iterations=args.iterations, seeds=args.seeds, train=train,
                       sources=args.sources, esgs_options=esgs_options(args.esgs_option))
     sky = []

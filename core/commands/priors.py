@@ -19,7 +19,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scene", type=Path, help="scene folder (images/ + sparse/0)")
     parser.add_argument("--method", choices=METHODS, default="sfm",
                         help="sfm: sparse depth from the COLMAP points each view observes; "
-                             "ndn: dense relative depth and normals from the NDN diffusion network")
+                             "ndn: dense relative depth and normals from the NDN diffusion network; "
+                             "auto: the best of stereo labels, NDN and SfM per pixel with a confidence map, "
+                             "computing what is missing (what esgs train --esgs uses; docs/priors.md)")
+    parser.add_argument("--force", action="store_true", help="auto: rebuild even when the cached priors/auto holds")
     parser.add_argument("--max-error-px", type=float, default=2.0, help="drop points with a larger reprojection error")
     parser.add_argument("--min-track-length", type=int, default=2, help="drop points seen in fewer views")
     parser.add_argument("--weights", type=Path, default=None,
@@ -63,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
 def _compute(args: argparse.Namespace, progress) -> tuple[int, "Path | None"]:
     settings = PriorsSettings(scene=args.scene, method=args.method, max_error_px=args.max_error_px,
                               min_track_length=args.min_track_length, weights=args.weights, steps=args.steps,
-                              seed=args.seed)
+                              seed=args.seed, force=args.force)
     return compute_priors(settings, progress)
 
 

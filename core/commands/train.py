@@ -31,6 +31,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", choices=method_names(), default=None,
                         help="training method (default: 3dgs, or the method whose flags are given); "
                              "--method esgs starts from the full method for --priors (esgs.core.methods.full_esgs)")
+    parser.add_argument("--esgs", action="store_true",
+                        help="full ESGS on the best priors the images allow: the same as --method esgs --priors auto "
+                             "(depth + normal priors + GPDFN; priors/auto is computed first when missing or stale)")
     parser.add_argument("--list-methods", action="store_true", help="list the training methods and exit")
     parser.add_argument("--vanilla", action="store_true",
                         help="the published method's own settings, for comparisons with other tools (with the "
@@ -59,6 +62,8 @@ def _chosen_method(args: argparse.Namespace, base_method: str) -> str:
     from ..errors import ConfigError
 
     switched = [method for switch, method in _METHOD_SWITCHES.items() if getattr(args, switch, False)]
+    if getattr(args, "esgs", False):
+        switched.append("esgs")
     if args.method is not None:
         switched = [args.method, *[m for m in switched if m != args.method]]
     if len(set(switched)) > 1:
@@ -78,9 +83,9 @@ def build_config(args: argparse.Namespace):
     """The TrainConfig of a command line: a resumed run's config.json (or --config), then flags.
 
     The method is ``--method`` (``--mip-splatting`` / ``--dropout-gs`` too), else the saved
-    or --config file's, else the one whose flags were given. ``--method esgs`` given
-    explicitly starts from :func:`~esgs.core.methods.full_esgs` for ``--priors``; ESGS flags
-    alone start from every part off, as before methods were registered.
+    or --config file's, else the one whose flags were given. ``--esgs`` or ``--method esgs``
+    given explicitly starts from :func:`~esgs.core.methods.full_esgs` for ``--priors`` (default
+    ``auto``); ESGS flags alone start from every part off, as before methods were registered.
     """
     from ..config import config_to_dict, dataclass_from_args
     from ..errors import ConfigError
@@ -109,8 +114,8 @@ def build_config(args: argparse.Namespace):
     method = get_method(name)
     if base is not None and base.method == name:
         settings = base.method_config
-    elif name == "esgs" and args.method == "esgs" and getattr(args, "priors", None):
-        settings = full_esgs(args.priors, scene=Path(args.scene))
+    elif name == "esgs" and (args.method == "esgs" or getattr(args, "esgs", False)):
+        settings = full_esgs(getattr(args, "priors", None) or "auto", scene=Path(args.scene))
     else:
         settings = method.default_settings()
     if method.settings_class is not None:

@@ -27,8 +27,8 @@ from ..formats.scene_dir import SceneDir
 from .runs import RunTask
 from .tables import QUALITY_COLUMNS, aggregate
 
-#: Prior sources in table order; gt last (the upper bound).
-SOURCES = ("sfm", "ndn", "labels", "gt")
+#: Prior sources in table order: auto (the default, fused from the next three) first, gt last (the upper bound).
+SOURCES = ("auto", "sfm", "ndn", "labels", "gt")
 #: ESGS's mean distance must be at most this fraction of 3DGS's (20 % lower).
 DISTANCE_RATIO = 0.8
 

@@ -43,6 +43,9 @@ class PriorSource(str, Enum):
     NDN = "ndn"
     #: sparse metric depth projected from the COLMAP points (``esgs priors --method sfm``)
     SFM = "sfm"
+    #: the best prior the images allow, fused per pixel from labels, ndn and sfm with a confidence
+    #: map and the sky of the best surface mask (``esgs priors --method auto``, :mod:`esgs.core.priors.auto`)
+    AUTO = "auto"
     #: an experiment's source, not a product's: gt with the sky filled the way dense predictors
     #: fill it (:mod:`esgs.core.experiments.sky`)
     GT_SKYFILLED = "gt_skyfilled"
@@ -69,6 +72,7 @@ class PriorSource(str, Enum):
         """What 0 in the mask means: ``"surface"`` (no surface along the ray: sky) or ``"coverage"``
         (only "no value here": sparse points, holes a mesh does not cover). The EXR header
         ``mask_kind`` says it per file; this is the fallback for files written before the header."""
+        # auto's mask is coverage; it carries its sky in a sky/ folder of its own
         return "surface" if self in (PriorSource.GT, PriorSource.NDN, PriorSource.GT_SKYFILLED) else "coverage"
 
     @property
@@ -79,8 +83,9 @@ class PriorSource(str, Enum):
     @property
     def dense_mask(self) -> bool:
         """Whether the mask covers the image densely, so it may mask the photometric loss. SfM's
-        marks only the pixels that have a depth sample: it would blank most of the image."""
-        return self is not PriorSource.SFM
+        marks only the pixels that have a depth sample: it would blank most of the image; auto's
+        holds SfM samples where no dense source reached."""
+        return self not in (PriorSource.SFM, PriorSource.AUTO)
 
     @property
     def has_normals(self) -> bool:
@@ -100,7 +105,7 @@ class PriorSource(str, Enum):
     @property
     def computed_by_priors(self) -> bool:
         """Whether ``esgs priors --method <source>`` computes it for any scene."""
-        return self in (PriorSource.NDN, PriorSource.SFM)
+        return self in (PriorSource.NDN, PriorSource.SFM, PriorSource.AUTO)
 
     @property
     def made_by_labels(self) -> bool:
@@ -112,10 +117,21 @@ class PriorSource(str, Enum):
         """Whether only the synthetic scene generator (``esgs scene``) can write it."""
         return self is PriorSource.GT
 
+    @property
+    def fused(self) -> bool:
+        """Whether the source is built from the others (auto), not measured or predicted itself."""
+        return self is PriorSource.AUTO
+
     @classmethod
     def standard_sources(cls) -> tuple["PriorSource", ...]:
-        """gt, labels, ndn, sfm: the folder conventions' sources, most faithful first."""
+        """gt, labels, ndn, sfm, auto: the folder conventions' sources, most faithful first (auto,
+        made from labels, ndn and sfm, last: it is only as faithful as they are per pixel)."""
         return tuple(source for source in cls if source.standard)
+
+    @classmethod
+    def single_sources(cls) -> tuple["PriorSource", ...]:
+        """gt, labels, ndn, sfm: the standard sources that are not fused from others."""
+        return tuple(source for source in cls.standard_sources() if not source.fused)
 
     @classmethod
     def computed(cls) -> tuple["PriorSource", ...]:
@@ -167,7 +183,7 @@ RECONSTRUCTED_MESH = "reconstructed.ply"
 SCENE_JSON = "scene.json"
 LABELS_REPORT = "labels.json"
 LABELS_ACCURACY = "accuracy.json"
-PRIOR_KINDS = ("depth", "normal", "mask")
+PRIOR_KINDS = ("depth", "normal", "mask", "confidence", "sky")
 
 
 @dataclass(frozen=True)
@@ -229,6 +245,14 @@ class SceneDir:
     def mask_map(self, source: str, image_name: str) -> Path:
         """``priors/<source>/mask/<stem>.png`` of image ``image_name``."""
         return self.prior_maps(source, "mask") / f"{image_stem(image_name)}.png"
+
+    def confidence_map(self, source: str, image_name: str) -> Path:
+        """``priors/<source>/confidence/<stem>.exr``: per-pixel trust in [0, 1] (optional; auto writes it)."""
+        return self.prior_maps(source, "confidence") / f"{image_stem(image_name)}.exr"
+
+    def sky_map(self, source: str, image_name: str) -> Path:
+        """``priors/<source>/sky/<stem>.png``: 255 = no surface along the ray (optional; auto writes it)."""
+        return self.prior_maps(source, "sky") / f"{image_stem(image_name)}.png"
 
     @property
     def labels_report(self) -> Path:

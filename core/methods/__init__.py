@@ -5,7 +5,8 @@ ship (:mod:`.registry`: ``3dgs``, ``esgs``, ``mip-splatting``, ``dropout-gs``) a
 every caller (CLI, demo, bench, experiments, Blender) the same entry points:
 
 - :func:`train` / :func:`make_trainer`: run ``config.method`` with ``config.method_config``;
-- :func:`full_esgs`: the full ESGS method for a prior source, defined once;
+- :func:`full_esgs`: the full ESGS method for a prior source (default ``auto``), defined once;
+- :func:`prepare_priors`: computes (or reuses) the ``auto`` priors a run needs, before training;
 - :func:`esgs_config`: a TrainConfig for ESGS in one call;
 - :func:`train_config_from_dict` / :func:`load_run_config`: a saved config (older layouts
   included) with its method's settings as their dataclass;
@@ -31,27 +32,42 @@ if TYPE_CHECKING:
 
 __all__ = [
     "DropoutGSConfig", "ESGSConfig", "Method", "MethodParts", "MipSplattingConfig", "RenderOptions",
-    "esgs_config", "evaluate_run", "full_esgs", "get_method", "load_run_config", "make_trainer", "method_names",
-    "register_method", "render_options", "render_run", "resolve", "train", "train_config_from_dict",
+    "AUTO_DEPTH_WEIGHT", "esgs_config", "evaluate_run", "full_esgs", "get_method", "load_run_config", "make_trainer",
+    "method_names", "prepare_priors", "register_method", "render_options", "render_run", "resolve", "train",
+    "train_config_from_dict",
     "unregister_method",
 ]
 
-def full_esgs(priors: str, *, scene: Optional[Path] = None, **overrides: Any) -> ESGSConfig:
+#: Depth-prior weight of ESGS on the ``auto`` source. Its confidence map scales it per pixel
+#: (stereo labels that agree with the SfM points ~0.9, NDN ~0.2-0.5), so the effective weight
+#: is about 3 where labels hold (the weight that met the acceptance study with labels) and
+#: about 1 where only NDN does (the weight chosen for NDN); docs/priors.md, "The auto source".
+AUTO_DEPTH_WEIGHT = 3.0
+
+
+def full_esgs(priors: str = "auto", *, scene: Optional[Path] = None, **overrides: Any) -> ESGSConfig:
     """The full ESGS method on prior source ``priors``: the one definition every caller uses.
 
     Depth prior, normal prior and GPDFN (K = 3, the paper's best). A source without normal
     maps (``sfm``, or any whose ``SCENE/priors/<source>/normal`` folder is missing when
     ``scene`` is given) trains the depth-normal consistency loss in place of the normal
-    prior. ``overrides`` are ESGSConfig fields set on top (``depth_weight=3.0``, ``gpdfn=False``).
+    prior. The ``auto`` source (the default: :mod:`esgs.core.priors.auto`, computed before
+    training by :func:`prepare_priors`) weights depth by :data:`AUTO_DEPTH_WEIGHT` times its
+    per-pixel confidence. ``overrides`` are ESGSConfig fields set on top (``depth_weight=1.0``,
+    ``gpdfn=False``).
     """
     from ..formats.scene_dir import PriorSource, SceneDir
 
-    if scene is not None:
+    source = PriorSource.parse(priors, PriorSource.standard_sources() + (PriorSource.GT_SKYFILLED,))
+    if source is PriorSource.AUTO:
+        has_normals = True  # made before training; its normals come from labels and NDN
+    elif scene is not None:
         has_normals = SceneDir(Path(scene)).prior_maps(priors, "normal").is_dir()
     else:
-        has_normals = PriorSource.parse(priors).has_normals
+        has_normals = source.has_normals
     settings = ESGSConfig(priors=priors, depth=True, normal=has_normals, consistency=not has_normals,
-                          gpdfn=True, fused_k=3)
+                          gpdfn=True, fused_k=3,
+                          depth_weight=AUTO_DEPTH_WEIGHT if source is PriorSource.AUTO else ESGSConfig.depth_weight)
     if overrides:
         from ..config import config_from_dict, config_to_dict
 
@@ -60,7 +76,7 @@ def full_esgs(priors: str, *, scene: Optional[Path] = None, **overrides: Any) ->
     return settings
 
 
-def esgs_config(scene: Path, out: Path, priors: str, **train_settings: Any) -> TrainConfig:
+def esgs_config(scene: Path, out: Path, priors: str = "auto", **train_settings: Any) -> TrainConfig:
     """A TrainConfig running :func:`full_esgs` on ``priors`` (``train_settings``: TrainConfig fields)."""
     return TrainConfig(scene=Path(scene), out=Path(out), method="esgs",
                        method_config=full_esgs(priors, scene=Path(scene)), **train_settings)
@@ -101,11 +117,30 @@ def render_options(config: TrainConfig) -> RenderOptions:
     return method.render_options(method.settings_of(config))
 
 
+def prepare_priors(config: TrainConfig, progress: Optional["ProgressCallback"] = None) -> Optional[dict]:
+    """Compute, or reuse, the ``auto`` priors ``config`` trains with (the report), else None.
+
+    Every caller that trains (CLI, demo, bench, Blender's child job) goes through
+    :func:`make_trainer`, which calls this, so a run on ``--priors auto`` never starts without them.
+    """
+    settings = get_method(config.method).settings_of(config)
+    if not isinstance(settings, ESGSConfig) or settings.priors != "auto" or not settings.enabled:
+        return None
+    if not (settings.depth or settings.normal or settings.sky_loss_on):
+        return None
+    from ..priors.auto import ensure_auto_priors
+    from ..progress import no_progress
+
+    return ensure_auto_priors(config.scene, progress or no_progress)
+
+
 def make_trainer(config: TrainConfig, progress: Optional["ProgressCallback"] = None,
                  hooks: Sequence["TrainHook"] = ()) -> "Trainer":
-    """A :class:`~esgs.core.train.trainer.Trainer` for ``config.method`` (not started)."""
+    """A :class:`~esgs.core.train.trainer.Trainer` for ``config.method`` (not started); the
+    ``auto`` priors it needs are made first (:func:`prepare_priors`)."""
     from ..train.trainer import Trainer
 
+    prepare_priors(config, progress)
     return Trainer(config, progress=progress, hooks=hooks, method=get_method(config.method))
 
 

@@ -13,6 +13,13 @@ One format for every source (``gt`` synthetic ground truth, ``labels`` rendered 
   surface at all: 0 is sky; gt and ndn) or ``coverage`` (0 only means "no value here": sparse
   SfM points, stereo holes). Files without the header follow their source (:attr:`PriorSource.mask_kind`).
 
+Two optional kinds (the fused ``auto`` source writes them):
+
+- confidence EXR, channel ``Z``: per-pixel trust in [0, 1] that scales the prior losses
+  (missing: 1 wherever the mask is valid);
+- sky PNG: 255 = no surface along the ray. It wins over a ``surface`` mask's zeros, so a
+  source whose mask only means coverage can still say where the sky is.
+
 ``<stem>`` is the image name without its extension (sub-folders kept).
 """
 from __future__ import annotations
@@ -40,7 +47,7 @@ class PriorMaps:
     relative_depth: bool = False
     source: str = ""
     sky: np.ndarray | None = None  # [H, W] bool, True = no surface along the ray; None = unknown
-
+    confidence: np.ndarray | None = None  # [H, W] float32 in [0, 1]; None = full trust where valid
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -72,11 +79,13 @@ def available_prior_sources(scene_dir: str | Path) -> list[str]:
 def write_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, depth: np.ndarray | None = None,
                      normal: np.ndarray | None = None, mask: np.ndarray | None = None, relative_depth: bool = False,
                      units: str = "m", metadata: dict[str, str] | None = None,
-                     mask_kind: str = "coverage") -> None:
+                     mask_kind: str = "coverage", confidence: np.ndarray | None = None,
+                     sky: np.ndarray | None = None) -> None:
     """Write one view's prior maps atomically in the standard layout.
 
     ``mask_kind`` "surface" when the mask's zeros are pixels with no surface at all (sky), so
-    training may push them far away; "coverage" when they only lack a value.
+    training may push them far away; "coverage" when they only lack a value. ``confidence``
+    [H, W] in [0, 1] and ``sky`` [H, W] bool are the optional kinds (module docstring).
     """
     if mask_kind not in MASK_KINDS:
         raise ValueError(f"mask_kind must be one of {MASK_KINDS}, got {mask_kind!r}")
@@ -90,6 +99,12 @@ def write_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, dep
                          metadata=extra)
     if mask is not None:
         write_png(scene.mask_map(source, image_name), np.where(np.asarray(mask, bool), 255, 0).astype(np.uint8))
+    if confidence is not None:
+        values = np.clip(np.nan_to_num(np.asarray(confidence, np.float32)), 0.0, 1.0)
+        write_depth_exr(scene.confidence_map(source, image_name), values, units="1",
+                        metadata={**extra, "kind": "confidence"})
+    if sky is not None:
+        write_png(scene.sky_map(source, image_name), np.where(np.asarray(sky, bool), 255, 0).astype(np.uint8))
 
 
 def _resize_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -195,4 +210,28 @@ def load_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, size
         raise DatasetError(f"unknown mask_kind {mask_kind!r} (expected {' or '.join(MASK_KINDS)})",
                            path=depth_path if depth is not None else normal_path)
     sky = ~mask if mask_kind == "surface" and mask_path.exists() else None
-    return PriorMaps(depth=depth, normal=normal, mask=mask, relative_depth=relative, source=source, sky=sky)
+    out_size = (mask.shape[1], mask.shape[0])
+    sky_path = scene.sky_map(source, image_name)
+    if sky_path.exists():
+        sky = _read_plane(sky_path, (width, height), out_size, kind="sky") > 127
+    confidence = None
+    confidence_path = scene.confidence_map(source, image_name)
+    if confidence_path.exists():
+        confidence = np.clip(_read_plane(confidence_path, (width, height), out_size, kind="confidence"), 0.0, 1.0)
+    return PriorMaps(depth=depth, normal=normal, mask=mask, relative_depth=relative, source=source, sky=sky,
+                     confidence=confidence)
+
+
+def _read_plane(path: Path, stored: tuple[int, int], size: tuple[int, int], *, kind: str) -> np.ndarray:
+    """One optional single-channel map (sky PNG, confidence EXR) checked against the stored
+    prior maps' size (width, height) and brought to ``size`` by nearest sampling."""
+    if path.suffix == ".exr":
+        plane, _ = read_depth_exr(path)
+        plane = np.nan_to_num(plane.astype(np.float32))
+    else:
+        image = read_image(path)
+        plane = image if image.ndim == 2 else image[..., 0]
+    if (plane.shape[1], plane.shape[0]) != stored:
+        raise DatasetError(f"{kind} map {plane.shape[1]}x{plane.shape[0]} does not match the prior maps "
+                           f"{stored[0]}x{stored[1]}", path=path, hint="recompute the priors (esgs priors SCENE --method auto)")
+    return _resize_nearest(plane, *size)

@@ -1,4 +1,4 @@
-"""One priors job: compute a scene's prior maps with one method (sfm or ndn), the same for
+"""One priors job: compute a scene's prior maps with one method (sfm, ndn or auto), the same for
 ``esgs priors``, the Blender add-on and the bench (the ``"priors"`` job of the child-process
 runtime, :func:`child_job`)."""
 from __future__ import annotations
@@ -25,6 +25,7 @@ class PriorsSettings:
     weights: Optional[Path] = field(default=None, metadata={"help": "ndn: weights file or model folder (default: shipped)"})
     steps: Optional[int] = field(default=None, metadata={"help": "ndn: DDIM steps (default: the model's)"})
     seed: int = field(default=0, metadata={"help": "ndn: seed of the starting noise"})
+    force: bool = field(default=False, metadata={"help": "auto: recompute even when the cached priors/auto still holds"})
 
     def validate(self) -> None:
         from ..errors import ConfigError
@@ -36,6 +37,11 @@ class PriorsSettings:
 def compute_priors(settings: PriorsSettings, progress: ProgressCallback) -> tuple[int, Optional[Path]]:
     """Write ``SCENE/priors/<method>/``; returns (views written, NDN weights used or None)."""
     settings.validate()
+    if settings.method == "auto":
+        from .auto import ensure_auto_priors
+
+        report = ensure_auto_priors(settings.scene, progress, force=settings.force)
+        return int(report["summary"]["views"]), None
     if settings.method == "ndn":
         from ..ndn.infer import write_ndn_priors
         from ..ndn.shipped import resolve_default_weights

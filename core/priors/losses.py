@@ -85,7 +85,7 @@ def fit_scale_shift(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor
 
 def depth_loss(rendered_depth: torch.Tensor, prior_depth: torch.Tensor, mask: torch.Tensor,
                weights: torch.Tensor | None = None, *, mode: str = "log", relative: bool = False,
-               alpha: torch.Tensor | None = None) -> torch.Tensor:
+               alpha: torch.Tensor | None = None, confidence: torch.Tensor | None = None) -> torch.Tensor:
     """Edge-aware depth loss of one view.
 
     ``mode`` "log": L1 of log depth (scale-free errors: a 10 cm miss at 2 m counts like 1 m at
@@ -94,7 +94,9 @@ def depth_loss(rendered_depth: torch.Tensor, prior_depth: torch.Tensor, mask: to
     only known up to scale and shift (NDN output, relative labels): the prior is first aligned
     to the rendered depth with :func:`fit_scale_shift` (in inverse depth for "inverse", depth
     otherwise), without gradient through the fit. ``alpha`` [H,W], when given, restricts the
-    loss to pixels the Gaussians actually cover (alpha > 0.5).
+    loss to pixels the Gaussians actually cover (alpha > 0.5). ``confidence`` [H,W] in [0, 1]
+    scales each pixel's error without renormalising: a view trusted half as much pulls half as
+    hard (the edge weights, in contrast, only redistribute the pull within the view).
     """
     valid = mask & (prior_depth > 0) & (rendered_depth > 0)
     if alpha is not None:
@@ -118,15 +120,20 @@ def depth_loss(rendered_depth: torch.Tensor, prior_depth: torch.Tensor, mask: to
         error = (inverse_rendered - inverse_prior).abs()
     else:
         raise ValueError(f"unknown depth loss mode {mode!r} (use 'log' or 'inverse')")
-    return _masked_mean(torch.where(valid, error, torch.zeros_like(error)), weights * valid)
+    error = torch.where(valid, error, torch.zeros_like(error))
+    if confidence is not None:
+        error = error * confidence
+    return _masked_mean(error, weights * valid)
 
 
 def normal_loss(rendered_normal: torch.Tensor, prior_normal: torch.Tensor, mask: torch.Tensor,
-                weights: torch.Tensor | None = None, alpha: torch.Tensor | None = None) -> torch.Tensor:
+                weights: torch.Tensor | None = None, alpha: torch.Tensor | None = None,
+                confidence: torch.Tensor | None = None) -> torch.Tensor:
     """Edge-aware normal loss of one view: L1 plus (1 - cos) between unit normals.
 
     ``rendered_normal`` [H,W,3] is renormalised here (the rasterizer composites normals like a
-    colour); pixels with a zero-length rendered or prior normal are skipped.
+    colour); pixels with a zero-length rendered or prior normal are skipped. ``confidence``
+    scales each pixel's error as in :func:`depth_loss`.
     """
     rendered_length = rendered_normal.norm(dim=-1)
     prior_length = prior_normal.norm(dim=-1)
@@ -139,6 +146,8 @@ def normal_loss(rendered_normal: torch.Tensor, prior_normal: torch.Tensor, mask:
     l1 = (unit_rendered - unit_prior).abs().sum(dim=-1)
     angular = 1.0 - (unit_rendered * unit_prior).sum(dim=-1)
     error = torch.where(valid, l1 + angular, torch.zeros_like(l1))
+    if confidence is not None:
+        error = error * confidence
     return _masked_mean(error, weights * valid)
 
 

@@ -109,11 +109,13 @@ def test_the_lists_every_caller_used_are_derived_from_the_enum():
     from esgs.core.experiments import ablate, bench
     from esgs.core.train.dataset import find_mask_source
 
-    assert names(PriorSource.standard_sources()) == ("gt", "labels", "ndn", "sfm") == ablate.DEFAULT_PRIOR_ORDER
-    assert ablate.PRIOR_SOURCES == ("none", "sfm", "ndn", "labels", "gt")
-    assert DEMO_SOURCES == bench.PRIOR_SOURCES == ("ndn", "sfm", "gt")
-    assert bench.COMPUTED_PRIOR_SOURCES == ("ndn", "sfm") and set(priors_command.METHODS) == {"ndn", "sfm"}
-    assert bench.ENSURED_PRIOR_SOURCES == ("ndn", "sfm", "labels")
+    assert names(PriorSource.standard_sources()) == ("gt", "labels", "ndn", "sfm", "auto") == ablate.DEFAULT_PRIOR_ORDER
+    assert names(PriorSource.single_sources()) == ("gt", "labels", "ndn", "sfm")
+    assert ablate.PRIOR_SOURCES == ("none", "auto", "sfm", "ndn", "labels", "gt")
+    assert DEMO_SOURCES == bench.PRIOR_SOURCES == ("ndn", "sfm", "auto", "gt")
+    assert bench.COMPUTED_PRIOR_SOURCES == ("ndn", "sfm", "auto")
+    assert set(priors_command.METHODS) == {"ndn", "sfm", "auto"}
+    assert bench.ENSURED_PRIOR_SOURCES == ("ndn", "sfm", "auto", "labels")
     # sfm's mask marks sparse samples only: never an automatic photometric mask
     assert names(PriorSource.auto_mask_order()) == ("gt", "labels", "ndn")
     assert find_mask_source  # the dataset's auto choice walks auto_mask_order (tests/core/train/test_dataset.py)
@@ -122,6 +124,7 @@ def test_the_lists_every_caller_used_are_derived_from_the_enum():
     assert [s.value for s in PriorSource if s.relative_depth] == ["ndn"]
     assert [s.value for s in PriorSource if s.made_by_labels] == ["labels"]
     assert [s.value for s in PriorSource if s.made_by_scene] == ["gt"]
+    assert [s.value for s in PriorSource if s.fused] == ["auto"]
 
 
 def test_members_are_plain_strings_in_json_paths_and_messages(tmp_path):

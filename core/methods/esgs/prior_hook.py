@@ -21,7 +21,8 @@ class ViewPriors:
     depth: [H, W] scene units (``relative``: known up to scale and shift) or None; normal:
     [H, W, 3] unit normals, camera frame (OpenCV axes) or None; mask: [H, W] bool, where the
     prior losses act; sky: [H, W] bool, pixels with no surface (the sky loss), or None;
-    far: the view's far surface distance (scene units; a 0-dim tensor) or None.
+    far: the view's far surface distance (scene units; a 0-dim tensor) or None; confidence:
+    [H, W] trust in [0, 1] scaling both prior losses per pixel (the ``auto`` source), or None.
     """
 
     depth: Optional[torch.Tensor]
@@ -30,6 +31,7 @@ class ViewPriors:
     relative: bool = False
     sky: Optional[torch.Tensor] = None
     far: Optional[torch.Tensor] = None
+    confidence: Optional[torch.Tensor] = None
 
 
 class PriorLossHook(TrainHook):
@@ -106,6 +108,7 @@ class PriorLossHook(TrainHook):
                 relative=relative,
                 sky=sky.to(device) if sky is not None else None,
                 far=_far_depth(depth, mask) if depth is not None and not relative else None,
+                confidence=torch.from_numpy(maps.confidence.copy()).to(device) if maps.confidence is not None else None,
             )
         if alignments:
             run.message(_alignment_summary(alignments, self.config.max_alignment_error))
@@ -139,14 +142,15 @@ class PriorLossHook(TrainHook):
         if prior is None or prior.depth is None or context.depth is None:
             return context.image.sum() * 0.0
         return depth_loss(context.depth[..., 0], prior.depth, prior.mask, self._edge_weights(context),
-                          mode=self.config.depth_mode, relative=prior.relative, alpha=context.alpha[..., 0])
+                          mode=self.config.depth_mode, relative=prior.relative, alpha=context.alpha[..., 0],
+                          confidence=prior.confidence)
 
     def _normal_term(self, context: LossContext) -> torch.Tensor:
         prior = self.priors.get(context.view.name)
         if prior is None or prior.normal is None or context.normals is None:
             return context.image.sum() * 0.0
         return normal_loss(context.normals, prior.normal, prior.mask, self._edge_weights(context),
-                           alpha=context.alpha[..., 0])
+                           alpha=context.alpha[..., 0], confidence=prior.confidence)
 
     def _sky_term(self, context: LossContext) -> torch.Tensor:
         prior = self.priors.get(context.view.name)

@@ -1,0 +1,400 @@
+"""The ``auto`` prior source: the best depth and normals the images allow, per pixel, with a confidence.
+
+``SCENE/priors/auto/`` is fused from the sources a user can compute (never ``gt`` depth):
+
+1. **labels** (``esgs labels --reconstruct``: a mesh rebuilt by multi-view stereo, rendered):
+   metric and sharp where stereo held, absent where the rebuilt mesh has holes;
+2. **ndn** (the diffusion prior): dense but only relative; pinned to metric per view with a
+   robust scale and shift fitted to the view's own SfM points;
+3. **sfm** (the triangulated points): sparse, metric, verified by triangulation: the floor
+   where neither dense source has a value.
+
+Every dense source is checked per view against the SfM points the view observes (median
+relative depth error, ``e``). The per-pixel confidence that scales the prior losses is the
+rule documented in docs/priors.md ("The auto source"):
+
+- labels: ``1 - e / max_error`` (0 when above ``max_error``: the view's labels are not used);
+- ndn where labels are missing: ``ndn_trust * (1 - e / max_error)``;
+- where both exist and differ by more than ``disagreement`` (relative), labels' confidence is
+  halved: one of two independent estimates is wrong there;
+- sfm points where no dense source has a value: confidence 1, depth only;
+- sky: from the best mask that knows where there is no surface (``gt`` on synthetic scenes,
+  else ``ndn``), the same order as the trainer's ``--mask-source auto``; no depth there.
+
+What each source contributed, its coverage and its error against the SfM points are written
+to ``priors/auto/auto.json``, with a fingerprint of the images, the model and the sources
+used: :func:`ensure_auto_priors` reuses the folder while the fingerprint holds, re-fuses when a
+source changed, and recomputes the sources when the images or the model changed.
+"""
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from ..errors import ConfigError, ESGSError
+from ..formats.scene_dir import PriorSource, SceneDir
+from ..io_utils import atomic_directory
+from ..progress import ProgressCallback, ProgressEvent, no_progress
+
+#: ``priors/auto/auto.json``: what the fused folder was made from, per view and in total.
+REPORT_NAME = "auto.json"
+#: Fewer SfM points on a view's valid dense pixels than this and its error is unknown.
+MIN_CHECK_POINTS = 20
+#: Confidence of a dense source on a view whose error could not be checked (too few points).
+UNCHECKED_CONFIDENCE = 0.5
+#: Bumped when the fusion rule changes, so cached folders are rebuilt.
+RULE_VERSION = 1
+
+
+@dataclass
+class AutoPriorSettings:
+    """How ``priors/auto`` is fused (module docstring: the rule)."""
+
+    max_error: float = field(default=0.15, metadata={
+        "help": "a dense source whose depth disagrees with a view's SfM points by more than this median relative "
+                "error is not used in that view (confidence falls linearly to 0 there)"})
+    ndn_trust: float = field(default=0.5, metadata={
+        "help": "NDN's confidence relative to stereo labels at the same error (a learned guess, not a measurement)"})
+    disagreement: float = field(default=0.25, metadata={
+        "help": "labels and NDN differing by more than this relative depth halve the labels' confidence there"})
+    labels: bool = field(default=True, metadata={"help": "compute and use stereo labels (needs bpy)"})
+    ndn: bool = field(default=True, metadata={"help": "compute and use NDN priors"})
+
+    def validate(self) -> None:
+        for name in ("max_error", "disagreement"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not 0 <= self.ndn_trust <= 1:
+            raise ConfigError(f"ndn_trust must be in [0, 1], got {self.ndn_trust}")
+
+
+@dataclass
+class FusedView:
+    """One view's fused maps: depth [H,W] (0 = none), normal [H,W,3] (0 = none), mask [H,W]
+    (a depth value exists), confidence [H,W] in [0,1], sky [H,W] or None, and per-source
+    pixel shares and errors for the report."""
+
+    depth: np.ndarray
+    normal: np.ndarray
+    mask: np.ndarray
+    confidence: np.ndarray
+    sky: Optional[np.ndarray]
+    report: dict[str, Any]
+
+
+def sfm_fit_error(depth: np.ndarray, valid: np.ndarray, sfm_depth: np.ndarray) -> tuple[float, int]:
+    """Median |depth - sfm| / sfm over pixels with an SfM sample and a valid ``depth``, and
+    how many there were (error NaN with fewer than :data:`MIN_CHECK_POINTS`)."""
+    check = valid & (sfm_depth > 0) & (depth > 0)
+    count = int(check.sum())
+    if count < MIN_CHECK_POINTS:
+        return float("nan"), count
+    return float(np.median(np.abs(depth[check] - sfm_depth[check]) / sfm_depth[check])), count
+
+
+def pin_relative_depth(relative: np.ndarray, valid: np.ndarray, sfm_depth: np.ndarray) -> Optional[np.ndarray]:
+    """A relative depth map made metric by a robust scale and shift fitted to the SfM samples
+    (:func:`~.losses.fit_scale_shift`); None with too few samples or a scale that is not
+    positive (the prediction inverts near and far)."""
+    import torch
+
+    from .losses import fit_scale_shift
+
+    check = valid & (sfm_depth > 0) & (relative > 0)
+    if int(check.sum()) < MIN_CHECK_POINTS:
+        return None
+    scale, shift = fit_scale_shift(torch.from_numpy(relative[check].astype(np.float64)),
+                                   torch.from_numpy(sfm_depth[check].astype(np.float64)),
+                                   torch.ones(int(check.sum()), dtype=torch.bool))
+    if float(scale) <= 0:
+        return None
+    pinned = (float(scale) * relative.astype(np.float64) + float(shift)).astype(np.float32)
+    return np.where(valid & (relative > 0) & (pinned > 0), pinned, 0.0).astype(np.float32)
+
+
+def _view_trust(error: float, settings: AutoPriorSettings) -> float:
+    """1 - error / max_error clipped to [0, 1]; :data:`UNCHECKED_CONFIDENCE` for an unknown error."""
+    if not np.isfinite(error):
+        return UNCHECKED_CONFIDENCE
+    return float(np.clip(1.0 - error / settings.max_error, 0.0, 1.0))
+
+
+def fuse_view(sfm_depth: np.ndarray, labels: Any = None, ndn: Any = None, sky: Optional[np.ndarray] = None,
+              settings: Optional[AutoPriorSettings] = None) -> FusedView:
+    """Fuse one view (module docstring: the rule).
+
+    ``sfm_depth`` [H,W] metric samples (0 = none); ``labels`` and ``ndn``:
+    :class:`~.io.PriorMaps` at the same size, or None (ndn's depth may be relative: it is
+    pinned here); ``sky`` [H,W] bool from the best surface mask, or None.
+    """
+    settings = settings or AutoPriorSettings()
+    height, width = sfm_depth.shape
+    depth = np.zeros((height, width), np.float32)
+    normal = np.zeros((height, width, 3), np.float32)
+    confidence = np.zeros((height, width), np.float32)
+    report: dict[str, Any] = {}
+    free = np.ones((height, width), bool) if sky is None else ~sky
+
+    labels_depth = ndn_depth = None
+    labels_valid = ndn_valid = np.zeros((height, width), bool)
+    if labels is not None and labels.depth is not None:
+        labels_valid = labels.mask & (labels.depth > 0) & free
+        labels_depth = labels.depth
+        error, points = sfm_fit_error(labels_depth, labels_valid, sfm_depth)
+        trust = _view_trust(error, settings)
+        report["labels"] = {"error": error, "points": points, "trust": trust}
+        if trust <= 0:
+            labels_valid = np.zeros_like(labels_valid)
+    if ndn is not None and ndn.depth is not None:
+        valid = ndn.mask & (ndn.depth > 0) & free
+        pinned = pin_relative_depth(ndn.depth, valid, sfm_depth) if ndn.relative_depth else \
+            np.where(valid, ndn.depth, 0.0).astype(np.float32)
+        if pinned is None:
+            report["ndn"] = {"error": float("nan"), "points": 0, "trust": 0.0, "reason": "could not be pinned"}
+        else:
+            error, points = sfm_fit_error(pinned, valid, sfm_depth)
+            trust = settings.ndn_trust * _view_trust(error, settings)
+            report["ndn"] = {"error": error, "points": points, "trust": trust}
+            if trust > 0:
+                ndn_depth, ndn_valid = pinned, valid & (pinned > 0)
+
+    if labels_depth is not None and labels_valid.any():
+        trust = report["labels"]["trust"]
+        conf = np.full((height, width), trust, np.float32)
+        if ndn_depth is not None:
+            both = labels_valid & ndn_valid
+            differ = np.zeros_like(both)
+            differ[both] = np.abs(labels_depth[both] - ndn_depth[both]) / labels_depth[both] > settings.disagreement
+            conf[differ] *= 0.5
+            report["labels"]["disagreeing_share"] = float(differ.sum() / max(int(both.sum()), 1))
+        depth[labels_valid] = labels_depth[labels_valid]
+        confidence[labels_valid] = conf[labels_valid]
+        if labels.normal is not None:
+            normal[labels_valid] = labels.normal[labels_valid]
+    fill = np.zeros((height, width), bool)
+    if ndn_depth is not None:
+        fill = ndn_valid & (depth <= 0)
+        depth[fill] = ndn_depth[fill]
+        confidence[fill] = report["ndn"]["trust"]
+        if ndn.normal is not None:
+            normal[fill] = ndn.normal[fill]
+    floor = (sfm_depth > 0) & (depth <= 0) & free
+    depth[floor] = sfm_depth[floor]
+    confidence[floor] = 1.0
+    mask = depth > 0
+    total = float(height * width)
+    report["share"] = {
+        "labels": float((labels_valid & mask).sum() / total) if labels_depth is not None else 0.0,
+        "ndn": float(fill.sum() / total),
+        "sfm": float(floor.sum() / total),
+        "sky": float(sky.sum() / total) if sky is not None else 0.0,
+    }
+    report["coverage"] = float(mask.sum() / total)
+    report["mean_confidence"] = float(confidence[mask].mean()) if mask.any() else 0.0
+    return FusedView(depth=depth, normal=normal, mask=mask, confidence=confidence, sky=sky, report=report)
+
+
+# --- the folder ---------------------------------------------------------------------------
+def _fingerprint_files(paths: list[Path]) -> str:
+    digest = hashlib.sha256()
+    for path in paths:
+        try:
+            stat = path.stat()
+            digest.update(f"{path.name}:{stat.st_size}:{stat.st_mtime_ns}\n".encode())
+        except OSError:
+            digest.update(f"{path.name}:missing\n".encode())
+    return digest.hexdigest()[:16]
+
+
+def inputs_fingerprint(scene: Path) -> str:
+    """Of the images and the COLMAP model (names, sizes, modification times): what the
+    computed sources were made from."""
+    folder = SceneDir(scene)
+    images = sorted(p for p in folder.images.rglob("*") if p.is_file()) if folder.images.is_dir() else []
+    model = sorted(p for p in folder.model.iterdir() if p.is_file()) if folder.model.is_dir() else []
+    return _fingerprint_files(images + model)
+
+
+def source_fingerprint(scene: Path, source: str) -> str:
+    """Of one source's folder (every map's size and time): changes when it is recomputed."""
+    root = SceneDir(scene).prior(source)
+    return _fingerprint_files(sorted(p for p in root.rglob("*") if p.is_file())) if root.is_dir() else "missing"
+
+
+def read_report(scene: Path) -> Optional[dict]:
+    """``priors/auto/auto.json`` or None."""
+    path = SceneDir(scene).prior(PriorSource.AUTO) / REPORT_NAME
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _labels_available() -> bool:
+    return importlib.util.find_spec("bpy") is not None
+
+
+def _compute_source(scene: Path, source: str, progress: ProgressCallback) -> Optional[str]:
+    """Compute ``priors/<source>`` in this process; None when done, else why it was skipped."""
+    try:
+        if source == PriorSource.LABELS:
+            if not _labels_available():
+                return "Blender's bpy module is not importable here (pip install bpy==5.0.1)"
+            from ..labels.pipeline import LabelJob, run_label_job
+
+            run_label_job(LabelJob(scene=scene, reconstruct=True), progress)
+        elif source == PriorSource.NDN:
+            from .job import PriorsSettings, compute_priors
+
+            compute_priors(PriorsSettings(scene=scene, method="ndn"), progress)
+        else:
+            from .job import PriorsSettings, compute_priors
+
+            compute_priors(PriorsSettings(scene=scene, method="sfm"), progress)
+    except ESGSError as error:
+        return f"{source} priors failed: {error.message}"
+    return None
+
+
+def _say(progress: ProgressCallback, message: str) -> None:
+    progress(ProgressEvent(0, 0, "auto priors", kind="message", message=message))
+
+
+def ensure_auto_priors(scene: str | Path, progress: ProgressCallback = no_progress, *,
+                       settings: Optional[AutoPriorSettings] = None, force: bool = False) -> dict:
+    """``SCENE/priors/auto``, reused when its fingerprint holds, else made (module docstring).
+
+    Missing sources are computed first (sfm always; labels when bpy is importable; ndn);
+    when the images or the model changed since the folder was made, every computed source
+    is recomputed. Returns the report (``auto.json``).
+    """
+    scene = Path(scene)
+    settings = settings or AutoPriorSettings()
+    settings.validate()
+    folder = SceneDir(scene)
+    if not folder.has_model():
+        from ..errors import DatasetError
+
+        raise DatasetError("not a scene folder (no sparse/0)", path=scene, hint="esgs priors SCENE --method auto")
+    inputs = inputs_fingerprint(scene)
+    previous = read_report(scene)
+    stale_inputs = previous is not None and previous.get("inputs") != inputs
+    wanted = [PriorSource.SFM] + [s for s, on in ((PriorSource.LABELS, settings.labels),
+                                                  (PriorSource.NDN, settings.ndn)) if on]
+    skipped: dict[str, str] = {}
+    for source in wanted:
+        if force or stale_inputs or not folder.has_prior_maps(source, "depth"):
+            why = "the images or the model changed" if stale_inputs else "missing"
+            _say(progress, f"auto priors: computing {source} priors ({why})")
+            reason = _compute_source(scene, source, progress)
+            if reason:
+                skipped[str(source)] = reason
+                _say(progress, f"auto priors: {source} left out: {reason}")
+    used = [str(s) for s in wanted if folder.has_prior_maps(s, "depth") and str(s) not in skipped]
+    sources = {name: source_fingerprint(scene, name) for name in used}
+    key = {"inputs": inputs, "sources": sources, "settings": asdict(settings), "rule": RULE_VERSION}
+    if not force and previous is not None and all(previous.get(k) == v for k, v in key.items()) \
+            and folder.has_prior_maps(PriorSource.AUTO, "depth"):
+        _say(progress, f"auto priors: reusing {folder.prior(PriorSource.AUTO)}")
+        return previous
+    return build_auto_priors(scene, used, settings, progress, extra={**key, "skipped": skipped})
+
+
+def build_auto_priors(scene: Path, used: list[str], settings: AutoPriorSettings,
+                      progress: ProgressCallback = no_progress, extra: Optional[dict] = None) -> dict:
+    """Fuse ``used`` sources into ``priors/auto`` (staged; replaces the folder when complete);
+    ``extra`` goes into the report as it is (the cache key)."""
+    from ..colmap import read_model
+    from .io import load_prior_maps, write_prior_maps
+    from .sfm import sparse_depth_map
+
+    folder = SceneDir(scene)
+    model = read_model(scene)
+    images = model.sorted_images()
+    sky_sources = [s for s in PriorSource.auto_mask_order() if s.masks_sky and folder.has_prior_maps(s, "mask")]
+    folder.priors.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=".auto.work.", dir=folder.priors))
+    views: dict[str, Any] = {}
+    try:
+        for index, image in enumerate(images):
+            camera = model.cameras[image.camera_id]
+            size = (camera.width, camera.height)
+            rotation = image.rotation_matrix()
+            sfm = sparse_depth_map(model, image.image_id)
+            maps = {}
+            for source in (PriorSource.LABELS, PriorSource.NDN):
+                if str(source) in used:
+                    try:
+                        maps[source] = load_prior_maps(scene, source, image.name, size=size,
+                                                       world_to_camera_rotation=rotation)
+                    except ESGSError:
+                        maps[source] = None  # a view the source did not cover
+            sky, sky_from = None, None
+            for source in sky_sources:
+                try:
+                    sky = load_prior_maps(scene, source, image.name, size=size, world_to_camera_rotation=rotation).sky
+                except ESGSError:
+                    continue
+                if sky is not None:
+                    sky_from = str(source)
+                    break
+            fused = fuse_view(sfm, maps.get(PriorSource.LABELS), maps.get(PriorSource.NDN), sky, settings)
+            fused.report["sky_source"] = sky_from
+            write_prior_maps(work, PriorSource.AUTO, image.name, depth=fused.depth, normal=fused.normal,
+                             mask=fused.mask, confidence=fused.confidence, sky=fused.sky, units="sfm",
+                             metadata={"note": f"fused from {', '.join(used)} (esgs.core.priors.auto)"})
+            views[image.name] = fused.report
+            progress(ProgressEvent(index + 1, len(images), "auto priors"))
+        report = {"sources_used": used, "views": views, "summary": _summary(views), **(extra or {})}
+        with atomic_directory(folder.prior(PriorSource.AUTO), overwrite=True) as staging:
+            os.replace(SceneDir(work).prior(PriorSource.AUTO), staging)
+            (staging / REPORT_NAME).write_text(json.dumps(report, indent=1, default=_json_default))
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    _say(progress, summary_line(report))
+    return report
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    raise TypeError(type(value).__name__)
+
+
+def _summary(views: dict[str, Any]) -> dict[str, Any]:
+    """Means over views of each source's share and error, coverage and confidence."""
+    def mean(values: list[float]) -> float:
+        values = [v for v in values if v is not None and np.isfinite(v)]
+        return float(np.mean(values)) if values else float("nan")
+
+    summary: dict[str, Any] = {"views": len(views)}
+    for source in ("labels", "ndn", "sfm", "sky"):
+        summary[f"{source}_share"] = mean([v["share"][source] for v in views.values()])
+    for source in ("labels", "ndn"):
+        checked = [v[source] for v in views.values() if source in v]
+        summary[f"{source}_error"] = mean([c["error"] for c in checked])
+        summary[f"{source}_views_used"] = sum(1 for c in checked if c["trust"] > 0)
+    summary["coverage"] = mean([v["coverage"] for v in views.values()])
+    summary["mean_confidence"] = mean([v["mean_confidence"] for v in views.values()])
+    return summary
+
+
+def summary_line(report: dict) -> str:
+    """One line: what the auto prior is made of."""
+    s = report["summary"]
+    parts = [f"{source} {100 * s[f'{source}_share']:.0f}%" for source in ("labels", "ndn", "sfm")
+             if s.get(f"{source}_share", 0) > 0]
+    errors = [f"{source} {100 * s[f'{source}_error']:.1f}% off the SfM points in {s[f'{source}_views_used']}/"
+              f"{s['views']} views" for source in ("labels", "ndn") if np.isfinite(s.get(f"{source}_error", np.nan))]
+    return (f"auto priors: {100 * s['coverage']:.0f}% of pixels ({', '.join(parts) or 'nothing'}), "
+            f"mean confidence {s['mean_confidence']:.2f}, sky {100 * s['sky_share']:.0f}%"
+            + (f"; {'; '.join(errors)}" if errors else ""))

@@ -1,0 +1,199 @@
+"""The ``auto`` prior source: the fusion rule on cases with known holes and wrong pixels, the
+folder it writes and reads back, its cache, and the confidence reaching the losses."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from esgs.core.colmap import read_model
+from esgs.core.formats.scene_dir import PriorSource, SceneDir
+from esgs.core.priors import auto
+from esgs.core.priors.auto import AutoPriorSettings, ensure_auto_priors, fuse_view, pin_relative_depth
+from esgs.core.priors.io import PriorMaps, load_prior_maps, write_prior_maps
+from esgs.core.priors.losses import depth_loss, normal_loss
+from esgs.core.priors.sfm import write_sfm_priors
+from tests.blender.colmap_helpers import synthetic_model, write_scene
+
+H, W = 40, 60
+
+
+def _truth() -> np.ndarray:
+    """A sloping surface 5-8 m away."""
+    rows = np.linspace(0.0, 1.0, H, dtype=np.float32)[:, None]
+    return (5.0 + 3.0 * rows + 0.2 * np.linspace(0, 1, W, dtype=np.float32)[None, :]).astype(np.float32)
+
+
+def _sfm(truth: np.ndarray, step: int = 3) -> np.ndarray:
+    sparse = np.zeros_like(truth)
+    sparse[::step, ::step] = truth[::step, ::step]
+    return sparse
+
+
+def _maps(depth, mask=None, *, relative=False, normal_z=1.0):
+    mask = np.ones(depth.shape, bool) if mask is None else mask
+    normal = np.zeros((*depth.shape, 3), np.float32)
+    normal[..., 2] = normal_z
+    return PriorMaps(depth=depth.astype(np.float32), normal=normal, mask=mask, relative_depth=relative)
+
+
+def test_labels_win_where_they_agree_with_the_points_and_ndn_fills_their_holes():
+    truth = _truth()
+    hole = np.zeros((H, W), bool)
+    hole[10:20, 20:40] = True
+    labels = _maps(np.where(hole, 0.0, truth), ~hole, normal_z=1.0)
+    ndn = _maps(0.5 * truth + 2.0, relative=True, normal_z=-1.0)  # affine in the truth: pinned exactly
+    fused = fuse_view(_sfm(truth), labels, ndn)
+    np.testing.assert_allclose(fused.depth, truth, rtol=1e-4)  # every pixel, the hole included
+    assert fused.mask.all()
+    settings = AutoPriorSettings()
+    assert fused.confidence[~hole] == pytest.approx(1.0)  # labels exact: 1 - 0 / max_error
+    assert fused.confidence[hole] == pytest.approx(settings.ndn_trust, rel=1e-3)  # NDN pinned exactly, halved trust
+    assert (fused.normal[~hole, 2] == 1.0).all() and (fused.normal[hole, 2] == -1.0).all()  # normals follow the source
+    assert fused.report["share"]["labels"] == pytest.approx(1 - hole.mean())
+    assert fused.report["share"]["ndn"] == pytest.approx(hole.mean())
+
+
+def test_labels_that_contradict_the_points_are_dropped_and_ndn_trust_falls_with_its_error():
+    truth = _truth()
+    labels = _maps(1.3 * truth)  # 30 % off the SfM points: beyond max_error 0.15
+    noisy = truth * (1.0 + 0.06 * np.sign(np.sin(np.arange(W)))[None, :])  # NDN 6 % off
+    fused = fuse_view(_sfm(truth), labels, _maps(noisy, relative=False))
+    assert fused.report["labels"]["trust"] == 0.0 and fused.report["share"]["labels"] == 0.0
+    expected = 0.5 * (1.0 - fused.report["ndn"]["error"] / 0.15)
+    assert 0.0 < expected < 0.5
+    np.testing.assert_allclose(fused.confidence, expected, rtol=1e-5)
+    np.testing.assert_allclose(fused.depth, noisy, rtol=1e-6)
+
+
+def test_disagreeing_pixels_halve_the_labels_confidence():
+    truth = _truth()
+    wrong = np.zeros((H, W), bool)
+    wrong[30:, 50:] = True
+    ndn = _maps(np.where(wrong, 2.0 * truth, truth))  # NDN wrong in one corner only
+    fused = fuse_view(_sfm(truth), _maps(truth), ndn)
+    assert fused.confidence[wrong] == pytest.approx(0.5)
+    assert fused.confidence[~wrong] == pytest.approx(1.0)
+    np.testing.assert_allclose(fused.depth, truth)  # labels' depth is kept; only its weight falls
+
+
+def test_sfm_is_the_floor_and_sky_pixels_get_no_depth():
+    truth = _truth()
+    sky = np.zeros((H, W), bool)
+    sky[:8] = True
+    sparse = _sfm(truth)
+    fused = fuse_view(sparse, None, None, sky)
+    expected = (sparse > 0) & ~sky
+    np.testing.assert_array_equal(fused.mask, expected)
+    np.testing.assert_allclose(fused.depth[expected], truth[expected])
+    assert (fused.confidence[expected] == 1.0).all() and (fused.normal == 0).all()
+    assert fused.report["share"]["sky"] == pytest.approx(sky.mean())
+    # a dense source marks no depth on sky pixels either
+    fused = fuse_view(sparse, _maps(truth), None, sky)
+    assert not fused.mask[sky].any() and fused.mask[~sky].all()
+
+
+def test_a_prediction_that_inverts_near_and_far_is_not_pinned():
+    truth = _truth()
+    assert pin_relative_depth(20.0 - truth, np.ones((H, W), bool), _sfm(truth)) is None
+    assert pin_relative_depth(truth, np.ones((H, W), bool), np.zeros((H, W), np.float32)) is None
+
+
+# --- the folder -------------------------------------------------------------------------
+@pytest.fixture
+def scene(tmp_path):
+    folder = write_scene(tmp_path, synthetic_model())
+    model = read_model(folder)
+    for image in model.sorted_images():
+        (folder / "images" / image.name).parent.mkdir(parents=True, exist_ok=True)
+        (folder / "images" / image.name).write_bytes(b"not read by the fusion")
+    write_sfm_priors(folder, model)
+    for image in model.sorted_images():
+        sparse = load_prior_maps(folder, "sfm", image.name).depth
+        median = float(np.median(sparse[sparse > 0]))
+        dense = np.full(sparse.shape, median, np.float32)
+        write_prior_maps(folder, "labels", image.name, depth=dense, normal=np.dstack([0 * dense, 0 * dense, 1 + 0 * dense]),
+                         mask=np.ones(sparse.shape, bool))
+        write_prior_maps(folder, "ndn", image.name, depth=dense, normal=np.dstack([0 * dense, 0 * dense, 1 + 0 * dense]),
+                         mask=np.ones(sparse.shape, bool), relative_depth=True, mask_kind="surface")
+    return folder
+
+
+def test_the_folder_is_written_read_back_cached_and_rebuilt_when_its_inputs_change(scene, monkeypatch):
+    computed = []
+    monkeypatch.setattr(auto, "_compute_source", lambda s, source, p: computed.append(str(source)))
+    first = ensure_auto_priors(scene)
+    assert computed == []  # every source was there
+    folder = SceneDir(scene)
+    name = read_model(scene).sorted_images()[0].name
+    maps = load_prior_maps(scene, PriorSource.AUTO, name)
+    assert maps.confidence is not None and maps.confidence.shape == maps.mask.shape
+    assert maps.sky is not None and not maps.sky.any()  # ndn's mask marks no sky here
+    assert not maps.relative_depth and maps.normal is not None
+    half = load_prior_maps(scene, PriorSource.AUTO, name, size=(maps.mask.shape[1] // 2, maps.mask.shape[0] // 2))
+    assert half.confidence.shape == half.mask.shape == (maps.mask.shape[0] // 2, maps.mask.shape[1] // 2)
+    report = json.loads((folder.prior(PriorSource.AUTO) / auto.REPORT_NAME).read_text())
+    assert report["sources_used"] == ["sfm", "labels", "ndn"] and report["summary"]["views"] == 8
+
+    stamp = (folder.prior(PriorSource.AUTO) / auto.REPORT_NAME).stat().st_mtime_ns
+    assert ensure_auto_priors(scene)["inputs"] == first["inputs"]
+    assert (folder.prior(PriorSource.AUTO) / auto.REPORT_NAME).stat().st_mtime_ns == stamp  # reused, not rebuilt
+
+    # a source recomputed by hand: fused again, nothing recomputed
+    sparse = load_prior_maps(scene, "labels", name)
+    write_prior_maps(scene, "labels", name, depth=sparse.depth * 1.01, normal=sparse.normal, mask=sparse.mask)
+    ensure_auto_priors(scene)
+    assert computed == [] and (folder.prior(PriorSource.AUTO) / auto.REPORT_NAME).stat().st_mtime_ns != stamp
+
+    # new images: every source is recomputed before the fusion
+    (folder.images / name).write_bytes(b"a different photo")
+    ensure_auto_priors(scene)
+    assert computed == ["sfm", "labels", "ndn"]
+
+
+def test_a_source_that_cannot_be_computed_is_left_out_and_said(scene, monkeypatch):
+    import shutil
+
+    shutil.rmtree(SceneDir(scene).prior("labels"))
+    messages = []
+    monkeypatch.setattr(auto, "_compute_source", lambda s, source, p: "no bpy here" if source == "labels" else None)
+    report = ensure_auto_priors(scene, lambda event: messages.append(event.message))
+    assert report["sources_used"] == ["sfm", "ndn"] and report["skipped"] == {"labels": "no bpy here"}
+    assert any("labels left out: no bpy here" in m for m in messages)
+    assert any(m.startswith("auto priors: ") and "% of pixels" in m for m in messages)
+
+
+def test_no_staging_folder_is_left_when_the_fusion_fails(scene, monkeypatch):
+    monkeypatch.setattr(auto, "_compute_source", lambda *a: None)
+    monkeypatch.setattr(auto, "fuse_view", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("boom")))
+    with pytest.raises(RuntimeError):
+        ensure_auto_priors(scene)
+    priors = SceneDir(scene).priors
+    assert sorted(p.name for p in priors.iterdir()) == ["labels", "ndn", "sfm"]
+
+
+# --- the losses -------------------------------------------------------------------------
+def test_confidence_scales_each_pixel_of_both_losses_without_renormalising():
+    torch.manual_seed(0)
+    prior = torch.full((8, 8), 4.0)
+    rendered = (prior * (1 + 0.1 * torch.rand(8, 8))).requires_grad_()
+    mask = torch.ones(8, 8, dtype=torch.bool)
+    full = depth_loss(rendered, prior, mask).detach()
+    half = depth_loss(rendered, prior, mask, confidence=torch.full((8, 8), 0.5)).detach()
+    assert float(half) == pytest.approx(0.5 * float(full), rel=1e-6)
+    left = torch.zeros(8, 8)
+    left[:, :4] = 1.0
+    only_left = depth_loss(rendered, prior, mask, confidence=left)
+    expected = (torch.log(rendered) - torch.log(prior)).abs()[:, :4].sum() / 64
+    assert float(only_left.detach()) == pytest.approx(float(expected.detach()), rel=1e-5)
+    only_left.backward()
+    assert (rendered.grad[:, 4:] == 0).all() and (rendered.grad[:, :4] != 0).all()
+
+    normals = torch.nn.functional.normalize(torch.rand(8, 8, 3), dim=-1)
+    target = torch.zeros(8, 8, 3)
+    target[..., 2] = 1.0
+    full = normal_loss(normals, target, mask)
+    assert float(normal_loss(normals, target, mask, confidence=torch.full((8, 8), 0.25))) == pytest.approx(
+        0.25 * float(full), rel=1e-6)
