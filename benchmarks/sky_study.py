@@ -10,7 +10,8 @@ PSNR / SSIM / LPIPS, the mean absolute colour error on the held-out views' sky p
 
 Runs from before the sky model (masks dropping the sky from the loss) are measured with
 ``--measure-run ARM/SCENE=RUN_DIR`` (trained with that code; this script only measures them).
-Tuning arms: ``--alpha-weights``, ``--surface-alpha-weights``, ``--sky-degrees``. The JSON
+Tuning arms: ``--alpha-weights``, ``--surface-alpha-weights``, ``--sky-degrees``,
+``--sky-smooth-weights`` (the sky's Dirichlet-energy prior, ``envmap-smoothW``). The JSON
 holds every row, the summary over seeds (with the PSNR of held-out views with and without
 sky, 1 % of the image) and the outdoor acceptance per scene; ``--summarize A.json ...``
 prints them for finished studies.
@@ -140,7 +141,7 @@ def acceptance(rows: list[dict[str, Any]], default: str = "envmap", baseline: st
 
 
 def arms(names: list[str], alpha_weights: list[float], surface_weights: list[float] = (),
-         sky_degrees: list[int] = ()) -> dict[str, dict[str, Any]]:
+         sky_degrees: list[int] = (), smooth_weights: list[float] = ()) -> dict[str, dict[str, Any]]:
     from esgs.core.train.config import VANILLA_3DGS
 
     table = {"none": dict(VANILLA_3DGS), "envmap": {}}
@@ -151,6 +152,8 @@ def arms(names: list[str], alpha_weights: list[float], surface_weights: list[flo
         chosen[f"envmap-surface{weight:g}"] = {"surface_alpha_weight": weight}
     for degree in sky_degrees:
         chosen[f"envmap-degree{degree}"] = {"sky_degree": degree}
+    for weight in smooth_weights:
+        chosen[f"envmap-smooth{weight:g}"] = {"sky_smooth_weight": weight}
     return chosen
 
 
@@ -164,6 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--alpha-weights", type=float, nargs="*", default=[])
     parser.add_argument("--surface-alpha-weights", type=float, nargs="*", default=[])
     parser.add_argument("--sky-degrees", type=int, nargs="*", default=[])
+    parser.add_argument("--sky-smooth-weights", type=float, nargs="*", default=[])
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--measure-run", action="append", default=[], help="ARM/SCENE=RUN_DIR of an older run")
     parser.add_argument("--json", type=Path, default=None)
@@ -183,7 +187,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for seed in args.seeds:
         for scene_name, scene in scenes.items():
-            for arm, settings in arms(args.arms, args.alpha_weights, args.surface_alpha_weights, args.sky_degrees).items():
+            for arm, settings in arms(args.arms, args.alpha_weights, args.surface_alpha_weights, args.sky_degrees,
+                                        args.sky_smooth_weights).items():
                 out = args.out / scene_name / arm / f"seed{seed}"
                 config = {"iterations": args.iterations, "seed": seed, "threads": args.threads, "lpips": True,
                           "save_renders": True, "checkpoint_every": 0, **settings}

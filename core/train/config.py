@@ -61,6 +61,10 @@ class TrainConfig:
     sky_alpha_weight: float = field(default=0.05, metadata=_help(
         "weight of mean(alpha) over sky pixels, where the mask source marks sky (gt, ndn): keeps Gaussians from "
         "painting the sky so the sky model does; 0 = off"))
+    sky_smooth_weight: float = field(default=0.0, metadata=_help(
+        "weight of the sky model's smoothness prior, the Dirichlet energy of its logit field on the sphere "
+        "(sum over SH bands of l(l+1) |c_l|^2): keeps the directions no training view saw near the mean sky "
+        "colour unless the data asks for a gradient; 0 = off"))
     grayscale: str = field(default="auto", metadata=_help(
         "keep the Gaussians' colours grey (equal SH coefficients in R, G and B) so a panchromatic camera "
         "(Navcam) gives no colour casts: auto = when every training image is grey", choices=GRAYSCALE_MODES))
@@ -174,7 +178,7 @@ class TrainConfig:
             raise ConfigError(f"sky must be one of {', '.join(SKY_MODELS)}, got {self.sky!r}")
         if not 0 <= self.sky_degree <= 3:
             raise ConfigError(f"sky_degree must be in 0..3, got {self.sky_degree}")
-        for name in ("sky_lr", "sky_alpha_weight", "surface_alpha_weight"):
+        for name in ("sky_lr", "sky_alpha_weight", "sky_smooth_weight", "surface_alpha_weight"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.test_every == 1:
@@ -212,7 +216,7 @@ class TrainConfig:
 #: older run resumes as it was going (Gaussians in their old order) instead of changing.
 #: A dotted name ("esgs.sky_weight") is a setting of a section of the legacy layout below.
 PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0, "sky": "none", "mask_photometric": True,
-                          "surface_alpha_weight": 0.0, "grayscale": "off"}
+                          "surface_alpha_weight": 0.0, "grayscale": "off", "sky_smooth_weight": 0.0}
 
 #: Legacy layout (runs saved before methods were registered): the method's settings were
 #: the sections "esgs" (ESGSConfig) and "baselines" (Mip-Splatting and DropoutGS switches

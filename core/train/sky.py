@@ -11,6 +11,10 @@ units so Adam moves the overall colour at the learning rate's pace (a sky far fr
 colour is reached in tens of steps, not thousands). The
 image of a view is ``rendered colour + (1 - alpha) * sky(d)``: it shows only where the
 Gaussians leave the pixel transparent, and the photometric loss trains it on every pixel.
+Directions no training view saw are constrained by nothing but the bands' shapes, and the
+degree-3 bands extrapolate there; :meth:`SkyModel.dirichlet_energy` (the ``sky_smooth``
+loss term, ``--sky-smooth-weight``) pulls them towards the mean colour unless the data
+asks for a gradient.
 
 A run saves it as ``RUN/sky.json`` (its own file: ``point_cloud.ply`` holds the terrain
 only) and in its checkpoints; evaluation and ``esgs render`` composite it the same way.
@@ -57,6 +61,10 @@ class SkyModel(torch.nn.Module):
         self.degree = int(degree)
         self.base = torch.nn.Parameter(torch.zeros(3))
         self.coefficients = torch.nn.Parameter(torch.zeros(num_sh_bases(degree) - 1, 3))
+        # l (l + 1) of each directional coefficient's band (the Laplace-Beltrami eigenvalue);
+        # not persistent: derived from the degree, so saved files and checkpoints do not change
+        bands = [band * (band + 1) for band in range(1, self.degree + 1) for _ in range(2 * band + 1)]
+        self.register_buffer("band_eigenvalues", torch.tensor(bands, dtype=torch.float32), persistent=False)
         self.set_color(initial_color)
 
     def set_color(self, color: tuple[float, float, float] | torch.Tensor) -> None:
@@ -66,13 +74,36 @@ class SkyModel(torch.nn.Module):
             self.base.copy_(torch.log(color / (1 - color)).to(self.base))
             self.coefficients.zero_()
 
-    def forward(self, directions: torch.Tensor) -> torch.Tensor:
-        """[..., 3] unit directions -> [..., 3] colours in (0, 1)."""
+    def logits(self, directions: torch.Tensor) -> torch.Tensor:
+        """[..., 3] unit directions -> [..., 3] the colours' logits ``b + sum_k c_k Y_k(d)``."""
         logits = self.base.expand(directions[..., :1].numel(), 3)
         if self.degree > 0:
             basis = sh_basis(self.degree, directions.reshape(-1, 3).to(self.base))[:, 1:]  # [P, K - 1]
             logits = logits + basis @ self.coefficients
-        return torch.sigmoid(logits).reshape(*directions.shape[:-1], 3)
+        return logits.reshape(*directions.shape[:-1], 3)
+
+    def forward(self, directions: torch.Tensor) -> torch.Tensor:
+        """[..., 3] unit directions -> [..., 3] colours in (0, 1)."""
+        return torch.sigmoid(self.logits(directions))
+
+    def dirichlet_energy(self) -> torch.Tensor:
+        """Scalar: the Dirichlet energy of the logit field on the unit sphere, summed over R, G, B,
+        ``sum_{l>=1} l (l + 1) ||c_l||^2`` (``c_l``: the band's 2l + 1 coefficients of each channel).
+
+        It is ``integral over the sphere of |grad_S f|^2 dOmega`` for the logit field ``f`` (its
+        mean squared surface gradient is this over 4 pi): by Green's identity the integral is
+        ``-integral f Laplacian_S f``, each degree-l harmonic is an eigenfunction of the
+        Laplace-Beltrami operator with eigenvalue ``-l (l + 1)``, and the basis of
+        :func:`~esgs.core.render.sh.sh_basis` is orthonormal over the sphere (its constants are the
+        closed forms ``sqrt((2l + 1) / (4 pi) (l - |m|)! / (l + |m|)!)``, times sqrt 2 for m != 0;
+        3DGS's sign flips of some functions change no norm), so the cross terms vanish and no
+        per-band factor besides ``l (l + 1)`` appears. The closed form is exact and cheap (15
+        coefficients a channel); tests check it against a quadrature of finite-difference surface
+        gradients over a Fibonacci sphere. The constant ``base`` (the mean colour) costs nothing,
+        and degree 3 costs 6 times what degree 1 does, so a weight on it keeps the directions no
+        view saw near the mean colour and lets the data buy the low bands first. 0 at degree 0.
+        """
+        return (self.band_eigenvalues.to(self.coefficients)[:, None] * self.coefficients.square()).sum()
 
     def image(self, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int) -> torch.Tensor:
         """[H, W, 3] the sky as one camera sees it."""

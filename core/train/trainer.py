@@ -335,8 +335,16 @@ class Trainer:
         self.optimizer.add_group("sky", list(self.sky.parameters()), config.sky_lr, per_gaussian=False)
         if config.sky_alpha_weight > 0 and marks_sky:
             self.add_loss_term(LossTerm("sky_alpha", config.sky_alpha_weight, _sky_alpha_term))
+        if config.sky_smooth_weight > 0:
+            # a prior on the sky model itself: no masks needed, the same on every step
+            self.add_loss_term(LossTerm("sky_smooth", config.sky_smooth_weight, self._sky_smooth_term))
         if config.surface_alpha_weight > 0 and marks_sky:
             self.add_loss_term(LossTerm("surface_alpha", config.surface_alpha_weight, _surface_alpha_term))
+
+    def _sky_smooth_term(self, context: LossContext) -> torch.Tensor:
+        """The sky model's Dirichlet energy (:meth:`.sky.SkyModel.dirichlet_energy`): the
+        smoothness prior that keeps directions no view saw near the mean colour."""
+        return self.sky.dirichlet_energy()
 
     # --- checkpoints ---------------------------------------------------------------
     def _state(self) -> dict:

@@ -259,3 +259,152 @@ def test_a_training_child_reads_a_partial_request_with_todays_defaults_and_write
     steps = [json.loads(line)["step"] for line in run.events.read_text().splitlines()
              if json.loads(line).get("kind") == "progress" and json.loads(line).get("stage") == "train"]
     assert steps == sorted(set(steps)) and steps[-1] == 6
+
+
+# --- the smoothness prior: the Dirichlet energy of the sky's logit field ---------------------
+
+def _random_sky(degree: int = 3, seed: int = 0) -> SkyModel:
+    sky = SkyModel(degree=degree).double()
+    generator = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        sky.base.copy_(torch.randn(3, generator=generator, dtype=torch.float64))
+        sky.coefficients.copy_(0.4 * torch.randn(sky.coefficients.shape, generator=generator, dtype=torch.float64))
+    return sky
+
+
+def _fibonacci_sphere(count: int) -> torch.Tensor:
+    """[count, 3] near-uniform unit directions (equal-area cells: a quadrature weight of 4 pi / count each)."""
+    index = torch.arange(count, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * index / count
+    phi = index * np.pi * (3.0 - np.sqrt(5.0))
+    radius = (1.0 - z * z).sqrt()
+    return torch.stack([radius * phi.cos(), radius * phi.sin(), z], dim=-1)
+
+
+def _surface_gradient_sq(sky: SkyModel, directions: torch.Tensor, step: float = 1e-4) -> torch.Tensor:
+    """[P] |grad_S f|^2 summed over R, G, B, by central differences along two tangent axes at each direction."""
+    helper = torch.where(directions[:, 2:].abs() < 0.9, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64),
+                         torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+    first = torch.nn.functional.normalize(torch.linalg.cross(directions, helper), dim=-1)
+    second = torch.linalg.cross(directions, first)
+    total = torch.zeros(len(directions), dtype=torch.float64)
+    with torch.no_grad():
+        for tangent in (first, second):
+            ahead = sky.logits(torch.nn.functional.normalize(directions + step * tangent, dim=-1))
+            behind = sky.logits(torch.nn.functional.normalize(directions - step * tangent, dim=-1))
+            total += ((ahead - behind) / (2.0 * step)).square().sum(dim=-1)
+    return total
+
+
+def test_the_dirichlet_energy_is_zero_for_a_uniform_sky_and_weights_each_band_by_l_l_plus_1():
+    uniform = SkyModel(degree=3, initial_color=(0.7, 0.5, 0.3))
+    assert float(uniform.dirichlet_energy().detach()) == 0.0
+    assert float(SkyModel(degree=0, initial_color=(0.7, 0.5, 0.3)).dirichlet_energy().detach()) == 0.0
+    sky = _random_sky()
+    energy = float(sky.dirichlet_energy().detach())
+    assert energy > 0
+    c = sky.coefficients.detach()  # rows: band 1 (3), band 2 (5), band 3 (7)
+    expected = 2 * c[0:3].square().sum() + 6 * c[3:8].square().sum() + 12 * c[8:15].square().sum()
+    assert energy == pytest.approx(float(expected), rel=1e-12)
+    # the constant (the mean colour) costs nothing; a higher band costs more for the same norm
+    with torch.no_grad():
+        sky.base.add_(3.0)
+    assert float(sky.dirichlet_energy().detach()) == pytest.approx(energy, rel=1e-12)
+    one, three = SkyModel(degree=3), SkyModel(degree=3)
+    with torch.no_grad():
+        one.coefficients[1, 0], three.coefficients[11, 0] = 1.0, 1.0
+    assert float(one.dirichlet_energy().detach()) == pytest.approx(2.0)
+    assert float(three.dirichlet_energy().detach()) == pytest.approx(12.0)
+
+
+@pytest.mark.parametrize("degree", [1, 2, 3])
+def test_the_dirichlet_energy_is_the_integral_of_the_squared_surface_gradient(degree):
+    """The closed form against a quadrature of finite-difference gradients: the basis is orthonormal."""
+    sky = _random_sky(degree, seed=degree)
+    directions = _fibonacci_sphere(20_000)
+    quadrature = float(_surface_gradient_sq(sky, directions).mean() * 4.0 * np.pi)
+    assert float(sky.dirichlet_energy().detach()) == pytest.approx(quadrature, rel=1e-3)
+
+
+def test_the_dirichlet_energy_gradient_matches_autograd_and_finite_differences():
+    sky = _random_sky()
+    energy = sky.dirichlet_energy()
+    energy.backward()
+    eigenvalues = torch.tensor([2.0] * 3 + [6.0] * 5 + [12.0] * 7, dtype=torch.float64)[:, None]
+    torch.testing.assert_close(sky.coefficients.grad, 2.0 * eigenvalues * sky.coefficients.detach())
+    assert sky.base.grad is None or float(sky.base.grad.abs().max()) == 0.0
+    # and by finite differences, through the module as the optimiser sees it
+    energy_of = _EnergyOf(sky)
+    assert torch.autograd.gradcheck(lambda bands: torch.func.functional_call(energy_of, {"sky.coefficients": bands}, ()),
+                                    (sky.coefficients.detach().clone().requires_grad_(True),))
+
+
+class _EnergyOf(torch.nn.Module):
+    """The energy as a module's output, so functional_call can swap the sky's coefficients."""
+
+    def __init__(self, sky: SkyModel):
+        super().__init__()
+        self.sky = sky
+
+    def forward(self) -> torch.Tensor:
+        return self.sky.dirichlet_energy()
+
+
+def test_the_smoothness_term_trains_only_when_its_weight_is_set(fast_config, tmp_path):
+    from esgs.core.train.trainer import Trainer
+
+    def run(weight: float) -> tuple[set, list, float]:
+        trainer = Trainer(fast_config(out=tmp_path / f"smooth{weight}", iterations=6, densify=False,
+                                      sky_smooth_weight=weight))
+        trainer.setup()
+        names = {term.name for term in trainer.loss_terms}
+        values = [trainer.train_step(step).loss_values for step in range(1, 7)]
+        return names, values, float(trainer.sky.dirichlet_energy().detach())
+
+    names, values, smoothed = run(10.0)
+    assert "sky_smooth" in names and all("sky_smooth" in step for step in values)
+    assert values[0]["sky_smooth"] == 0.0  # the sky starts uniform
+    names, values, free = run(0.0)
+    assert "sky_smooth" not in names and not any("sky_smooth" in step for step in values)
+    assert smoothed < 0.5 * free, (smoothed, free)
+    # no sky model, no term
+    trainer = Trainer(fast_config(out=tmp_path / "nosky", sky="none", sky_smooth_weight=1.0))
+    trainer.setup()
+    assert "sky_smooth" not in {term.name for term in trainer.loss_terms}
+
+
+def test_the_smoothness_weight_round_trips_and_older_runs_read_it_as_off(fast_config, tmp_path):
+    import argparse
+
+    from esgs.core.commands import train as train_command
+    from esgs.core.config import config_to_dict
+    from esgs.core.errors import ConfigError
+    from esgs.core.train.config import run_config_from_dict
+
+    config = fast_config(sky_smooth_weight=0.25)
+    data = json.loads(json.dumps(config_to_dict(config)))  # as config.json and checkpoints hold it
+    assert data["sky_smooth_weight"] == 0.25 and run_config_from_dict(data).sky_smooth_weight == 0.25
+    del data["sky_smooth_weight"]  # a run saved before the setting existed
+    assert run_config_from_dict(data).sky_smooth_weight == 0.0
+    with pytest.raises(ConfigError, match="sky_smooth_weight"):
+        fast_config(sky_smooth_weight=-1.0).validate()
+    parser = argparse.ArgumentParser()
+    train_command.add_arguments(parser)
+    assert train_command.build_config(parser.parse_args(["scene", "--out", str(tmp_path),
+                                                         "--sky-smooth-weight", "0.5"])).sky_smooth_weight == 0.5
+    with pytest.raises(ConfigError, match="--sky-smooth-weight"):
+        train_command.build_config(parser.parse_args(["scene", "--out", str(tmp_path), "--vanilla",
+                                                      "--sky-smooth-weight", "0.5"]))
+
+
+def test_a_resumed_run_with_the_smoothness_prior_continues_exactly(fast_config, tmp_path):
+    from esgs.core.train import train
+
+    def config(out, **values):
+        return fast_config(out=out, iterations=8, checkpoint_every=4, densify=False, sky_smooth_weight=1.0, **values)
+
+    train(config(tmp_path / "full"))
+    train_then_checkpoint(config(tmp_path / "split"), 4)
+    train(config(tmp_path / "split", resume=True))
+    a, b = load_sky(tmp_path / "full" / "sky.json"), load_sky(tmp_path / "split" / "sky.json")
+    assert torch.equal(a.base, b.base) and torch.equal(a.coefficients, b.coefficients)
