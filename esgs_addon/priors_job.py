@@ -1,7 +1,8 @@
-"""Prior maps from Blender: compute ndn or sfm priors in a separate process.
+"""Prior maps from Blender: compute auto (the default), ndn or sfm priors in a separate process.
 
-NDN inference takes ~1-2 s per view on a CPU and needs torch, which Blender's own Python
-lacks, so the priors are computed by the same child-process runtime as training
+``auto`` fuses stereo labels, NDN and SfM per pixel (:mod:`esgs.core.priors.auto`), computing
+those it lacks; NDN inference takes ~1-2 s per view on a CPU and needs torch, which Blender's
+own Python lacks, so the priors are computed by the same child-process runtime as training
 (:mod:`esgs.core.runtime`, its ``"priors"`` job). Public entry points (``operators/priors.py`` wraps them):
 
 - :func:`check_scene` - the checks that fail at once, before a process starts;
@@ -122,14 +123,16 @@ def check_scene(scene_dir: str | Path, method: str, weights: str | Path | None =
                                        "(it ships weights)")
 
 
-def start_priors(scene_dir: str | Path, method: str = "ndn", *, weights: str | Path | None = None,
+def start_priors(scene_dir: str | Path, method: str = "auto", *, weights: str | Path | None = None,
                  python: Optional[str] = None, threads: Optional[int] = None,
                  on_output: Optional[Callable[[str], None]] = None) -> PriorsJob:
     """Check the scene and start ``esgs priors`` for it in a child process (non-blocking).
 
     Args:
         scene_dir: the COLMAP scene folder (images/ + sparse/0); priors go to ``priors/<method>``.
-        method: ``ndn`` (dense relative depth and normals) or ``sfm`` (sparse depth).
+        method: ``auto`` (the default: the best of stereo labels, NDN and SfM per pixel, with
+            a confidence; what :func:`esgs.core.methods.full_esgs` trains with), ``ndn`` (dense
+            relative depth and normals) or ``sfm`` (sparse depth).
         weights: ndn weights file or model folder (default: ``$ESGS_NDN_WEIGHTS``, else shipped).
         python: interpreter (default: the add-on preference, then :func:`esgs.core.apps.jobs.find_python`).
         threads: CPU threads for the child (default: the preference).
@@ -182,7 +185,7 @@ def wait_for_priors(job: PriorsJob, *, report: Callable[[str], None] = print, in
         job.cleanup()
 
 
-def compute_priors(scene_dir: str | Path, method: str = "ndn", *, weights: str | Path | None = None,
+def compute_priors(scene_dir: str | Path, method: str = "auto", *, weights: str | Path | None = None,
                    python: Optional[str] = None, threads: Optional[int] = None,
                    report: Callable[[str], None] = print) -> JobState:
     """Compute ``SCENE/priors/<method>`` blocking, with console progress; returns the final

@@ -16,10 +16,13 @@ class ESGS_PG_priors(bpy.types.PropertyGroup):
 
     method: bpy.props.EnumProperty(
         name="Prior method", description="How to compute the prior maps written to SCENE/priors/<method>",
-        items=(("ndn", "NDN", "Dense relative depth and normals from the NDN diffusion network "
+        items=(("auto", "Auto", "Auto: best of stereo labels, NDN and SfM per pixel, with a confidence map; "
+                                "computes the sources it lacks first (stereo labels take minutes) and reuses "
+                                "them while the images hold"),
+               ("ndn", "NDN", "Dense relative depth and normals from the NDN diffusion network "
                               "(about 1-2 s per view on a CPU)"),
                ("sfm", "SfM", "Sparse depth at the COLMAP points each view observes (seconds)")),
-        default="ndn")
+        default="auto")
     ndn_weights: bpy.props.StringProperty(
         name="NDN weights", subtype="FILE_PATH",
         description="NDN weights file or model folder (empty: $ESGS_NDN_WEIGHTS, else the weights shipped "

@@ -19,7 +19,7 @@ from typing import Any, Optional
 import bpy
 
 from ..core.errors import ConfigError, ESGSError
-from ..core.methods import full_esgs, get_method, method_names
+from ..core.methods import get_method, method_names
 from ..core.formats.scene_dir import PriorSource
 from ..core.train.config import TrainConfig
 from .properties import property_annotations, property_values, settings_group
@@ -75,15 +75,28 @@ def method_settings_classes() -> Iterator[tuple[str, type]]:
 #: the ``prior_source`` item for "no priors" (``priors == ""``)
 NO_PRIORS = "NONE"
 
-#: the sources Compute Priors makes for any scene (ndn, sfm)
+#: the sources Compute Priors makes for any scene (auto, ndn, sfm)
 COMPUTED_SOURCES = tuple(source.value for source in PriorSource.computed())
+
+#: the prior source choosing ESGS starts with: the one ``esgs train --esgs``, the demo and
+#: :func:`~esgs.core.methods.full_esgs` default to (a test checks they agree)
+DEFAULT_PRIOR_SOURCE = PriorSource.AUTO.value
+
+#: what the auto source is, in the panel's words
+AUTO_HELP = "Auto: best of stereo labels, NDN and SfM per pixel, with a confidence map"
 
 _SOURCE_HELP = {
     PriorSource.GT: "exact depth, normals and sky mask rendered with the synthetic scene",
     PriorSource.LABELS: "depth and normals rendered from a mesh (the Labels section)",
     PriorSource.NDN: "dense relative depth and normals from the NDN network",
     PriorSource.SFM: "sparse depth at the COLMAP points each view observes",
+    PriorSource.AUTO: AUTO_HELP,
 }
+
+#: how the drop-down marks a source that is not in the scene folder yet: Compute Priors makes
+#: it, and training makes auto itself before its first step
+COMPUTE_FIRST = " (compute first)"
+MADE_BEFORE_TRAINING = " (made before training)"
 
 
 def training_scene_dir(group: Any, context: Any = None) -> Optional[Path]:
@@ -99,7 +112,8 @@ def training_scene_dir(group: Any, context: Any = None) -> Optional[Path]:
 
 
 def prior_source_choices(group: Any, context: Any = None) -> list[tuple[str, str, str]]:
-    """``(identifier, name, description)`` of the prior sources the panel offers: none, each
+    """``(identifier, name, description)`` of the prior sources the panel offers: none, auto
+    (the default, computed before training when the scene folder has none yet), each
     ``priors/<source>`` folder the scene folder holds, the sources Compute Priors makes (ndn,
     sfm) when not there yet, and the current choice even when its folder is gone."""
     from ..core.priors.io import available_prior_sources
@@ -107,14 +121,20 @@ def prior_source_choices(group: Any, context: Any = None) -> list[tuple[str, str
     folder = training_scene_dir(group, context)
     present = available_prior_sources(folder) if folder is not None else []
     order = [source.value for source in PriorSource]
-    present.sort(key=lambda name: (order.index(name) if name in order else len(order), name))
+    # the default first, then the rest most faithful first
+    present.sort(key=lambda name: (name != DEFAULT_PRIOR_SOURCE,
+                                   order.index(name) if name in order else len(order), name))
     items = [(NO_PRIORS, "None", "No prior maps (the consistency loss and GPDFN need none)")]
+    if DEFAULT_PRIOR_SOURCE not in present:
+        items.append((DEFAULT_PRIOR_SOURCE, DEFAULT_PRIOR_SOURCE + MADE_BEFORE_TRAINING,
+                      f"{AUTO_HELP}; not in the scene folder yet: Train computes it first (stereo labels take "
+                      "minutes), or press Compute Priors"))
     for name in present:
         help_text = _SOURCE_HELP.get(PriorSource(name)) if name in order else None
         items.append((name, name, f"priors/{name} of the scene folder" + (f": {help_text}" if help_text else "")))
     for source in PriorSource.computed():
-        if source.value not in present:
-            items.append((source.value, f"{source.value} (compute first)",
+        if source.value not in present and source.value != DEFAULT_PRIOR_SOURCE:
+            items.append((source.value, source.value + COMPUTE_FIRST,
                           f"{_SOURCE_HELP[source]}; not in the scene folder yet: choose it, then press Compute Priors"))
     if group.priors and group.priors not in {item[0] for item in items}:
         items.append((group.priors, f"{group.priors} (missing)", f"the scene folder has no priors/{group.priors}"))
@@ -145,7 +165,7 @@ def _set_prior_source(self, value: int) -> None:
     for identifier, name, _, number in _numbered(prior_source_choices(self)):
         if number == value:
             self.priors = "" if identifier == NO_PRIORS else identifier  # its update offers the full method
-            if identifier in COMPUTED_SOURCES and name.endswith("(compute first)"):
+            if identifier in COMPUTED_SOURCES and name.endswith((COMPUTE_FIRST, MADE_BEFORE_TRAINING)):
                 self.id_data.esgs.priors.method = identifier  # Compute Priors beside it makes what was chosen
             return
 
@@ -155,21 +175,48 @@ def _esgs_parts_on(group: Any) -> bool:
 
 
 def apply_full_esgs(group: Any) -> None:
-    """Set ``group``'s ESGS settings to :func:`~esgs.core.methods.full_esgs` of its prior source."""
-    settings = full_esgs(group.priors)
+    """Set ``group``'s ESGS settings to :func:`~esgs.core.methods.full_esgs` of its prior source
+    (looked up when called: the demo, the CLI and this panel call the one definition)."""
+    from ..core import methods
+
+    settings = methods.full_esgs(group.priors)
     for name, value in dataclasses.asdict(settings).items():
         if name != "priors" and hasattr(group, name) and getattr(group, name) != value:
             setattr(group, name, value)
 
 
+def _filled_in(group: Any) -> bool:
+    """Whether ``group``'s ESGS settings are the full method of some source (filled in by the
+    panel, e.g. auto's when ESGS was chosen), not settings the user changed by hand."""
+    from ..core import methods
+
+    settings = method_settings(group, ESGS_METHOD)
+    for source in PriorSource.standard_sources():
+        with contextlib.suppress(ConfigError):
+            if dataclasses.replace(settings, priors=source.value) == methods.full_esgs(source.value):
+                return True
+    return False
+
+
 def _offer_full_esgs(self, context) -> None:
     # choosing ESGS with a prior source and nothing switched on gives the full method, as
-    # `esgs train --method esgs --priors SOURCE` does; a source it cannot use is left to the
-    # trainer's error
-    if self.method != ESGS_METHOD or not self.priors or _esgs_parts_on(self):
+    # `esgs train --method esgs --priors SOURCE` does, and so does another source while the
+    # settings are still a full method the panel filled in (auto's depth weight is not
+    # ndn's); a source it cannot use is left to the trainer's error
+    if self.method != ESGS_METHOD or not self.priors or (_esgs_parts_on(self) and not _filled_in(self)):
         return
     with contextlib.suppress(ConfigError):  # an unknown source: the parts stay off, training_config says why
         apply_full_esgs(self)
+
+
+def _method_chosen(self, context) -> None:
+    # ESGS chosen with no prior source and nothing switched on: the full method on the default
+    # source (auto), as `esgs train --esgs` and the demo train it; a source or parts chosen
+    # earlier are kept
+    if self.method == ESGS_METHOD and not self.priors and not _esgs_parts_on(self):
+        self.priors = DEFAULT_PRIOR_SOURCE  # its update switches the full method on
+    else:
+        _offer_full_esgs(self, context)
 
 
 def _annotations() -> dict[str, Any]:
@@ -184,7 +231,7 @@ def _annotations() -> dict[str, Any]:
     annotations["method"] = bpy.props.EnumProperty(
         name="Method", description=METHOD_DESCRIPTION,
         items=[(name, get_method(name).label, get_method(name).description) for name in method_names()],
-        default=DEFAULT_METHOD, update=_offer_full_esgs)
+        default=DEFAULT_METHOD, update=_method_chosen)
     annotations.update(property_annotations(TrainConfig, _TRAIN_EXTRA, names=TRAIN_FIELDS))
     for method, settings_class in method_settings_classes():
         extra = {}
@@ -198,8 +245,9 @@ def _annotations() -> dict[str, Any]:
     if "priors" in annotations:
         annotations["prior_source"] = bpy.props.EnumProperty(
             name="Prior source", items=_prior_source_items, get=_get_prior_source, set=_set_prior_source,
-            description="Prior maps ESGS trains with: a priors/<source> folder of the scene folder, or one "
-                        "Compute Priors makes (ndn, sfm)")
+            description="Prior maps ESGS trains with (default auto: best of stereo labels, NDN and SfM per "
+                        "pixel, made before training when missing): a priors/<source> folder of the scene folder, "
+                        "or one Compute Priors makes (auto, ndn, sfm)")
     annotations["import_result"] = bpy.props.BoolProperty(
         name="Import result", description="Import the trained Gaussians when training finishes", default=True)
 
@@ -228,10 +276,12 @@ def method_settings(group: Any, method: str) -> Any:
 
 
 def chosen_method(group: Any) -> str:
-    """The method ``group`` trains: its ``method``, except that plain 3DGS with an ESGS part
-    switched on or a prior source chosen trains ESGS. Before the method selector existed
-    those settings alone chose ESGS, so scenes (and scripts) of that time train as they did."""
-    if group.method == DEFAULT_METHOD and ESGS_METHOD in method_names():
+    """The method ``group`` trains: its ``method``, except that a method never chosen (plain
+    3DGS by default) with an ESGS part switched on or a prior source chosen trains ESGS.
+    Before the method selector existed those settings alone chose ESGS, so scenes (and
+    scripts) of that time train as they did; 3DGS chosen in the drop-down trains 3DGS, even
+    after ESGS was chosen and filled in its source and parts."""
+    if group.method == DEFAULT_METHOD and ESGS_METHOD in method_names() and not group.is_property_set("method"):
         esgs = method_settings(group, ESGS_METHOD)
         if esgs.priors or any(getattr(esgs, name) for name in ESGS_PARTS):
             return ESGS_METHOD

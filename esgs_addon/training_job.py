@@ -144,9 +144,12 @@ def check_scene(scene_dir: str | Path, config: Optional[TrainConfig] = None,
     """Fail at once, in Blender, for what would make a new run fail in the child, before any
     run folder is made (the messages name the panel's controls).
 
+    ``auto`` priors that are not there yet pass: the run computes them before its first step
+    (:func:`esgs.core.methods.prepare_priors`; :func:`priors_made_first` says so).
+
     Raises:
         DatasetError: ``scene_dir`` is not a scene folder (no COLMAP model or no images/), or
-            the prior source of ``config`` has no ``priors/<source>`` folder in it.
+            the prior source of ``config`` (other than auto) has no ``priors/<source>`` folder in it.
         ConfigError: ``run_dir`` already holds a run.
     """
     from ..core.colmap.io import find_model_dir
@@ -167,7 +170,7 @@ def check_scene(scene_dir: str | Path, config: Optional[TrainConfig] = None,
         raise DatasetError("not a scene folder: it has no images/ folder", path=scene_dir,
                            hint=f"a scene folder holds images/ and sparse/0; {where}")
     source = getattr(getattr(config, "method_config", None), "priors", "")
-    if source and source not in available_prior_sources(scene_dir):
+    if source and source != PriorSource.AUTO and source not in available_prior_sources(scene_dir):
         if source in (PriorSource.NDN, PriorSource.SFM):
             hint = f"press Compute Priors with {source} first, or choose another Prior source"
         elif source == PriorSource.LABELS:
@@ -180,6 +183,20 @@ def check_scene(scene_dir: str | Path, config: Optional[TrainConfig] = None,
         raise ConfigError("the run folder already holds a run", path=run_dir,
                           hint="press Resume Training to continue it, or choose another Run folder "
                                "(empty: a new one)")
+
+
+def priors_made_first(scene_dir: str | Path, config: Optional[TrainConfig]) -> Optional[str]:
+    """The prior source a new run of ``config`` computes before training (``"auto"`` when it
+    trains with auto priors the scene folder does not hold yet), else None."""
+    from ..core.formats.scene_dir import SceneDir
+
+    settings = getattr(config, "method_config", None)
+    source = getattr(settings, "priors", "")
+    # the parts that read prior maps (as esgs.core.methods.prepare_priors decides)
+    uses_priors = any(getattr(settings, name, False) for name in ("depth", "normal", "sky_loss_on"))
+    if source == PriorSource.AUTO and uses_priors and not SceneDir(Path(scene_dir)).has_prior_maps(source, "depth"):
+        return str(source)
+    return None
 
 
 def new_run_dir(scene_dir: Path) -> Path:

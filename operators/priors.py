@@ -1,4 +1,4 @@
-"""Compute a scene's prior maps (NDN or SfM) in the background: start and cancel (wrappers of
+"""Compute a scene's prior maps (auto, NDN or SfM) in the background: start and cancel (wrappers of
 ``esgs_addon/priors_job.py``)."""
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ def _scene_dir(context):
 
 
 class ESGS_OT_compute_priors(bpy.types.Operator):
-    """Compute depth/normal prior maps (NDN or SfM) for the training's scene folder in a separate
-    process (blocking when Blender runs headless)"""
+    """Compute depth/normal prior maps (auto: the best of stereo labels, NDN and SfM per pixel; or NDN or
+    SfM alone) for the training's scene folder in a separate process (blocking when Blender runs headless)"""
 
     bl_idname = "esgs.compute_priors"
     bl_label = "Compute Priors"

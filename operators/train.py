@@ -19,21 +19,25 @@ def _run(operator, context, resume: bool) -> set[str]:
             scene_dir = training_job.find_scene_dir(context.scene, settings.scene_dir, context.active_object)
             run_dir = bpy.path.abspath(settings.run_dir) if settings.run_dir else None
         # a resumed run keeps the settings saved in its config.json: pass none that could override them
-        job = training_job.start_training(scene_dir, run_dir, settings.iterations,
-                                          config=None if resume else training_job.training_config(settings),
-                                          resume=resume)
+        config = None if resume else training_job.training_config(settings)
+        first = None if resume else training_job.priors_made_first(scene_dir, config)
+        job = training_job.start_training(scene_dir, run_dir, settings.iterations, config=config, resume=resume)
     except ESGSError as error:
         operator.report({"ERROR"}, str(error))
         return {"CANCELLED"}
+    # missing auto priors pass the pre-check: the run makes them before its first step
+    making = f"; it computes the {first} priors first (stereo labels, NDN and SfM: minutes)" if first else ""
     settings.last_scene_dir = str(job.scene_dir)
     settings.last_run_dir = str(job.run_dir)
     training_job.copy_state(settings, job.state())
     key = training_job.job_key(job.scene_dir)
     if not bpy.app.background:
         training_job.start_polling(context.scene.name, key, import_result=settings.import_result)
-        operator.report({"INFO"}, f"Training started: {job.run_dir}")
+        operator.report({"INFO"}, f"Training started: {job.run_dir}{making}")
         return {"FINISHED"}
     # headless: timers never fire, so follow the job here, printing progress
+    if making:
+        operator.report({"INFO"}, f"Training {job.run_dir}{making}")
 
     def import_result(state) -> None:
         obj = training_job.import_run_result(job.run_dir, scene=context.scene, scene_dir=job.scene_dir)

@@ -61,6 +61,8 @@ class ESGS_PT_training(ESGSSection, bpy.types.Panel):
             if settings.stage and settings.stage != "train":
                 text = f"{settings.stage}: {text}"  # evaluation after training has its own count
             layout.progress(factor=settings.progress, type="BAR", text=text)
+            if settings.step == 0 and _making_priors(settings):
+                layout.label(text=f"Computing {settings.priors} priors before the first step", icon="INFO")
             grid = layout.grid_flow(columns=2, even_columns=True)
             if settings.loss >= 0:
                 grid.label(text=f"Loss {settings.loss:.4g}")
@@ -88,6 +90,16 @@ class ESGS_PT_training(ESGSSection, bpy.types.Panel):
             box = layout.box()
             for index, line in enumerate(_wrap(settings.error, 48)):
                 box.label(text=line, icon="ERROR" if index == 0 else "NONE")
+
+
+def _making_priors(settings) -> bool:
+    """Whether the running job is computing the auto priors before training (a new ESGS run on
+    auto priors whose folder is not there yet: Train let it start, the run makes them)."""
+    if settings.priors != settings_training.DEFAULT_PRIOR_SOURCE or not settings.last_scene_dir:
+        return False
+    if settings_training.chosen_method(settings) != settings_training.ESGS_METHOD:
+        return False
+    return not SceneDir(settings.last_scene_dir).has_prior_maps(settings.priors, "depth")
 
 
 def draw_run_results(layout: bpy.types.UILayout, results: dict) -> None:
@@ -138,11 +150,15 @@ def _draw_esgs(layout: bpy.types.UILayout, settings, priors, scene_dir) -> None:
         layout.label(text="Choose a prior source for the full method", icon="INFO")
     elif scene_dir is not None and not SceneDir(scene_dir).has_prior_maps(settings.priors, "depth") \
             and not SceneDir(scene_dir).has_prior_maps(settings.priors, "normal"):
-        if settings.priors in settings_training.COMPUTED_SOURCES:
+        icon = "ERROR"
+        if settings.priors == settings_training.DEFAULT_PRIOR_SOURCE:
+            # training makes them itself (or Compute Priors beforehand): nothing to fix
+            text, icon = f"No {settings.priors} priors yet: Train computes them first", "INFO"
+        elif settings.priors in settings_training.COMPUTED_SOURCES:
             text = f"No {settings.priors} priors yet: press Compute Priors ({settings.priors})"
         else:
             text = f"The scene folder has no {settings.priors} priors: choose another source"
-        layout.label(text=text, icon="ERROR")
+        layout.label(text=text, icon=icon)
     _draw_priors(layout, priors)
     for part in settings_training.ESGS_PARTS:
         row = layout.row(align=True)

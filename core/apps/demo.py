@@ -6,13 +6,17 @@ already complete (scene, priors, runs) and redoes only the rest. The Blender sta
 bpy module in a child process (the ``"results_scene"`` job of :mod:`esgs.core.runtime`),
 since core never imports bpy.
 
-Prior sources (``DemoConfig.priors``): ``ndn`` (the default) predicts dense relative depth and
-normals with the NDN weights shipped in the package; ``sfm`` projects the scene's COLMAP
-points (sparse depth, no normals); ``gt`` uses the synthetic scene's exact maps (an upper
-bound). :func:`esgs_settings` says which ESGS losses each source switches on.
+Prior sources (``DemoConfig.priors``): ``auto`` (the default, as for ``esgs train --esgs`` and
+the Blender panel) fuses stereo labels, NDN and SfM depth per pixel with a confidence
+(:mod:`esgs.core.priors.auto`, computed by the same priors job as ``esgs priors --method
+auto``); ``ndn`` predicts dense relative depth and normals with the NDN weights shipped in
+the package; ``sfm`` projects the scene's COLMAP points (sparse depth, no normals); ``gt``
+uses the synthetic scene's exact maps (an upper bound). The ESGS run is
+:func:`esgs.core.methods.full_esgs` of the source (:func:`esgs_settings`).
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sys
@@ -30,13 +34,15 @@ from ..formats.run_dir import RunDir
 #: Prior sources the demo can train ESGS with (folders under SCENE/priors/).
 PRIOR_SOURCES = names(PriorSource.for_synthetic_scenes())
 SPARSE_POINTS = ("triangulated", "exact")
-#: What an ESGS switch the demo does not set means in a saved run config (the 3DGS baseline's).
-_DEFAULT_ESGS = {"priors": "", "depth": False, "normal": False, "consistency": False, "gpdfn": False}
+#: The prior source of the demo's ESGS run unless --priors says otherwise: the default of
+#: esgs.core.methods.full_esgs, esgs train --esgs and the Blender panel.
+DEFAULT_PRIORS = PriorSource.AUTO.value
 
 
 @dataclass
 class DemoConfig:
-    """Settings of the demo; the defaults need about 9.5 CPU minutes (stages measured at 200 steps, README)."""
+    """Settings of the demo; the defaults needed about 9.5 CPU minutes with ndn priors (stages measured
+    at 200 steps, README), plus the stereo labels the default auto priors compute (minutes)."""
 
     out: Path = field(default=Path("demo_output"), metadata={"help": "output folder (scene, runs, report)"})
     preset: str = field(default="cratered_plain", metadata={"help": "synthetic scene preset"})
@@ -46,8 +52,9 @@ class DemoConfig:
     height: int = field(default=180, metadata={"help": "image height in pixels"})
     samples: int = field(default=16, metadata={"help": "Cycles samples per pixel"})
     iterations: int = field(default=1500, metadata={"help": "training steps per method"})
-    priors: str = field(default="ndn", metadata={
-        "help": "prior source for ESGS (ndn: dense relative depth and normals from the shipped NDN weights; "
+    priors: str = field(default=DEFAULT_PRIORS, metadata={
+        "help": "prior source for ESGS (auto: the best of stereo labels, NDN and SfM per pixel, with a "
+                "confidence; ndn: dense relative depth and normals from the shipped NDN weights; "
                 "sfm: sparse depth from the COLMAP points; gt: the synthetic scene's exact maps)",
         "choices": PRIOR_SOURCES})
     sparse_points: str = field(default="triangulated", metadata={
@@ -74,23 +81,31 @@ class DemoConfig:
             raise ConfigError(f"priors must be one of {', '.join(PRIOR_SOURCES)}, got {self.priors!r}")
 
 
-def esgs_settings(priors: str, gpdfn: bool = True) -> dict:
-    """The ``ESGSConfig`` switches of the demo's ESGS run for a prior source: the full method
-    (:func:`esgs.core.methods.full_esgs`), GPDFN optional.
+def esgs_settings(priors: str = DEFAULT_PRIORS, gpdfn: bool = True) -> dict:
+    """The ``ESGSConfig`` of the demo's ESGS run for a prior source, as a dict: the full method
+    exactly as :func:`esgs.core.methods.full_esgs` defines it (weights included), GPDFN optional.
 
     Every source drives the depth-prior loss (relative NDN depth is pinned to the scene's
     scale by a scale/shift fit to each image's SfM points, since the prior's EXR says
-    ``relative``).
-    Sources with normals (ndn, gt) also drive the normal-prior loss, the paper's full
+    ``relative``; auto's depth is weighted per pixel by its confidence).
+    Sources with normals (auto, ndn, gt) also drive the normal-prior loss, the paper's full
     alignment branch; sparse ``sfm`` has no normals, so the depth-normal consistency loss
     stands in for them there.
     """
+    from ..config import config_to_dict
     from ..methods import full_esgs
 
     if priors not in PRIOR_SOURCES:
         raise ConfigError(f"unknown prior source {priors!r}", hint=f"use one of {', '.join(PRIOR_SOURCES)}")
-    full = full_esgs(priors, gpdfn=gpdfn)
-    return {name: getattr(full, name) for name in _DEFAULT_ESGS}
+    return config_to_dict(full_esgs(priors, gpdfn=gpdfn))
+
+
+def _default_esgs() -> dict:
+    """What each ESGS setting means when a saved run config lacks it: ESGSConfig's default."""
+    from ..config import config_to_dict
+    from ..methods import ESGSConfig
+
+    return config_to_dict(ESGSConfig())
 
 
 def _esgs_settings_of(switches: dict) -> Any:
@@ -197,35 +212,49 @@ def _priors_complete(scene: Path, source: str) -> bool:
 
 
 def make_priors(config: DemoConfig, scene: Path, progress: ProgressCallback) -> None:
-    """Write ``SCENE/priors/<config.priors>/`` unless complete (ndn: shipped NDN weights; sfm: COLMAP points)."""
+    """Write ``SCENE/priors/<config.priors>/`` unless complete (auto: the priors job of ``esgs
+    priors --method auto``, which reuses its cache while the images hold; ndn: shipped NDN
+    weights; sfm: COLMAP points)."""
     source = config.priors
-    if _priors_complete(scene, source):
+    if source == "auto":
+        from ..priors.job import PriorsSettings, compute_priors
+
+        with _torch_threads(config.threads):  # its NDN step
+            compute_priors(PriorsSettings(scene=scene, method=source), progress)
+    elif _priors_complete(scene, source):
         progress(ProgressEvent(0, 1, "priors", kind="message", message=f"priors: reusing {SceneDir(scene).prior(source)}"))
         return
-    if source == "sfm":
+    elif source == "sfm":
         from ..colmap import read_model
         from ..priors.sfm import write_sfm_priors
 
         write_sfm_priors(scene, read_model(SceneDir(scene).model), progress=progress)
     elif source == "ndn":
-        import torch
-
         from ..ndn.infer import write_ndn_priors
 
         def relabel(event: ProgressEvent) -> None:
             progress(ProgressEvent(event.step, event.total, "ndn priors", dict(event.metrics), event.kind,
                                    event.message))
 
-        threads = torch.get_num_threads()
-        try:
-            if config.threads > 0:
-                torch.set_num_threads(config.threads)
+        with _torch_threads(config.threads):
             write_ndn_priors(scene, progress=relabel)  # the shipped weights, unless $ESGS_NDN_WEIGHTS names others
-        finally:
-            torch.set_num_threads(threads)
     if not _priors_complete(scene, source):
         raise ConfigError(f"the scene has no complete {source!r} priors", path=SceneDir(scene).prior(source),
-                          hint="gt priors come with synthetic scenes from esgs scene; use --priors ndn or sfm")
+                          hint="gt priors come with synthetic scenes from esgs scene; use --priors auto, ndn or sfm")
+
+
+@contextlib.contextmanager
+def _torch_threads(threads: int):
+    """torch's CPU threads set to ``threads`` (0: left as they are) for the block."""
+    import torch
+
+    before = torch.get_num_threads()
+    try:
+        if threads > 0:
+            torch.set_num_threads(threads)
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def _snapshot_hook(folder: Path, steps: list[int]):
@@ -300,8 +329,9 @@ def _check_same_settings(run: Path, esgs: dict, train: dict) -> None:
 
     saved = with_predating_values(saved)  # runs saved before methods were registered, too
     saved_esgs = (saved.get("method_config") or {}) if saved.get("method") == "esgs" else {}
-    differences = [f"{key} {saved_esgs.get(key)!r} -> {value!r}" for key, value in esgs.items()
-                   if saved_esgs.get(key, _DEFAULT_ESGS.get(key)) != value]
+    defaults = _default_esgs()
+    differences = [f"{key} {saved_esgs.get(key, defaults.get(key))!r} -> {value!r}" for key, value in esgs.items()
+                   if saved_esgs.get(key, defaults.get(key)) != value]
     differences += [f"{key} {saved.get(key)!r} -> {value!r}" for key, value in train.items() if saved.get(key) != value]
     if differences:
         raise ConfigError(f"{run} holds a run started with other settings ({'; '.join(differences)})", path=run,

@@ -334,6 +334,28 @@ def _esgs_terms(config: Any) -> str:
     return ", ".join(used) if used else "no ESGS terms"
 
 
+def _auto_priors_paragraph(scene: Path) -> str:
+    """What the ``auto`` priors were made of, from ``priors/auto/auto.json``."""
+    from ..priors.auto import read_report, summary_line
+
+    text = ("The `auto` priors fuse, per pixel, stereo labels (a mesh rebuilt from the images), NDN depth "
+            "pinned to each view's SfM points and the SfM points themselves, each weighted by a confidence "
+            "from its agreement with the SfM points; ESGS scales its depth loss by it.")
+    record = read_report(scene)
+    if record is None:
+        return text
+    try:
+        text += f" Here: {summary_line(record).removeprefix('auto priors: ')}."
+    except (KeyError, TypeError, ValueError):
+        pass  # a report of another version: its numbers are left out, not the report
+    skipped = record.get("skipped") or {}
+    if skipped:
+        text += " Left out: " + "; ".join(f"{source} ({why})" for source, why in skipped.items()) + "."
+    if "ndn" in (record.get("sources_used") or []):
+        text += f" NDN: {_ndn_weights(scene)}."
+    return text
+
+
 def _ndn_weights(scene: Path) -> str:
     """Which NDN weights wrote the scene's ndn priors, from a depth map's EXR header."""
     from ..formats.imageio import read_depth_exr
@@ -381,6 +403,8 @@ def write_report(config: Any, scene: Path, runs: dict[str, dict], distances: dic
         lines += [f"The `ndn` priors are predicted by the NDN diffusion network ({_ndn_weights(scene)}): dense "
                   "depth known up to scale and shift, which training pins to the scene's scale with each image's SfM "
                   "points, and camera-frame normals.", ""]
+    if config.priors == "auto":
+        lines += [_auto_priors_paragraph(scene), ""]
     points = _sparse_points_record(scene)
     if points:
         lines += [f"The scene's {points['points']:,} SfM points were triangulated from its rendered images with the "

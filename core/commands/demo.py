@@ -1,9 +1,10 @@
-"""``esgs demo``: the main job end to end on the CPU (scene, NDN priors, ESGS and 3DGS, Blender, report)."""
+"""``esgs demo``: the main job end to end on the CPU (scene, auto priors, ESGS and 3DGS, Blender, report)."""
 from __future__ import annotations
 
 import argparse
 
-HELP = "run the main job end to end: synthetic scene, NDN priors, ESGS vs 3DGS training, Blender heat map, report"
+HELP = ("run the main job end to end: synthetic scene, auto priors (stereo labels, NDN and SfM), ESGS vs 3DGS "
+        "training, Blender heat map, report")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -190,4 +190,5 @@ def test_panels_draw_as_an_installed_extension(tmp_path, scene_folder):
     assert NO_SCENE_HINT in result["no_scene"]["ESGS_PT_training"]["labels"]
     assert NO_SCENE_HINT not in result["scene_chosen"]["ESGS_PT_training"]["labels"]
     assert "prior_source" in result["scene_chosen"]["ESGS_PT_training"]["props"]
-    assert result["prior_sources"] == ["NONE", "gt", "ndn", "sfm"]  # the scene folder's priors/gt, and computable ones
+    # auto (the default, made before training) first, the scene folder's priors/gt, and computable ones
+    assert result["prior_sources"] == ["NONE", "auto", "gt", "ndn", "sfm"]

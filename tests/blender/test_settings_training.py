@@ -95,7 +95,18 @@ def test_esgs_with_a_prior_source_is_the_full_method():
     settings = bpy.context.scene.esgs.training
     settings.method = "esgs"
     config = training_job.training_config(settings)
-    assert config.method_config == ESGSConfig()  # no source yet: nothing switched on
+    # chosen with nothing set: the full method on the default source, as `esgs train --esgs`
+    assert settings.priors == settings_training.DEFAULT_PRIOR_SOURCE == "auto"
+    assert config.method_config == full_esgs("auto") == full_esgs()
+    # another source while the settings are still the filled-in full method: that source's
+    # full method (its own depth weight), as `esgs train --method esgs --priors ndn`
+    settings.prior_source = "ndn"
+    assert training_job.training_config(settings).method_config == full_esgs("ndn") != full_esgs("auto")
+    settings.prior_source = "NONE"
+    for part in settings_training.ESGS_PARTS:
+        setattr(settings, part, False)
+    settings.depth_weight = ESGSConfig.depth_weight
+    assert training_job.training_config(settings).method_config == ESGSConfig()  # nothing switched on
     settings.priors = "sfm"
     assert training_job.training_config(settings).method_config == full_esgs("sfm")
     # once a part is chosen by hand, another source does not reset the parts
@@ -103,6 +114,24 @@ def test_esgs_with_a_prior_source_is_the_full_method():
     settings.priors = "gt"
     config = training_job.training_config(settings)
     assert (config.method_config.gpdfn, config.method_config.priors) == (False, "gt")
+    # nor does choosing ESGS again
+    settings.method = "mip-splatting"
+    settings.method = "esgs"
+    assert (settings.gpdfn, settings.priors) == (False, "gt")
+
+
+def test_3dgs_chosen_after_esgs_trains_3dgs():
+    settings = bpy.context.scene.esgs.training
+    settings.method = "esgs"  # fills in the auto source and the full method
+    settings.method = "3dgs"
+    config = training_job.training_config(settings)
+    assert (config.method, config.method_config) == ("3dgs", None)
+    # a scene (or script) from before the method selector: a source or a part alone chose ESGS
+    bpy.context.scene.esgs.property_unset("training")
+    settings = bpy.context.scene.esgs.training
+    settings.depth, settings.priors = True, "sfm"
+    assert not settings.is_property_set("method")
+    assert training_job.training_config(settings).method == "esgs"
 
 
 def test_an_unknown_prior_source_is_a_config_error():
@@ -126,10 +155,15 @@ def test_the_panel_draws_the_chosen_methods_settings():
     record = draw(ESGS_PT_training)
     assert {"prior_source", *settings_training.ESGS_PARTS} <= set(props(record))
     assert "priors" not in props(record)  # the stored string is not typed in: a drop-down sets it
+    assert {"depth_weight", "normal_weight"} <= set(props(record))  # the full method on auto: its parts' weights
+    settings.prior_source = "NONE"
+    settings.depth = settings.normal = False
+    record = draw(ESGS_PT_training)
     assert "depth_weight" not in props(record)  # a weight shows beside its switched-on part
     assert ("label", "Choose a prior source for the full method") in record
+    settings.depth = True
     settings.priors = "gt"
-    assert {"depth_weight", "normal_weight"} <= set(props(draw(ESGS_PT_training)))
+    assert {"depth_weight"} <= set(props(draw(ESGS_PT_training)))
 
     settings.method = "mip-splatting"
     shown = props(draw(ESGS_PT_training))
@@ -142,8 +176,12 @@ def test_the_prior_source_offers_what_the_scene_folder_holds(tmp_path):
     settings = bpy.context.scene.esgs.training
     settings.method = "esgs"
     offered = lambda: {identifier: name for identifier, name, _ in settings_training.prior_source_choices(settings)}
-    # no scene folder yet: none, or one that Compute Priors will make
-    assert list(offered()) == ["NONE", "ndn", "sfm"]
+    # no scene folder yet: none, auto (made before training: the default), or one that Compute Priors will make
+    assert offered() == {"NONE": "None", "auto": "auto (made before training)", "ndn": "ndn (compute first)",
+                         "sfm": "sfm (compute first)"}
+    assert settings.priors == "auto" and settings.prior_source == "auto"  # choosing ESGS chose auto
+    descriptions = {identifier: text for identifier, _, text in settings_training.prior_source_choices(settings)}
+    assert descriptions["auto"].startswith("Auto: best of stereo labels, NDN and SfM per pixel")
     with pytest.raises(TypeError):
         settings.prior_source = "gt"
 
@@ -151,8 +189,18 @@ def test_the_prior_source_offers_what_the_scene_folder_holds(tmp_path):
     for folder in ("priors/labels/normal", "priors/gt/depth", "priors/empty", "sparse/0", "images"):
         (scene / folder).mkdir(parents=True)
     settings.scene_dir = str(scene)
-    assert offered() == {"NONE": "None", "gt": "gt", "labels": "labels", "ndn": "ndn (compute first)",
-                         "sfm": "sfm (compute first)"}  # folders with maps, most faithful first
+    assert offered() == {"NONE": "None", "auto": "auto (made before training)", "gt": "gt", "labels": "labels",
+                         "ndn": "ndn (compute first)", "sfm": "sfm (compute first)"}  # folders with maps, most faithful first
+    assert list(offered()) == ["NONE", "auto", "gt", "labels", "ndn", "sfm"]
+    labels = [entry[1] for entry in draw(ESGS_PT_training) if entry[0] == "label"]
+    assert "No auto priors yet: Train computes them first" in labels  # not an error: training makes them
+    (scene / "priors" / "auto" / "depth").mkdir(parents=True)
+    assert list(offered())[:2] == ["NONE", "auto"] and offered()["auto"] == "auto"  # the default stays first
+    assert not any(entry[1].startswith("No auto priors") for entry in draw(ESGS_PT_training) if entry[0] == "label")
+    (scene / "priors" / "auto" / "depth").rmdir()
+    settings.prior_source = "NONE"
+    for part in settings_training.ESGS_PARTS:
+        setattr(settings, part, False)
     settings.prior_source = "labels"
     assert (settings.priors, settings.prior_source) == ("labels", "labels")
     assert settings.depth and settings.gpdfn  # a source chosen with every part off: the full method

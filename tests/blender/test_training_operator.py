@@ -207,6 +207,39 @@ def test_missing_priors_and_a_used_run_folder_are_said_in_panel_words(tmp_path, 
         bpy.ops.esgs.train()
 
 
+def test_esgs_on_auto_priors_not_made_yet_starts_and_says_it_makes_them_first(tmp_path, fake_trainer, scene_dir):
+    from esgs.core.methods import full_esgs
+    from esgs.panels.training_panel import ESGS_PT_training
+
+    settings = bpy.context.scene.esgs.training
+    settings.scene_dir, settings.run_dir, settings.iterations = str(scene_dir), str(tmp_path / "run"), 3
+    settings.method = "esgs"  # the full method on auto, the default source
+    assert not (scene_dir / "priors" / "auto").exists()
+    config = training_job.training_config(settings)
+    assert config.method_config == full_esgs("auto")
+    training_job.check_scene(scene_dir, config, tmp_path / "run")  # not refused: the run makes them
+    assert training_job.priors_made_first(scene_dir, config) == "auto"
+
+    # while the child computes them (no step yet) the panel says so
+    training_job.copy_state(settings, jobs.JobState(status="running", step=0, total=3))
+    settings.last_scene_dir = str(scene_dir)
+    labels = [entry[1] for entry in draw_panel(ESGS_PT_training) if entry[0] == "label"]
+    assert "Computing auto priors before the first step" in labels
+    settings.status = ""
+
+    assert bpy.ops.esgs.train() == {"FINISHED"}
+    sent = json.loads((tmp_path / "run" / "child_config.json").read_text())
+    assert sent["method"] == "esgs" and sent["method_config"]["priors"] == "auto"
+    assert sent["method_config"]["depth_weight"] == full_esgs("auto").depth_weight
+
+    # other sources are still refused at once; auto priors already there are not made again
+    (scene_dir / "priors" / "auto" / "depth").mkdir(parents=True)
+    assert training_job.priors_made_first(scene_dir, config) is None
+    settings.prior_source = "ndn"
+    with pytest.raises(DatasetError, match="no ndn priors"):
+        training_job.check_scene(scene_dir, training_job.training_config(settings))
+
+
 def test_scene_folder_from_the_imported_collection(scene_dir, tmp_path):
     with pytest.raises(DatasetError):
         training_job.find_scene_dir(bpy.context.scene)

@@ -12,28 +12,66 @@ import numpy as np
 import pytest
 
 from esgs.core.apps import demo, report
-from esgs.core.config import config_from_dict
+from esgs.core.config import config_from_dict, config_to_dict
 from esgs.core.apps.demo import DemoConfig, esgs_settings
 from esgs.core.errors import ConfigError
-from esgs.core.methods import ESGSConfig
+from esgs.core.methods import AUTO_DEPTH_WEIGHT, ESGSConfig, full_esgs
 from esgs.core.priors import PriorMaps, load_prior_maps, write_prior_maps
 from tests.core.train.scene import make_scene
 
 
 # --- settings ----------------------------------------------------------------------------
-def test_the_demo_trains_esgs_with_ndn_priors_by_default():
-    assert DemoConfig().priors == "ndn"
-    settings = esgs_settings("ndn")
-    assert settings == {"priors": "ndn", "depth": True, "normal": True, "consistency": False, "gpdfn": True}
+def _switches(settings: dict) -> dict:
+    return {name: settings[name] for name in ("priors", "depth", "normal", "consistency", "gpdfn")}
+
+
+def test_the_demo_trains_full_esgs_on_auto_priors_by_default():
+    assert DemoConfig().priors == "auto" and DemoConfig().sparse_points == "triangulated"
+    settings = esgs_settings(DemoConfig().priors)
+    # the full method exactly as full_esgs defines it, weights included (auto: depth weight 3)
+    assert config_from_dict(ESGSConfig, settings) == full_esgs("auto") == full_esgs()
+    assert settings["depth_weight"] == AUTO_DEPTH_WEIGHT and settings == esgs_settings()
+    assert _switches(settings) == {"priors": "auto", "depth": True, "normal": True, "consistency": False,
+                                   "gpdfn": True}
     assert config_from_dict(ESGSConfig, settings).enabled  # a valid trainer config, not the baseline
+
+
+def test_the_demo_computes_auto_priors_with_the_priors_job(tmp_path, monkeypatch):
+    from esgs.core.priors import job
+
+    requested = []
+
+    def compute(settings, progress):
+        requested.append(settings)
+        raise ConfigError("stop here")
+
+    monkeypatch.setattr(job, "compute_priors", compute)
+    with pytest.raises(ConfigError, match="stop here"):
+        demo.make_priors(DemoConfig(out=tmp_path), tmp_path / "scene", lambda event: None)
+    assert [(s.scene, s.method, s.force) for s in requested] == [(tmp_path / "scene", "auto", False)]
+
+
+def test_the_report_says_what_the_auto_priors_were_made_of(tmp_path):
+    assert report._auto_priors_paragraph(tmp_path).startswith("The `auto` priors fuse")  # none written yet
+    summary = {"views": 10, "labels_share": 0.7, "ndn_share": 0.2, "sfm_share": 0.01, "sky_share": 0.05,
+               "labels_error": 0.02, "ndn_error": 0.08, "labels_views_used": 9, "ndn_views_used": 10,
+               "coverage": 0.91, "mean_confidence": 0.6}
+    folder = tmp_path / "priors" / "auto"
+    folder.mkdir(parents=True)
+    (folder / "auto.json").write_text(json.dumps({"summary": summary, "sources_used": ["sfm", "labels"],
+                                                  "skipped": {"ndn": "ndn priors failed: no weights"}}))
+    text = report._auto_priors_paragraph(tmp_path)
+    assert "Here: 91% of pixels (labels 70%, ndn 20%, sfm 1%), mean confidence 0.60, sky 5%" in text
+    assert "Left out: ndn (ndn priors failed: no weights)." in text and "NDN:" not in text
 
 
 def test_each_prior_source_drives_the_losses_its_maps_support():
     # sfm has sparse depth only: consistency stands in for the missing normals
-    assert esgs_settings("sfm") == {"priors": "sfm", "depth": True, "normal": False, "consistency": True,
-                                    "gpdfn": True}
-    assert esgs_settings("gt", gpdfn=False) == {"priors": "gt", "depth": True, "normal": True, "consistency": False,
-                                                "gpdfn": False}
+    assert _switches(esgs_settings("sfm")) == {"priors": "sfm", "depth": True, "normal": False, "consistency": True,
+                                               "gpdfn": True}
+    assert _switches(esgs_settings("gt", gpdfn=False)) == {"priors": "gt", "depth": True, "normal": True,
+                                                           "consistency": False, "gpdfn": False}
+    assert esgs_settings("ndn") == config_to_dict(full_esgs("ndn"))
     with pytest.raises(ConfigError, match="labels"):
         esgs_settings("labels")
     with pytest.raises(ConfigError, match="priors"):
@@ -50,7 +88,7 @@ def test_the_command_line_offers_exactly_the_demo_prior_sources():
     result = subprocess.run([sys.executable, "-m", "esgs.core", "demo", "--priors", "labels", "--out", "unused"],
                             capture_output=True, text=True)
     assert result.returncode == 2 and "invalid choice: 'labels'" in result.stderr
-    assert "ndn, sfm, gt" in result.stderr or "'ndn', 'sfm', 'gt'" in result.stderr
+    assert "ndn, sfm, auto, gt" in result.stderr or "'ndn', 'sfm', 'auto', 'gt'" in result.stderr
 
 
 def test_a_run_folder_from_other_settings_is_neither_reused_nor_resumed(tmp_path):
@@ -242,11 +280,11 @@ def test_tiny_demo_runs_every_stage_and_reuses_finished_work(tmp_path, monkeypat
     events = []
     config = DemoConfig(out=tmp_path / "demo", views=4, width=96, height=54, samples=4, iterations=30,
                         snapshots=2, max_gaussians=4000)
-    assert config.priors == "ndn"
+    assert config.priors == "auto"
     report_path = demo.run_demo(config, progress=events.append)
     text = report_path.read_text()
-    assert "| ESGS |" in text and "| 3DGS |" in text and "| `ndn` prior |" in text
-    assert "weights shipped in the package" in text
+    assert "| ESGS |" in text and "| 3DGS |" in text and "| `auto` prior |" in text
+    assert "The `auto` priors fuse" in text and "weights shipped in the package" in text
     # 4 renders of 96x54 give SIFT nothing to triangulate: the demo says so and keeps the exact points
     assert any("no SfM points could be triangulated" in (e.message or "") for e in events)
     assert "generator's exact surface samples" in text
@@ -256,7 +294,8 @@ def test_tiny_demo_runs_every_stage_and_reuses_finished_work(tmp_path, monkeypat
     metrics = json.loads((tmp_path / "demo" / "runs" / "esgs" / "metrics.json").read_text())
     assert metrics["psnr"] > 8 and f"{metrics['psnr']:.2f}" in text
     saved = json.loads((tmp_path / "demo" / "runs" / "esgs" / "config.json").read_text())["method_config"]
-    assert saved["depth"] and saved["normal"] and saved["gpdfn"] and saved["priors"] == "ndn"
+    assert saved["depth"] and saved["normal"] and saved["gpdfn"] and saved["priors"] == "auto"
+    assert saved["depth_weight"] == AUTO_DEPTH_WEIGHT
     # distances are measured once per run: Blender's comparison serves ESGS, core measures 3DGS
     assert measured == ["3dgs"]
     blender = json.loads((tmp_path / "demo" / "blender" / "compare.json").read_text())
