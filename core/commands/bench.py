@@ -1,11 +1,12 @@
-"""``esgs bench --suite quick|full|large --out DIR``: 3DGS, Mip-Splatting, DropoutGS and ESGS compared."""
+"""``esgs bench --suite quick|full|large --out DIR``: 3DGS, Mip-Splatting, DropoutGS, 3DGS + GPDFN and ESGS compared."""
 from __future__ import annotations
 
 import argparse
 import sys
 from pathlib import Path
 
-HELP = "compare 3DGS, Mip-Splatting, DropoutGS, ESGS ablations and ESGS on synthetic scenes (benchmarks.md)"
+HELP = ("compare 3DGS, Mip-Splatting, DropoutGS, 3DGS + GPDFN, ESGS ablations and ESGS on synthetic scenes "
+        "(benchmarks.md)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -21,10 +22,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="training minutes per equal-budget run (default: the suite's; 0 = no budget comparison)")
     parser.add_argument("--budget-step-cap", type=int, default=0,
                         help="step cap (and schedule length) of the budget runs (0 = the suite's: twice --iterations)")
-    parser.add_argument("--priors", choices=("ndn", "sfm", "gt"), default="ndn",
-                        help="prior source of the ESGS rows: ndn (default; computed per scene with the shipped "
-                             "weights when missing), sfm, or gt (the generator's exact maps, flattering). A labelled "
-                             "upper-bound row with gt priors is always added")
+    parser.add_argument("--priors", nargs="+", choices=("auto", "labels", "ndn", "sfm", "gt"), default=["auto"],
+                        metavar="SOURCE",
+                        help="prior source(s) of the ESGS rows: auto (default: stereo labels, NDN and SfM fused per "
+                             "pixel with a confidence, as esgs train --esgs uses), labels (esgs labels --reconstruct, "
+                             "needs bpy), ndn, sfm, or gt (the generator's exact maps, flattering); made per scene when "
+                             "missing. Several (e.g. --priors auto labels ndn) give one full-ESGS row 'ESGS (SOURCE)' "
+                             "each, side by side; the ablation rows use the first. A labelled upper-bound row with gt "
+                             "priors is always added")
+    parser.add_argument("--sparse-points", choices=("triangulated", "exact"), default="triangulated",
+                        help="the scenes' SfM points (initial Gaussians, sfm priors, NDN pinning): triangulated "
+                             "(default) = SIFT matches of the rendered images with the known poses, as a real capture "
+                             "gives; exact = the generator's surface samples (flatter every method's geometry; the "
+                             "bench's tables before the triangulated scenes)")
     parser.add_argument("--executor", choices=("auto", "local", "ray"), default="auto",
                         help="local: process pool of --workers; ray: a local Ray instance (nothing to set up) or the "
                              "cluster at --address; auto: Ray for --address or the full/large suites, else local")
@@ -62,8 +72,8 @@ def run(args: argparse.Namespace) -> int:
                        cpus_per_task=max(1, args.threads)) as executor:
         result = run_bench(args.out, args.suite, executor=executor, iterations=args.iterations or None,
                            budget_minutes=args.budget_minutes, budget_step_cap=args.budget_step_cap or None,
-                           train=train, priors=args.priors, command="esgs " + " ".join(sys.argv[1:]),
-                           on_outcome=report)
+                           train=train, priors=args.priors, sparse_points=args.sparse_points,
+                           command="esgs " + " ".join(sys.argv[1:]), on_outcome=report)
     print(f"wrote {Path(args.out) / 'benchmarks.md'}")
     for item in result["failed"]:
         print(f"FAILED {item['run']}: {item['error'].splitlines()[0]}")

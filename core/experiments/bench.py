@@ -1,17 +1,24 @@
-"""The method comparison (``esgs bench``): 3DGS, Mip-Splatting, DropoutGS, ESGS ablations and
-full ESGS on synthetic scenes, at equal step counts and at equal wall-clock budgets, written
-as ``OUT/benchmarks.md``.
+"""The method comparison (``esgs bench``): 3DGS, Mip-Splatting, DropoutGS, 3DGS + GPDFN, ESGS
+ablations and full ESGS on synthetic scenes, at equal step counts and at equal wall-clock
+budgets, written as ``OUT/benchmarks.md``.
 
 Scenes are made with ``esgs scene`` in a child process (Blender's ``bpy`` never enters
-this process) and cached under ``OUT/scenes/<preset>_s<seed>_...``. Each (scene, method,
-seed) is one :class:`~.runs.RunTask` in ``OUT/runs/...`` (equal steps) and, with a budget,
-one more in ``OUT/runs_budget/...`` (equal training time: ``max_minutes`` with a step cap);
-tasks run through an :class:`~.executor.Executor` (local process pool, or Ray), a failed run
-is retried once, and a restart repeats only unfinished runs and runs whose saved settings
-differ from the ones the bench asks for now (a changed default, another prior source).
+this process) and cached under ``OUT/scenes/<preset>_s<seed>_...``. By default the bench
+then replaces the generator's exact surface samples by SfM points triangulated from the
+rendered images with the known poses (:func:`.sfm_scene.make_sfm_scene`, as the demo and
+the acceptance study do), cached in ``OUT/scenes/<...>_sfm``: the initial Gaussians, the
+``sfm`` priors and the pinning of NDN depth then come from points a real capture would give.
+Each (scene, method, seed) is one :class:`~.runs.RunTask` in ``OUT/runs/...`` (equal steps)
+and, with a budget, one more in ``OUT/runs_budget/...`` (equal training time:
+``max_minutes`` with a step cap); tasks run through an :class:`~.executor.Executor` (local
+process pool, or Ray), a failed run is retried once, and a restart repeats only unfinished
+runs and runs whose saved settings differ from the ones the bench asks for now (a changed
+default, another prior source, another scene folder).
 
-The prior-based rows use the priors a user would have: NDN's by default (``priors="ndn"``,
-computed once per scene with ``esgs priors --method ndn`` and kept in the scene), or SfM's.
+The prior-based rows use the priors a user would have: ``auto`` by default (``priors="auto"``:
+stereo labels, NDN and SfM fused per pixel with a confidence, computed once per scene and
+kept in it), or any list of sources compared side by side (``priors=("auto", "labels",
+"ndn")``: one full-ESGS row "ESGS (<source>)" per source; the ablation rows use the first).
 One extra row, full ESGS with the generator's exact depth and normals, is labelled as the
 upper bound: no real scene has those priors.
 """
@@ -29,6 +36,7 @@ from ..train.config import VANILLA_3DGS
 from ..formats.scene_dir import PriorSource, SceneDir, names
 from .ablate import available_priors
 from .runs import RunTask
+from .sfm_scene import SPARSE_POINTS
 from .tables import COST_COLUMNS, QUALITY_COLUMNS, aggregate, markdown_table
 
 
@@ -53,9 +61,14 @@ class BenchSuite:
         """Step cap of the budget runs (0 in the suite = twice the equal-step count)."""
         return self.budget_step_cap or 2 * self.iterations
 
-    def scene_folder_name(self, preset: str, seed: int) -> str:
-        """Cache key of a scene: everything that changes what ``esgs scene`` makes."""
-        return f"{preset}_s{seed}_{self.views}v_{self.resolution}_{self.samples}spp_{self.points_per_view}p"
+    def scene_folder_name(self, preset: str, seed: int, sparse_points: str = "triangulated") -> str:
+        """Cache key of a scene: everything that changes what ``esgs scene`` makes (``exact``:
+        the rendered scene with the generator's points), or what the triangulated copy is made
+        from (``triangulated``: ``..._sfm``; the generator's point count does not enter it)."""
+        rendered = f"{preset}_s{seed}_{self.views}v_{self.resolution}_{self.samples}spp"
+        if sparse_points == "triangulated":
+            return f"{rendered}_sfm"
+        return f"{rendered}_{self.points_per_view}p"
 
 
 SUITES = {
@@ -84,7 +97,12 @@ class Method:
     its settings dataclass; ``full``: start from :func:`esgs.core.methods.full_esgs` for the
     row's prior source); ``priors``: needs prior maps; ``prior_source``: a fixed
     ``priors/<source>`` ("" = the bench's choice, see :func:`plan_bench`); ``train``: TrainConfig
-    fields set on the row (the published baselines run :data:`~esgs.core.train.config.VANILLA_3DGS`)."""
+    fields set on the row (the published baselines run :data:`~esgs.core.train.config.VANILLA_3DGS`);
+    ``per_source``: one row per prior source the bench compares (:func:`bench_rows`: key
+    ``<key>_<source>``, ``label`` formatted with ``source``).
+
+    A ``full`` row without ``priors`` is full ESGS with every prior dropped
+    (:func:`full_esgs_without_priors`)."""
 
     key: str
     label: str
@@ -94,12 +112,15 @@ class Method:
     priors: bool = False
     prior_source: str = ""
     train: tuple = ()
+    per_source: bool = False
 
     def method_config(self, source: str, scene: Path) -> Optional[dict]:
         """The row's ``method_config`` on ``scene`` with prior source ``source``."""
         from ..config import config_to_dict
         from ..methods import full_esgs
 
+        if self.full and not self.priors:
+            return full_esgs_without_priors(**dict(self.settings))
         if self.full:
             return config_to_dict(full_esgs(source, scene=scene, **dict(self.settings)))
         settings = dict(self.settings)
@@ -109,51 +130,121 @@ class Method:
 
 
 def _method(key: str, label: str, method: str = "3dgs", *, settings: Optional[dict] = None, full: bool = False,
-            prior_source: str = "", vanilla: bool = False) -> Method:
+            priors: Optional[bool] = None, prior_source: str = "", vanilla: bool = False,
+            per_source: bool = False) -> Method:
     settings = settings or {}
-    return Method(key, label, method, tuple(sorted(settings.items())), full,
-                  priors=full or bool(settings.get("depth") or settings.get("normal")), prior_source=prior_source,
-                  train=tuple(sorted(VANILLA_3DGS.items())) if vanilla else ())
+    if priors is None:
+        priors = full or bool(settings.get("depth") or settings.get("normal"))
+    return Method(key, label, method, tuple(sorted(settings.items())), full, priors=priors,
+                  prior_source=prior_source, train=tuple(sorted(VANILLA_3DGS.items())) if vanilla else (),
+                  per_source=per_source)
 
 
-#: Where the prior-based rows may take their priors from (``--priors``).
+def full_esgs_without_priors(**overrides: Any) -> dict:
+    """What full ESGS (:func:`esgs.core.methods.full_esgs`) becomes when every prior is dropped:
+    no prior source; depth, normal, consistency and sky losses off; GPDFN as the full method
+    sets it (K = 3). The depth weight goes back to ESGSConfig's default, so the row does not
+    change with the weight a prior source would get. ``overrides``: ESGSConfig fields."""
+    from ..config import config_from_dict, config_to_dict
+    from ..methods import ESGSConfig, full_esgs
+
+    settings = {**config_to_dict(full_esgs()), "priors": "", "depth": False, "normal": False, "consistency": False,
+                "sky_weight": 0.0, "depth_weight": ESGSConfig.depth_weight, **overrides}
+    config = config_from_dict(ESGSConfig, settings)
+    config.validate()
+    return config_to_dict(config)
+
+
+#: The sources a run on a synthetic scene can train with without a mesh step (the demo's too).
 PRIOR_SOURCES = names(PriorSource.for_synthetic_scenes())
 #: The sources ``esgs priors`` can compute for a scene that lacks them.
 COMPUTED_PRIOR_SOURCES = names(PriorSource.computed())
 #: ... and those :func:`ensure_priors` can (``labels``: ``esgs labels --reconstruct``, needs bpy).
 ENSURED_PRIOR_SOURCES = (*COMPUTED_PRIOR_SOURCES, *names(tuple(s for s in PriorSource if s.made_by_labels)))
+#: Where the prior-based rows may take their priors from (``--priors``, one or several): what
+#: :func:`ensure_priors` makes, and the generator's exact maps.
+PRIOR_CHOICES = (*ENSURED_PRIOR_SOURCES, *names(tuple(s for s in PriorSource if s.made_by_scene)))
+#: The bench's prior source when none is named: the one users get (esgs train --esgs, the demo).
+DEFAULT_PRIORS = ("auto",)
 UPPER_BOUND_KEY = "esgs_full_gt"
 
 
 #: The published baselines run as published (``vanilla``: constant background, no sky masks);
 #: "3DGS + sky model" is plain 3DGS with this tool's defaults, so the table separates what the
-#: sky model adds from what ESGS's priors add (every ESGS row uses the defaults).
+#: sky model adds from what ESGS's priors add (every ESGS row uses the defaults). "3DGS + GPDFN"
+#: is full ESGS with every prior dropped: what ESGS gives on a scene where no prior helps.
+#: "ESGS (<source>)" is full ESGS, once per prior source the bench compares.
 METHODS = (
     _method("3dgs", "3DGS", vanilla=True),
     _method("3dgs_sky", "3DGS + sky model (our defaults)"),
     _method("mip_splatting", "Mip-Splatting", "mip-splatting", vanilla=True),
     _method("dropout_gs", "DropoutGS", "dropout-gs", settings={"dropout_rate": 0.1}, vanilla=True),
+    _method("3dgs_gpdfn", "3DGS + GPDFN", "esgs", full=True, priors=False),
     _method("esgs_depth", "ESGS: depth prior", "esgs", settings={"depth": True}),
     _method("esgs_normal", "ESGS: normal prior", "esgs", settings={"normal": True}),
     _method("esgs_depth_normal", "ESGS: depth + normal", "esgs", settings={"depth": True, "normal": True}),
-    _method("esgs_full", "ESGS (depth + normal + GPDFN)", "esgs", full=True),
+    _method("esgs_full", "ESGS ({source})", "esgs", full=True, per_source=True),
     # not a method a user can run on real data: the same ESGS fed the exact synthetic depth and normals
     _method(UPPER_BOUND_KEY, "ESGS, ground-truth priors (upper bound)", "esgs", full=True, prior_source="gt"),
 )
 
 
+def prior_sources(priors: str | Sequence[str]) -> tuple[str, ...]:
+    """The bench's prior sources, in order, without repeats (``priors``: one name or several);
+    ConfigError for an unknown one or none."""
+    sources = (priors,) if isinstance(priors, str) else tuple(priors)
+    sources = tuple(dict.fromkeys(str(source) for source in sources))
+    if not sources:
+        raise ConfigError("no prior source given", hint=f"use one or more of {', '.join(PRIOR_CHOICES)}")
+    for source in sources:
+        if source not in PRIOR_CHOICES:
+            raise ConfigError(f"unknown prior source {source!r}", hint=f"use one or more of {', '.join(PRIOR_CHOICES)}")
+    return sources
+
+
+def bench_rows(methods: Sequence[Method], priors: str | Sequence[str]) -> list[tuple[Method, str]]:
+    """Each row the bench trains with its prior source: a ``per_source`` method once per source
+    of ``priors`` (key ``<key>_<source>``, its label formatted with the source), the others once
+    with their own ``prior_source`` or else the first of ``priors``. A per-source row whose key
+    is another method's (``esgs_full_gt`` = the upper bound) is that method's row."""
+    import dataclasses
+
+    sources = prior_sources(priors)
+    keys = {method.key for method in methods}
+    rows = []
+    for method in methods:
+        if not method.per_source:
+            rows.append((method, method.prior_source or sources[0]))
+            continue
+        for source in sources:
+            key = f"{method.key}_{source}"
+            if key not in keys:
+                rows.append((dataclasses.replace(method, key=key, label=method.label.format(source=source),
+                                                 prior_source=source, per_source=False), source))
+    return rows
+
+
+def ensured_sources(methods: Sequence[Method], priors: str | Sequence[str]) -> list[str]:
+    """The prior sources the bench's rows read that :func:`ensure_priors` can make, in order."""
+    return list(dict.fromkeys(source for method, source in bench_rows(methods, priors)
+                              if method.priors and source in ENSURED_PRIOR_SOURCES))
+
+
 def ensure_priors(scene: Path, source: str) -> Path:
     """``SCENE/priors/<source>``, computed in a child process when the scene has none:
-    ``esgs priors --method <source>`` (ndn, sfm) or ``esgs labels --reconstruct`` (labels: a
-    mesh rebuilt from the images and poses, never the true mesh); ``gt`` priors come only
-    from the generator.
+    ``esgs priors --method <source>`` (ndn, sfm, auto) or ``esgs labels --reconstruct``
+    (labels: a mesh rebuilt from the images and poses, never the true mesh); ``gt`` priors
+    come only from the generator.
 
     Both commands write the folder atomically, so an interrupted bench leaves either the
-    whole folder or none, and a restart reuses it.
+    whole folder or none, and a restart reuses it. A fused source (auto) is always asked
+    for: its command reuses the folder while the images and sources it was made from hold,
+    and fuses it again when one changed (labels computed since), here, once, rather than in
+    each run that trains on it.
     """
     scene = Path(scene)
     folder = SceneDir(scene).prior(source)
-    if source in available_priors(scene):
+    if source in available_priors(scene) and not PriorSource(source).fused:
         return folder
     if source not in ENSURED_PRIOR_SOURCES:
         raise ConfigError(f"the scene has no {source} priors and the bench cannot compute them", path=scene,
@@ -173,31 +264,55 @@ def ensure_priors(scene: Path, source: str) -> Path:
     return folder
 
 
-def make_scene(preset: str, seed: int, suite: BenchSuite, scenes_dir: Path) -> Path:
-    """``esgs scene`` into ``scenes_dir/<preset>_s<seed>`` unless it is there (the folder appears complete)."""
-    from ..terrain.scene_job import SceneJob, parse_resolution, render_scene
+def make_scene(preset: str, seed: int, suite: BenchSuite, scenes_dir: Path,
+               sparse_points: str = "triangulated") -> Path:
+    """The bench's scene of ``preset`` and ``seed``, made unless it is there (each folder appears complete).
 
-    folder = Path(scenes_dir) / suite.scene_folder_name(preset, seed)
+    ``esgs scene`` renders into ``scenes_dir/<...>_<points>p`` (with the generator's exact
+    surface samples as its SfM points); ``sparse_points="exact"`` returns that folder.
+    ``"triangulated"`` (the default) copies it to ``scenes_dir/<...>_sfm`` with SfM points
+    triangulated from the rendered images with the known poses and their ``sfm`` priors
+    (:func:`.sfm_scene.make_sfm_scene`); DatasetError when no point can be triangulated.
+    """
+    from ..errors import DatasetError
+    from ..terrain.scene_job import SceneJob, parse_resolution, render_scene
+    from .sfm_scene import make_sfm_scene
+
+    if sparse_points not in SPARSE_POINTS:
+        raise ConfigError(f"unknown sparse points {sparse_points!r}", hint=f"use one of {', '.join(SPARSE_POINTS)}")
+    rendered = Path(scenes_dir) / suite.scene_folder_name(preset, seed, "exact")
+    folder = Path(scenes_dir) / suite.scene_folder_name(preset, seed, sparse_points)
     if SceneDir(folder).has_model():
         return folder
-    width, height = parse_resolution(suite.resolution)
-    job = SceneJob(preset=preset, seed=seed, views=suite.views, width=width, height=height, samples=suite.samples,
-                   points_per_view=suite.points_per_view)
+    if not SceneDir(rendered).has_model():
+        width, height = parse_resolution(suite.resolution)
+        job = SceneJob(preset=preset, seed=seed, views=suite.views, width=width, height=height,
+                       samples=suite.samples, points_per_view=suite.points_per_view)
+        try:
+            render_scene(job, rendered)
+        except ESGSError as error:
+            raise type(error)(f"esgs scene failed for {preset} seed {seed}: {error.message}",
+                              path=error.path or rendered, hint=error.hint) from error
+    if folder == rendered:
+        return folder
     try:
-        render_scene(job, folder)
-    except ESGSError as error:
-        raise type(error)(f"esgs scene failed for {preset} seed {seed}: {error.message}", path=error.path or folder,
-                          hint=error.hint) from error
+        make_sfm_scene(rendered, folder)
+    except DatasetError as error:
+        raise DatasetError(f"no SfM points for {preset} seed {seed}: {error.message}", path=error.path or rendered,
+                           hint="render more views or a larger resolution, or run the bench with --sparse-points "
+                                "exact (the generator's surface samples, which flatter every method)") from error
     return folder
 
 
 def plan_bench(scenes: dict[str, tuple[Path, int]], out: Path, *, iterations: int, methods: Sequence[Method] = METHODS,
                train: Optional[dict] = None, budget_minutes: float = 0.0, budget_step_cap: int = 0,
-               priors: str = "ndn") -> tuple[list[RunTask], list[str]]:
-    """Run tasks for every scene (name -> (folder, seed)) and method, and notes on what was left out.
+               priors: str | Sequence[str] = DEFAULT_PRIORS) -> tuple[list[RunTask], list[str]]:
+    """Run tasks for every scene (name -> (folder, seed)) and row, and notes on what was left out.
 
-    Prior-based methods read ``priors/<priors>`` (a method's own ``prior_source`` wins, e.g.
-    the gt upper bound); a scene without the maps a method needs skips it with a note.
+    ``priors``: one prior source or several (:func:`bench_rows`): full ESGS runs once per
+    source ("ESGS (<source>)"); the other prior-based rows read ``priors/<first source>`` (a
+    method's own ``prior_source`` wins, e.g. the gt upper bound). A scene without the maps a
+    row needs skips it with a note.
 
     Equal-step tasks train ``iterations`` steps in ``OUT/runs/<scene>/<method>``. With
     ``budget_minutes`` > 0 every method also trains in ``OUT/runs_budget/<scene>/<method>``
@@ -209,13 +324,11 @@ def plan_bench(scenes: dict[str, tuple[Path, int]], out: Path, *, iterations: in
     if budget_minutes > 0:
         modes.append(("budget", "runs_budget", {"iterations": budget_step_cap or 2 * iterations,
                                                 "max_minutes": float(budget_minutes)}))
-    if priors not in PRIOR_SOURCES:
-        raise ConfigError(f"unknown prior source {priors!r}", hint=f"use one of {', '.join(PRIOR_SOURCES)}")
+    rows = bench_rows(methods, priors)
     for scene_name, (folder, seed) in scenes.items():
         found = available_priors(folder)
         mesh = SceneDir(folder).ground_truth_mesh
-        for method in methods:
-            source = method.prior_source or priors
+        for method, source in rows:
             method_config = method.method_config(source, folder)
             if method.priors:
                 needed = {kind for kind in ("depth", "normal") if (method_config or {}).get(kind)}
@@ -260,19 +373,55 @@ def _comparison_markdown(part: dict, title: str) -> list[str]:
     return lines
 
 
+def _made_by(source: str, weights: Sequence[str]) -> str:
+    """What the priors of ``source`` are, for the report."""
+    ndn_weights = f"weights {', '.join(weights or ['shipped'])}"
+    return {"auto": "the `auto` priors (`esgs priors --method auto`): stereo labels where they agree with the "
+                    f"SfM points, NDN ({ndn_weights}) pinned to the SfM points in their holes, the SfM depth as the "
+                    "floor, each pixel's confidence scaling the prior losses",
+            "labels": "stereo labels (`esgs labels --reconstruct`: a mesh rebuilt from the images and poses by "
+                      "multi-view stereo, rendered)",
+            "ndn": f"NDN's relative depth and normals (`esgs priors --method ndn`, {ndn_weights}), pinned to each "
+                   "view's SfM points",
+            "sfm": "the sparse SfM depth (`esgs priors --method sfm`)",
+            "gt": "the generator's exact depth and normals"}[source]
+
+
 def _priors_sentence(priors: Optional[dict]) -> str:
     priors = priors or {}
-    source = priors.get("source", "gt")
-    made_by = {"ndn": "NDN's relative depth and normals (`esgs priors --method ndn`, weights "
-                      f"{', '.join(priors.get('weights') or ['shipped'])}), pinned to each view's SfM points",
-               "sfm": "the sparse SfM depth (`esgs priors --method sfm`)",
-               "gt": "the generator's exact depth and normals"}[source]
-    sentence = f"Priors: the ESGS rows use {made_by}."
-    if source != "gt":
+    sources = list(priors.get("sources") or [priors.get("source", "gt")])
+    weights = priors.get("weights") or []
+    if len(sources) == 1:
+        sentence = f"Priors: the ESGS rows use {_made_by(sources[0], weights)}."
+    else:
+        # gt's full-ESGS row is the labelled upper bound (bench_rows)
+        rows = ", ".join(f"'ESGS ({source})'" for source in sources if source != "gt")
+        sentence = (f"Priors: the rows {rows} train full ESGS on each source: "
+                    + "; ".join(f"{source}: {_made_by(source, weights)}" for source in sources)
+                    + f". The ablation rows (ESGS: depth prior, normal prior, depth + normal) use {sources[0]}.")
+    if sources != ["gt"]:
         sentence += (" The row 'ESGS, ground-truth priors (upper bound)' is the same full ESGS fed the generator's "
                      "exact depth and normals: a bound on what a perfect prior would give, not a method a user can "
                      "run on real data.")
     return sentence
+
+
+def _sparse_points_sentence(sparse: Optional[dict], points_per_view: int) -> str:
+    """Where the scenes' SfM points come from, for the report (old reports: the generator's)."""
+    sparse = sparse or {"kind": "exact"}
+    exact = (f"the generator's exact surface samples ({points_per_view} per view), which flatter every method's "
+             "geometry")
+    if sparse["kind"] == "exact":
+        return exact
+    points = list((sparse.get("points") or {}).values())
+    triangulated = ("triangulated from the rendered images with the known poses (SIFT matches, pycolmap"
+                    + (f"; {min(points)}-{max(points)} points per scene" if points else "")
+                    + (f", mean reprojection error {sparse['mean_reprojection_error_px']:.2f} px"
+                       if sparse.get("mean_reprojection_error_px") is not None else "")
+                    + "), as a real capture gives them")
+    if sparse["kind"] == "triangulated":
+        return triangulated
+    return f"{triangulated} on {len(points)} scenes; {exact} on the others"
 
 
 def bench_markdown(report: dict) -> str:
@@ -286,8 +435,10 @@ def bench_markdown(report: dict) -> str:
              f"GPU: {machine['gpu'] or 'none'}. Executor: {report['executor']}.", "",
              f"Scenes: `esgs scene` presets {', '.join(suite['presets'])} x seeds "
              f"{', '.join(map(str, suite['seeds']))} ({suite['views']} views, {suite['resolution']}, "
-             f"{suite['samples']} samples, {suite['points_per_view']} SfM points per view); every method "
-             f"trains with the same seed as its scene, {report['iterations']} steps for the equal-step comparison"
+             f"{suite['samples']} samples); SfM points (the initial Gaussians, the sfm priors, the pinning of NDN "
+             f"depth): {_sparse_points_sentence(report.get('sparse_points'), suite['points_per_view'])}; every "
+             f"method trains with the same seed as its scene, {report['iterations']} steps for the equal-step "
+             "comparison"
              + (f" and {budget['budget_minutes']:g} minutes of training (at most {budget['step_cap']} steps, the "
                 "schedule of that cap) for the equal-budget one" if budget else "")
              + ". Quality on the held-out "
@@ -295,8 +446,11 @@ def bench_markdown(report: dict) -> str:
              "mesh/ground_truth.ply (scene units, metres). Train time is training only; peak RSS is the run's "
              "process (ru_maxrss); render time is one held-out frame, mean over the held-out views. "
              "Mean ± std over scenes and seeds.", "",
-             _priors_sentence(report.get("priors")), "",
-             f"Command: `{report['command']}`", ""]
+             _priors_sentence(report.get("priors")), ""]
+    auto = (report.get("priors") or {}).get("auto") or {}
+    if auto:
+        lines += [f"- {scene_name}: {line}" for scene_name, line in auto.items()] + [""]
+    lines += [f"Command: `{report['command']}`", ""]
     lines += _comparison_markdown(report, f"At equal step count ({report['iterations']} steps)")
     if budget:
         lines += ["", *_comparison_markdown(budget, f"At equal wall-clock budget ({budget['budget_minutes']:g} min)")]
@@ -309,20 +463,53 @@ def bench_markdown(report: dict) -> str:
     return "\n".join(lines)
 
 
-def _prior_description(source: str, scenes: dict[str, tuple[Path, int]]) -> dict[str, Any]:
-    """The prior source of the bench and, for NDN, the weights its maps were computed with
-    (the ``weights`` header of each scene's first depth map)."""
+def _prior_description(sources: Sequence[str], scenes: dict[str, tuple[Path, int]]) -> dict[str, Any]:
+    """The prior sources of the bench (``source``: the first, the ablation rows'); for NDN and
+    auto the weights NDN's maps were computed with (the ``weights`` header of each scene's
+    first NDN depth map); for auto one line per scene on what its priors are made of."""
     from ..formats.imageio import read_exr
 
-    weights = set()
-    if source == "ndn":
+    weights, auto = set(), {}
+    if {"ndn", "auto"} & set(sources):
         for folder, _ in scenes.values():
-            for path in sorted(SceneDir(folder).prior_maps(source, "depth").glob("*.exr"))[:1]:
+            for path in sorted(SceneDir(folder).prior_maps("ndn", "depth").glob("*.exr"))[:1]:
                 try:
                     weights.add(Path(read_exr(path)[1].get("weights", "")).name)
                 except (OSError, ValueError, ESGSError):
                     pass  # the description is informative only; the run itself checks the maps
-    return {"source": source, "weights": sorted(w for w in weights if w)}
+    if "auto" in sources:
+        from ..priors.auto import read_report, summary_line
+
+        for scene_name, (folder, _) in scenes.items():
+            report = read_report(Path(folder))
+            try:
+                if report:
+                    auto[scene_name] = summary_line(report)
+            except (KeyError, TypeError, ValueError):
+                pass  # informative only, as above
+    return {"source": sources[0], "sources": list(sources), "weights": sorted(w for w in weights if w), "auto": auto}
+
+
+def _sparse_points_description(scenes: dict[str, tuple[Path, int]]) -> dict[str, Any]:
+    """How the scenes' SfM points were made, from each ``scene.json``'s ``sparse_points``
+    record (:func:`.sfm_scene.make_sfm_scene`): ``kind`` triangulated, exact or mixed, the
+    triangulated point count per scene and their mean reprojection error."""
+    import json
+
+    records = {}
+    for scene_name, (folder, _) in scenes.items():
+        path = SceneDir(folder).provenance
+        try:
+            record = json.loads(path.read_text()).get("sparse_points") if path.is_file() else None
+        except (OSError, ValueError):
+            record = None
+        records[scene_name] = record if isinstance(record, dict) and record.get("points") else None
+    triangulated = {name: record for name, record in records.items() if record}
+    kind = "exact" if not triangulated else "triangulated" if len(triangulated) == len(records) else "mixed"
+    errors = [record.get("mean_reprojection_error_px") for record in triangulated.values()]
+    errors = [float(e) for e in errors if e is not None]
+    return {"kind": kind, "points": {name: int(record["points"]) for name, record in triangulated.items()},
+            "mean_reprojection_error_px": sum(errors) / len(errors) if errors else None}
 
 
 def _comparison(summaries: list[dict], scene_names: Sequence[str], keys: Sequence[str]) -> dict:
@@ -336,11 +523,15 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
               scenes: Optional[dict[str, tuple[Path, int]]] = None, methods: Sequence[Method] = METHODS,
               iterations: Optional[int] = None, budget_minutes: Optional[float] = None,
               budget_step_cap: Optional[int] = None, train: Optional[dict] = None, command: str = "",
-              priors: str = "ndn", on_outcome: Optional[Callable[[Any], None]] = None) -> dict:
+              priors: str | Sequence[str] = DEFAULT_PRIORS, sparse_points: str = "triangulated",
+              on_outcome: Optional[Callable[[Any], None]] = None) -> dict:
     """Make (or reuse) the suite's scenes, run every method on each, write benchmarks.md/.json.
 
-    ``priors``: the prior source of the prior-based rows (ndn, sfm or gt); ndn and sfm priors
-    are computed for every scene that lacks them (:func:`ensure_priors`).
+    ``priors``: the prior source(s) of the prior-based rows (:data:`PRIOR_CHOICES`; several:
+    one full-ESGS row per source, see :func:`bench_rows`); every source but gt is made for
+    every scene that lacks it (:func:`ensure_priors`; the fused auto last, from the others).
+    ``sparse_points``: the suite's scenes get SfM points triangulated from their images
+    (default) or keep the generator's exact ones (:func:`make_scene`).
 
     ``scenes`` (name -> (folder, seed)) replaces the suite's generated scenes (tests,
     existing folders). ``iterations``, ``budget_minutes`` (0 = no equal-budget comparison)
@@ -364,16 +555,18 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
     if budget_minutes < 0:
         raise ConfigError(f"budget_minutes must be >= 0, got {budget_minutes}")
     step_cap = budget_step_cap or suite.budget_step_cap or 2 * iterations
+    sources = prior_sources(priors)
+    if sparse_points not in SPARSE_POINTS:
+        raise ConfigError(f"unknown sparse points {sparse_points!r}", hint=f"use one of {', '.join(SPARSE_POINTS)}")
     if scenes is None:
-        scenes = {f"{preset}_s{seed}": (make_scene(preset, seed, suite, out / "scenes"), seed)
+        scenes = {f"{preset}_s{seed}": (make_scene(preset, seed, suite, out / "scenes", sparse_points), seed)
                   for preset in suite.presets for seed in suite.seeds}
-    if priors not in PRIOR_SOURCES:
-        raise ConfigError(f"unknown prior source {priors!r}", hint=f"use one of {', '.join(PRIOR_SOURCES)}")
-    if priors in COMPUTED_PRIOR_SOURCES and any(m.priors and not m.prior_source for m in methods):
+    # the sources auto is fused from first, so it is fused once, from all of them
+    for source in sorted(ensured_sources(methods, sources), key=lambda name: PriorSource(name).fused):
         for folder, _ in scenes.values():
-            ensure_priors(folder, priors)
+            ensure_priors(folder, source)
     tasks, notes = plan_bench(scenes, out, iterations=iterations, methods=methods, train=train,
-                              budget_minutes=budget_minutes, budget_step_cap=step_cap, priors=priors)
+                              budget_minutes=budget_minutes, budget_step_cap=step_cap, priors=sources)
     # runs made with other settings are kept aside and trained again (RunTask.stale_settings)
     retrained = {}
     for task in tasks:
@@ -406,10 +599,10 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
         "suite": {"name": suite.name, "presets": list(suite.presets), "seeds": list(suite.seeds), "views": suite.views,
                   "resolution": suite.resolution, "samples": suite.samples, "points_per_view": suite.points_per_view,
                   "iterations": suite.iterations, "budget_minutes": suite.budget_minutes,
-                  "budget_step_cap": suite.step_cap},
+                  "budget_step_cap": suite.step_cap, "sparse_points": sparse_points},
         "iterations": iterations, "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M"),
         "machine": machine_description(), "executor": type(executor).__name__, "command": command or "run_bench(...)",
-        "priors": _prior_description(priors, scenes),
+        "priors": _prior_description(sources, scenes), "sparse_points": _sparse_points_description(scenes),
         **_comparison(step_runs, list(scenes), keys), "budget": budget, "notes": notes, "failed": failed,
     }
     atomic_write_json(out / "benchmarks.json", report)

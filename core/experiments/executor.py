@@ -97,16 +97,21 @@ def unpack_folder(data: bytes, folder: Path) -> Path:
     return Path(folder)
 
 
+#: Name prefix of the scratch folder a shipped run trains in.
+SCRATCH_PREFIX = "esgs_run_"
+
+
 def _run_shipped(function: Callable[[Any], Any], task: Any, scene_archive: Optional[bytes]) -> tuple[bool, Any, Any]:
     """Run ``task`` in a scratch folder of this node: the scene unpacked from ``scene_archive``,
     the run folder packed and returned so the driver can put it where the task says."""
     import dataclasses
     import tempfile
 
-    with tempfile.TemporaryDirectory(prefix="esgs_run_") as scratch:
+    with tempfile.TemporaryDirectory(prefix=SCRATCH_PREFIX) as scratch:
         changes: dict[str, Any] = {"out": Path(scratch) / "run"}
         if scene_archive is not None:
-            scene = unpack_folder(scene_archive, Path(scratch) / "scene")
+            # under its own name: the run's config.json names the scene it trained on (RunTask.stale_settings)
+            scene = unpack_folder(scene_archive, Path(scratch) / "scene" / Path(task.scene).name)
             changes["scene"] = scene
             mesh = getattr(task, "mesh", None)
             if mesh is not None and Path(mesh).is_relative_to(task.scene):

@@ -86,11 +86,16 @@ class RunTask:
     def stale_settings(self) -> list[str]:
         """Names of the settings (those that change what is computed, see
         :func:`effective_settings`) whose value in the run folder's ``config.json`` differs from
-        what the task asks for now; [] when they agree or the folder has no config yet."""
+        what the task asks for now; [] when they agree or the folder has no config yet.
+
+        ``scene`` counts by its folder name: a run made on another scene folder (the bench's
+        triangulated ``..._sfm`` copy in place of the generator's points) is another run,
+        while a moved bench folder keeps its runs."""
         from ..config import config_to_dict
         from ..methods import train_config_from_dict
         from ..formats.run_dir import RunDir
         from ..train.trainer import RESUMABLE_SETTINGS
+        from .executor import SCRATCH_PREFIX
 
         saved_path = RunDir(self.out).config
         if not saved_path.is_file():
@@ -104,8 +109,13 @@ class RunTask:
         # a setting newer than the saved run counts with the value such runs had (PREDATING_VALUES)
         saved = effective_settings({**{name: None for name in wanted}, **_complete(saved)})
         wanted = effective_settings(json.loads(json.dumps(wanted)))
-        return sorted(name for name, value in wanted.items()
-                      if name not in RESUMABLE_SETTINGS and value != saved.get(name))
+        stale = [name for name, value in wanted.items() if name not in RESUMABLE_SETTINGS and value != saved.get(name)]
+        saved_scene = Path(str(saved.get("scene") or ""))
+        # runs shipped to another Ray node before scratch copies kept the scene's name trained on "<scratch>/scene"
+        unknown = saved_scene.name == "scene" and saved_scene.parent.name.startswith(SCRATCH_PREFIX)
+        if saved_scene.name and not unknown and saved_scene.name != Path(self.scene).name:
+            stale.append("scene")
+        return sorted(stale)
 
     def set_aside_if_stale(self) -> Optional[Path]:
         """Move a stale run folder (see :meth:`stale_settings`) to ``OUT.stale-<UTC time>`` so the

@@ -29,6 +29,11 @@ from ..errors import DatasetError
 from ..progress import ProgressCallback, ProgressEvent, no_progress
 from ..formats.scene_dir import PriorSource, SceneDir
 
+#: Where a synthetic scene's SfM points come from: ``triangulated`` from its rendered images
+#: with the known poses (:func:`make_sfm_scene`, as a real capture gives them), or ``exact``:
+#: the generator's surface samples (flatter every method's geometry).
+SPARSE_POINTS = ("triangulated", "exact")
+
 
 def copied(scene: SceneDir) -> tuple[Path, ...]:
     """The folders of ``scene`` copied unchanged into its SfM copy (``scene.json`` is rewritten)."""

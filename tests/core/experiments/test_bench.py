@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 
 from esgs.core.errors import ConfigError
-from esgs.core.experiments.bench import METHODS, SUITES, UPPER_BOUND_KEY, ensure_priors, plan_bench, run_bench
+from esgs.core.experiments.bench import (METHODS, PRIOR_CHOICES, SUITES, UPPER_BOUND_KEY, bench_rows, ensure_priors,
+                                         plan_bench, run_bench)
 from esgs.core.experiments.executor import LocalExecutor, make_executor, run_tasks
 from esgs.core.experiments.runs import RunTask
 
@@ -55,12 +56,13 @@ def test_suites_name_their_presets_and_the_plan_skips_methods_without_priors(tmp
     bare = tmp_path / "bare"
     (bare / "sparse").mkdir(parents=True)
     tasks, notes = plan_bench({"tiny": (scene, 0), "bare": (bare, 1)}, tmp_path / "out", iterations=5, priors="gt")
-    assert len([t for t in tasks if t.scene_name == "tiny"]) == len(METHODS)
+    # with gt priors the full-ESGS row on gt is the labelled upper bound: one row, not two
+    assert len([t for t in tasks if t.scene_name == "tiny"]) == len(METHODS) - 1
     assert {t.variant for t in tasks if t.scene_name == "bare"} == {"3DGS", "3DGS + sky model (our defaults)",
-                                                                   "Mip-Splatting", "DropoutGS"}
-    assert len(notes) == 5 and all("bare" in note for note in notes)
-    full = next(t for t in tasks if t.name == "tiny/esgs_full")
-    assert full.config["method"] == "esgs"
+                                                                   "Mip-Splatting", "DropoutGS", "3DGS + GPDFN"}
+    assert len(notes) == 4 and all("bare" in note for note in notes)
+    full = next(t for t in tasks if t.name == f"tiny/{UPPER_BOUND_KEY}")
+    assert full.config["method"] == "esgs" and "upper bound" in full.variant
     assert full.config["method_config"]["priors"] == "gt" and full.config["method_config"]["gpdfn"] is True
 
 
@@ -71,21 +73,118 @@ def test_the_report_names_the_prior_source_and_labels_the_upper_bound():
     ndn = _priors_sentence({"source": "ndn", "weights": ["ndn_mars.pt"]})
     assert "NDN" in ndn and "ndn_mars.pt" in ndn and "upper bound" in ndn
     assert "sparse SfM depth" in _priors_sentence({"source": "sfm"})
+    auto = _priors_sentence({"source": "auto", "sources": ["auto"], "weights": ["ndn_mars.pt"]})
+    assert auto.startswith("Priors: the ESGS rows use the `auto` priors") and "ndn_mars.pt" in auto
+    several = _priors_sentence({"source": "auto", "sources": ["auto", "labels", "ndn"]})
+    assert "'ESGS (auto)', 'ESGS (labels)', 'ESGS (ndn)'" in several and "stereo labels" in several
+    assert "ablation rows (ESGS: depth prior, normal prior, depth + normal) use auto" in several
+
+
+def test_run_bench_makes_each_source_once_auto_last_and_plans_the_rows_on_all(tmp_path, scene, monkeypatch):
+    from esgs.core.experiments import bench
+
+    made, planned = [], {}
+
+    def fake_plan(scenes, out, **kwargs):
+        planned.update(kwargs)
+        return [], []
+
+    monkeypatch.setattr(bench, "ensure_priors", lambda folder, source: made.append((folder, source)))
+    monkeypatch.setattr(bench, "plan_bench", fake_plan)
+    report = run_bench(tmp_path / "bench", "quick", scenes={"tiny": (scene, 0)}, budget_minutes=0, iterations=4,
+                       train=TRAIN, priors=["auto", "labels", "ndn", "gt"])
+    # auto is fused from labels and ndn: made after them; gt comes only from the generator
+    assert made == [(scene, "labels"), (scene, "ndn"), (scene, "auto")]
+    assert planned["priors"] == ("auto", "labels", "ndn", "gt")
+    assert report["priors"]["sources"] == ["auto", "labels", "ndn", "gt"] and report["priors"]["source"] == "auto"
+    assert report["sparse_points"]["kind"] == "exact" and report["suite"]["sparse_points"] == "triangulated"
+    with pytest.raises(ConfigError, match="sparse points"):
+        run_bench(tmp_path / "bench", "quick", scenes={"tiny": (scene, 0)}, sparse_points="surface")
 
 
 def test_prior_rows_use_the_chosen_source_and_only_the_labelled_upper_bound_row_uses_gt(tmp_path, scene):
-    # the tiny scene has gt priors only: with the default (ndn) the ESGS rows have nothing to read
+    # the tiny scene has gt priors only: with the default (auto) the ESGS rows have nothing to read
     tasks, notes = plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=5)
     planned = {t.name.split("/")[1]: t for t in tasks}
-    assert set(planned) == {"3dgs", "3dgs_sky", "mip_splatting", "dropout_gs", UPPER_BOUND_KEY}
+    assert set(planned) == {"3dgs", "3dgs_sky", "mip_splatting", "dropout_gs", "3dgs_gpdfn", UPPER_BOUND_KEY}
     # the published baselines run vanilla; the sky-model row and ESGS keep the defaults
     for key in ("3dgs", "mip_splatting", "dropout_gs"):
         assert planned[key].config["sky"] == "none" and planned[key].config["mask_source"] == "none"
-    assert "sky" not in planned["3dgs_sky"].config and "sky" not in planned[UPPER_BOUND_KEY].config
+    for key in ("3dgs_sky", "3dgs_gpdfn", UPPER_BOUND_KEY):
+        assert "sky" not in planned[key].config and "mask_source" not in planned[key].config
     assert planned[UPPER_BOUND_KEY].config["method_config"]["priors"] == "gt" and "upper bound" in planned[UPPER_BOUND_KEY].variant
-    assert len(notes) == 4 and all("no ndn" in note for note in notes)
-    with pytest.raises(ConfigError, match="labels"):
-        plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=5, priors="labels")
+    assert len(notes) == 4 and all("no auto" in note for note in notes)
+    assert any(note.startswith("ESGS (auto) skipped on tiny") for note in notes)
+    # stereo labels are a source the bench can compare (esgs labels --reconstruct makes them)
+    _, notes = plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=5, priors="labels")
+    assert len(notes) == 4 and all("no labels" in note for note in notes)
+    with pytest.raises(ConfigError, match="unknown prior source 'mesh'"):
+        plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=5, priors=["auto", "mesh"])
+    with pytest.raises(ConfigError, match="no prior source"):
+        plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=5, priors=[])
+
+
+def _with_priors(scene, root, *sources):
+    """A copy of ``scene`` whose gt maps also stand for ``sources`` (the plan only looks for the folders)."""
+    import shutil
+
+    copy = root / "scene"
+    shutil.copytree(scene, copy)
+    for source in sources:
+        shutil.copytree(copy / "priors" / "gt", copy / "priors" / source)
+    return copy
+
+
+def test_the_default_rows_are_esgs_on_auto_priors_and_3dgs_plus_gpdfn(tmp_path, scene):
+    from esgs.core.config import config_to_dict
+    from esgs.core.methods import ESGSConfig, full_esgs
+
+    copy = _with_priors(scene, tmp_path, "auto")
+    tasks, notes = plan_bench({"tiny": (copy, 0)}, tmp_path / "out", iterations=5)
+    planned = {t.name.split("/")[1]: t for t in tasks}
+    assert notes == [] and "3dgs_gpdfn" in {m.key for m in METHODS}
+    assert set(planned) == {"3dgs", "3dgs_sky", "mip_splatting", "dropout_gs", "3dgs_gpdfn", "esgs_depth",
+                            "esgs_normal", "esgs_depth_normal", "esgs_full_auto", UPPER_BOUND_KEY}
+    # full ESGS on auto, the one definition (esgs.core.methods.full_esgs); the ablations read auto too
+    full = planned["esgs_full_auto"]
+    assert full.variant == "ESGS (auto)" and full.config["method"] == "esgs"
+    assert full.config["method_config"] == config_to_dict(full_esgs("auto", scene=copy))
+    assert all(planned[key].config["method_config"]["priors"] == "auto"
+               for key in ("esgs_depth", "esgs_normal", "esgs_depth_normal"))
+    # 3DGS + GPDFN: full ESGS with every prior dropped, GPDFN (K = 3) kept
+    gpdfn = planned["3dgs_gpdfn"]
+    settings = gpdfn.config["method_config"]
+    assert gpdfn.variant == "3DGS + GPDFN" and gpdfn.config["method"] == "esgs"
+    assert settings["priors"] == "" and settings["gpdfn"] is True and settings["fused_k"] == 3
+    assert not (settings["depth"] or settings["normal"] or settings["consistency"]) and settings["sky_weight"] == 0
+    assert ESGSConfig(**settings).enabled and not ESGSConfig(**settings).sky_loss_on
+    # it is the full method's GPDFN: every setting but the prior ones is full ESGS's
+    prior_fields = {"priors", "depth", "normal", "consistency", "sky_weight", "depth_weight"}
+    assert {k: v for k, v in settings.items() if k not in prior_fields} == \
+        {k: v for k, v in full.config["method_config"].items() if k not in prior_fields}
+    # it needs no priors: planned on a scene without any, whatever the source
+    bare = tmp_path / "bare"
+    (bare / "sparse").mkdir(parents=True)
+    tasks, _ = plan_bench({"bare": (bare, 0)}, tmp_path / "out", iterations=5, priors="ndn")
+    assert "bare/3dgs_gpdfn" in {t.name for t in tasks}
+    assert next(t for t in tasks if t.name == "bare/3dgs_gpdfn").config["method_config"] == settings
+
+
+def test_several_prior_sources_give_full_esgs_rows_side_by_side(tmp_path, scene):
+    copy = _with_priors(scene, tmp_path, "auto", "labels", "ndn")
+    tasks, notes = plan_bench({"tiny": (copy, 0)}, tmp_path / "out", iterations=5, priors=["auto", "labels", "ndn"])
+    planned = {t.name.split("/")[1]: t for t in tasks}
+    assert notes == []
+    for source in ("auto", "labels", "ndn"):
+        row = planned[f"esgs_full_{source}"]
+        assert row.variant == f"ESGS ({source})" and row.config["method_config"]["priors"] == source
+        assert row.out == tmp_path / "out" / "runs" / "tiny" / f"esgs_full_{source}"
+    assert "esgs_full_gt" in planned and "upper bound" in planned["esgs_full_gt"].variant
+    # the ablation rows use the first source
+    assert {planned[key].config["method_config"]["priors"] for key in ("esgs_depth", "esgs_normal")} == {"auto"}
+    # gt among the sources: its full-ESGS row is the upper bound's, trained once
+    rows = [method for method, _ in bench_rows(METHODS, ["ndn", "gt", "ndn"])]
+    assert [m.key for m in rows if m.key.startswith("esgs_full")] == ["esgs_full_ndn", UPPER_BOUND_KEY]
 
 
 def test_the_bench_computes_missing_sfm_priors_and_plans_its_rows_on_them(tmp_path, scene):
@@ -100,8 +199,9 @@ def test_the_bench_computes_missing_sfm_priors_and_plans_its_rows_on_them(tmp_pa
     sources = {t.name.split("/")[1]: (t.config["method_config"] or {}).get("priors") for t in tasks}
     # sfm priors are depth only: the normal-prior rows are left out with a note, the depth row uses
     # sfm, and full ESGS (esgs.core.methods.full_esgs) trains depth + consistency + GPDFN on them
-    assert sources["esgs_depth"] == "sfm" and sources[UPPER_BOUND_KEY] == "gt" and sources["esgs_full"] == "sfm"
-    full = next(t for t in tasks if t.name == "tiny/esgs_full").config["method_config"]
+    assert sources["esgs_depth"] == "sfm" and sources[UPPER_BOUND_KEY] == "gt" and sources["esgs_full_sfm"] == "sfm"
+    assert sources["3dgs_gpdfn"] == ""
+    full = next(t for t in tasks if t.name == "tiny/esgs_full_sfm").config["method_config"]
     assert full["depth"] and full["consistency"] and not full["normal"] and full["gpdfn"]
     assert len(notes) == 2 and all("normal" in note and "no sfm" in note for note in notes)
     bare = tmp_path / "bare"
@@ -209,7 +309,7 @@ def test_budget_plan_gives_every_method_the_same_minutes_and_step_cap_in_its_own
     tasks, _ = plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=300, budget_minutes=1.5, priors="gt")
     steps = {t.variant: t for t in tasks if "max_minutes" not in t.config}
     budget = {t.variant: t for t in tasks if "max_minutes" in t.config}
-    assert set(steps) == set(budget) == {m.label for m in METHODS}
+    assert set(steps) == set(budget) == {m.label for m, _ in bench_rows(METHODS, "gt")}
     for label, task in budget.items():
         # the cap defaults to twice the equal-step count; both runs share seed, priors and method settings
         assert task.config["max_minutes"] == 1.5 and task.config["iterations"] == 600
@@ -243,7 +343,8 @@ def test_tiny_bench_runs_two_methods_writes_markdown_and_restarts_without_retrai
         assert run["render_s_per_frame"] > 0 and run["distance_mean"] > 0
     markdown = (tmp_path / "bench" / "benchmarks.md").read_text()
     assert "| DropoutGS |" in markdown and "Machine:" in markdown and "render (ms/frame)" in markdown
-    assert "Priors: the ESGS rows use NDN" in markdown and "(upper bound)" in markdown
+    assert "Priors: the ESGS rows use the `auto` priors" in markdown and "(upper bound)" in markdown
+    assert "SfM points (the initial Gaussians, the sfm priors, the pinning of NDN depth): the generator's" in markdown
     assert json.loads((tmp_path / "bench" / "benchmarks.json").read_text())["iterations"] == 4
     seen.clear()
     with LocalExecutor(1) as executor:
@@ -271,6 +372,25 @@ def test_a_run_that_keeps_failing_is_reported_in_the_markdown(tmp_path, scene):
     assert "FAILED tiny/3dgs after 2 attempts" in (tmp_path / "bench" / "benchmarks.md").read_text()
 
 
+def test_cli_passes_the_prior_sources_and_the_sparse_points_to_the_bench(monkeypatch):
+    import argparse
+
+    from esgs.core.commands import bench as command
+    from esgs.core.experiments import bench
+
+    parser = argparse.ArgumentParser()
+    command.add_arguments(parser)
+    choices = next(a for a in parser._actions if a.dest == "priors").choices
+    assert set(choices) == set(PRIOR_CHOICES)
+    args = parser.parse_args(["--out", "x"])
+    assert args.priors == ["auto"] and args.sparse_points == "triangulated"
+    seen = {}
+    monkeypatch.setattr(bench, "run_bench", lambda out, suite, **kwargs: seen.update(kwargs) or {"failed": []})
+    command.run(parser.parse_args(["--out", "x", "--priors", "auto", "labels", "ndn", "--sparse-points", "exact",
+                                   "--executor", "local"]))
+    assert seen["priors"] == ["auto", "labels", "ndn"] and seen["sparse_points"] == "exact"
+
+
 def test_cli_keeps_the_local_pool_for_quick_and_uses_ray_for_the_big_suites_and_an_address():
     import argparse
 
@@ -286,3 +406,68 @@ def test_cli_keeps_the_local_pool_for_quick_and_uses_ray_for_the_big_suites_and_
     assert args.budget_minutes == 0 and args.budget_step_cap == 40
     with pytest.raises(ConfigError, match="--address"):
         command.run(parser.parse_args(["--out", "x", "--address", "auto", "--executor", "local"]))
+
+
+def test_make_scene_triangulates_the_rendered_images_and_caches_both_folders(tmp_path, monkeypatch):
+    from esgs.core.colmap import read_model
+    from esgs.core.experiments import sfm_scene
+    from esgs.core.experiments.bench import _sparse_points_description, _sparse_points_sentence, make_scene
+    from esgs.core.terrain import scene_job
+
+    from .test_acceptance import _textured_plane_scene
+
+    suite, scenes = SUITES["quick"], tmp_path / "scenes"
+    # the render is cached: make_scene starts from it and never calls Blender
+    rendered, _ = _textured_plane_scene(scenes / suite.scene_folder_name("plane", 0, "exact"))
+    monkeypatch.setattr(scene_job, "render_scene", lambda *a, **k: pytest.fail("the render should be reused"))
+    folder = make_scene("plane", 0, suite, scenes)
+    assert folder == scenes / suite.scene_folder_name("plane", 0) and folder.name.endswith("_sfm")
+    assert folder.name == "plane_s0_10v_160x90_8spp_sfm" and rendered.name == "plane_s0_10v_160x90_8spp_300p"
+    points = read_model(folder).points
+    assert len(points) > 100 and not read_model(rendered).points  # triangulated, where the render had none
+    assert (folder / "priors" / "sfm" / "depth").is_dir()  # the sfm priors come from those points
+    record = json.loads((folder / "scene.json").read_text())["sparse_points"]
+    assert record["points"] == len(points)
+    # both folders are reused: no second triangulation
+    monkeypatch.setattr(sfm_scene, "make_sfm_scene", lambda *a, **k: pytest.fail("the scene should be reused"))
+    assert make_scene("plane", 0, suite, scenes) == folder
+    assert make_scene("plane", 0, suite, scenes, "exact") == rendered
+    with pytest.raises(ConfigError, match="sparse points"):
+        make_scene("plane", 0, suite, scenes, "surface")
+    # the report says where the points came from
+    described = _sparse_points_description({"plane": (folder, 0)})
+    assert described["kind"] == "triangulated" and described["points"] == {"plane": len(points)}
+    assert "triangulated from the rendered images" in _sparse_points_sentence(described, 300)
+    exact = _sparse_points_description({"plane": (rendered, 0)})
+    assert exact["kind"] == "exact" and "exact surface samples (300 per view)" in _sparse_points_sentence(exact, 300)
+    assert _sparse_points_description({"a": (folder, 0), "b": (rendered, 0)})["kind"] == "mixed"
+
+
+def test_a_run_made_on_another_scene_folder_is_stale(tmp_path, scene):
+    from esgs.core.config import config_to_dict
+    from esgs.core.methods import train_config_from_dict
+
+    task = RunTask(name="tiny/3dgs", scene=scene, out=tmp_path / "run", config={**TRAIN, "iterations": 5, "seed": 0})
+    saved = config_to_dict(train_config_from_dict({**task.config, "scene": str(scene), "out": str(task.out)},
+                                                  saved=False))
+    task.out.mkdir()
+
+    def saved_on(folder):
+        (task.out / "config.json").write_text(json.dumps({**saved, "scene": str(folder)}))
+        return task.stale_settings()
+
+    assert saved_on(scene) == [] and saved_on(tmp_path / "moved" / scene.name) == []  # a moved bench keeps its runs
+    assert saved_on(scene.with_name(f"{scene.name}_sfm")) == ["scene"]  # exact points -> triangulated: trained again
+    assert saved_on(tmp_path / "esgs_run_x1" / "scene") == []  # shipped before runs kept the scene's name: unknown
+
+
+def test_a_shipped_run_trains_on_a_scratch_copy_under_the_scene_name(tmp_path, scene):
+    from esgs.core.experiments.executor import _run_shipped, pack_folder
+
+    task = RunTask(name="tiny/3dgs", scene=scene, out=tmp_path / "run", config={})
+    ok, value, _ = _run_shipped(_scene_of, task, pack_folder(scene))
+    assert ok and value[0] == scene.name and value[1]
+
+
+def _scene_of(task):
+    return Path(task.scene).name, (Path(task.scene) / "sparse").is_dir()
