@@ -121,17 +121,50 @@ def prepare_priors(config: TrainConfig, progress: Optional["ProgressCallback"] =
     """Compute, or reuse, the ``auto`` priors ``config`` trains with (the report), else None.
 
     Every caller that trains (CLI, demo, bench, Blender's child job) goes through
-    :func:`make_trainer`, which calls this, so a run on ``--priors auto`` never starts without them.
+    :func:`make_trainer`, which calls this, so a run on ``--priors auto`` never starts without
+    them. Without a ``progress`` callback the events go where the trainer's will (the run's
+    ``events.jsonl`` and ``config.events``), so a job runner following them sees this stage too.
     """
     settings = get_method(config.method).settings_of(config)
-    if not isinstance(settings, ESGSConfig) or settings.priors != "auto" or not settings.enabled:
+    if not isinstance(settings, ESGSConfig) or settings.priors != "auto":
         return None
     if not (settings.depth or settings.normal or settings.sky_loss_on):
         return None
     from ..priors.auto import ensure_auto_priors
-    from ..progress import no_progress
 
-    return ensure_auto_priors(config.scene, progress or no_progress)
+    events = _EventFiles(config) if progress is None else None
+    try:
+        return ensure_auto_priors(config.scene, progress or events)
+    finally:
+        if events is not None:
+            events.close()
+
+
+class _EventFiles:
+    """A progress callback appending to the run's event files, opened at the first event (so a
+    scene that fails its checks leaves no run folder behind)."""
+
+    def __init__(self, config: TrainConfig):
+        from ..formats.run_dir import RunDir
+
+        paths = [RunDir(Path(config.out)).events] if config.out is not None else []
+        if config.events is not None and all(Path(config.events).resolve() != p.resolve() for p in paths):
+            paths.append(Path(config.events))
+        self.paths, self.handles = paths, []
+
+    def __call__(self, event: Any) -> None:
+        from ..progress import JsonLinesProgress
+
+        if not self.handles:
+            for path in self.paths:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                self.handles.append(JsonLinesProgress(path))
+        for handle in self.handles:
+            handle(event)
+
+    def close(self) -> None:
+        for handle in self.handles:
+            handle.close()
 
 
 def make_trainer(config: TrainConfig, progress: Optional["ProgressCallback"] = None,

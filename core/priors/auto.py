@@ -22,8 +22,8 @@ rule documented in docs/priors.md ("The auto source"):
   else ``ndn``), the same order as the trainer's ``--mask-source auto``; no depth there.
 
 What each source contributed, its coverage and its error against the SfM points are written
-to ``priors/auto/auto.json``, with a fingerprint of the images, the model and the sources
-used: :func:`ensure_auto_priors` reuses the folder while the fingerprint holds, re-fuses when a
+to ``priors/auto/auto.json``, with a fingerprint (contents, not times: a scene copied to
+another machine keeps it) of the images, the model and the sources used: :func:`ensure_auto_priors` reuses the folder while the fingerprint holds, re-fuses when a
 source changed, and recomputes the sources when the images or the model changed.
 """
 from __future__ import annotations
@@ -204,30 +204,30 @@ def fuse_view(sfm_depth: np.ndarray, labels: Any = None, ndn: Any = None, sky: O
 
 
 # --- the folder ---------------------------------------------------------------------------
-def _fingerprint_files(paths: list[Path]) -> str:
+def _fingerprint_files(root: Path, paths: list[Path]) -> str:
+    """Of the files' names (relative to ``root``) and contents: copying a scene to another
+    machine keeps it, touching a file without changing it keeps it, new pixels change it."""
     digest = hashlib.sha256()
     for path in paths:
-        try:
-            stat = path.stat()
-            digest.update(f"{path.name}:{stat.st_size}:{stat.st_mtime_ns}\n".encode())
-        except OSError:
-            digest.update(f"{path.name}:missing\n".encode())
+        digest.update(f"{path.relative_to(root).as_posix()}\n".encode())
+        with open(path, "rb") as handle:
+            for block in iter(lambda: handle.read(1 << 20), b""):
+                digest.update(block)
     return digest.hexdigest()[:16]
 
 
 def inputs_fingerprint(scene: Path) -> str:
-    """Of the images and the COLMAP model (names, sizes, modification times): what the
-    computed sources were made from."""
+    """Of the images and the COLMAP model: what the computed sources were made from."""
     folder = SceneDir(scene)
     images = sorted(p for p in folder.images.rglob("*") if p.is_file()) if folder.images.is_dir() else []
     model = sorted(p for p in folder.model.iterdir() if p.is_file()) if folder.model.is_dir() else []
-    return _fingerprint_files(images + model)
+    return _fingerprint_files(folder.root, images + model)
 
 
 def source_fingerprint(scene: Path, source: str) -> str:
-    """Of one source's folder (every map's size and time): changes when it is recomputed."""
+    """Of one source's folder (every map): changes when it is recomputed with other results."""
     root = SceneDir(scene).prior(source)
-    return _fingerprint_files(sorted(p for p in root.rglob("*") if p.is_file())) if root.is_dir() else "missing"
+    return _fingerprint_files(root, sorted(p for p in root.rglob("*") if p.is_file())) if root.is_dir() else "missing"
 
 
 def read_report(scene: Path) -> Optional[dict]:
@@ -253,13 +253,15 @@ def _compute_source(scene: Path, source: str, progress: ProgressCallback) -> Opt
 
             run_label_job(LabelJob(scene=scene, reconstruct=True), progress)
         elif source == PriorSource.NDN:
-            from .job import PriorsSettings, compute_priors
+            from ..ndn.infer import write_ndn_priors
+            from ..ndn.shipped import resolve_default_weights
 
-            compute_priors(PriorsSettings(scene=scene, method="ndn"), progress)
+            write_ndn_priors(scene, resolve_default_weights(None), progress=progress)
         else:
-            from .job import PriorsSettings, compute_priors
+            from ..colmap import read_model
+            from .sfm import write_sfm_priors
 
-            compute_priors(PriorsSettings(scene=scene, method="sfm"), progress)
+            write_sfm_priors(scene, read_model(scene), progress=progress)
     except ESGSError as error:
         return f"{source} priors failed: {error.message}"
     return None
@@ -287,7 +289,8 @@ def ensure_auto_priors(scene: str | Path, progress: ProgressCallback = no_progre
         raise DatasetError("not a scene folder (no sparse/0)", path=scene, hint="esgs priors SCENE --method auto")
     inputs = inputs_fingerprint(scene)
     previous = read_report(scene)
-    stale_inputs = previous is not None and previous.get("inputs") != inputs
+    # a report without the fingerprint (or none) says nothing about the sources' age
+    stale_inputs = previous is not None and previous.get("inputs") not in (None, inputs)
     wanted = [PriorSource.SFM] + [s for s, on in ((PriorSource.LABELS, settings.labels),
                                                   (PriorSource.NDN, settings.ndn)) if on]
     skipped: dict[str, str] = {}

@@ -197,3 +197,31 @@ def test_confidence_scales_each_pixel_of_both_losses_without_renormalising():
     full = normal_loss(normals, target, mask)
     assert float(normal_loss(normals, target, mask, confidence=torch.full((8, 8), 0.25))) == pytest.approx(
         0.25 * float(full), rel=1e-6)
+
+
+# --- before training ----------------------------------------------------------------------
+def test_training_on_auto_makes_the_priors_first_and_its_events_reach_the_run_folder(scene, tmp_path, monkeypatch):
+    from esgs.core.formats.run_dir import RunDir
+    from esgs.core.methods import esgs_config, prepare_priors
+    from esgs.core.progress import ProgressEvent
+    from esgs.core.train.config import TrainConfig
+
+    calls = []
+
+    def fake(scene_dir, progress):
+        calls.append(scene_dir)
+        progress(ProgressEvent(0, 0, "auto priors", kind="message", message="auto priors: computing labels"))
+        return {"summary": {}}
+
+    monkeypatch.setattr(auto, "ensure_auto_priors", fake)
+    out = tmp_path / "run"
+    assert prepare_priors(esgs_config(scene, out)) == {"summary": {}} and calls == [scene]
+    lines = [json.loads(line) for line in RunDir(out).events.read_text().splitlines()]
+    assert lines[-1]["message"] == "auto priors: computing labels"
+    # plain 3DGS and ESGS on another source make nothing; a given callback gets the events instead
+    assert prepare_priors(TrainConfig(scene=scene, out=tmp_path / "plain")) is None
+    assert prepare_priors(esgs_config(scene, tmp_path / "ndn", priors="ndn")) is None
+    seen = []
+    prepare_priors(esgs_config(scene, tmp_path / "given"), seen.append)
+    assert [e.message for e in seen] == ["auto priors: computing labels"] and not (tmp_path / "given").exists()
+    assert len(calls) == 2
