@@ -160,6 +160,10 @@ def _compact(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, n
     return vertices[used], remap[triangles]
 
 
+#: Cells compared with each cell in the spike test (the nearest, within 2.5 sample spacings).
+NEIGHBOURS = 25
+
+
 def mesh_from_points(points: np.ndarray, normal: np.ndarray, cell: float, max_edge_cells: float,
                      spike_threshold: float, footprints: np.ndarray | None = None) -> HeightfieldMesh:
     """2.5D mesh of ``points`` [N, 3] over the plane with unit ``normal`` [3].
@@ -195,9 +199,15 @@ def mesh_from_points(points: np.ndarray, normal: np.ndarray, cell: float, max_ed
     centres /= counts[:, None]
     cell_spacing = np.minimum.reduceat(spacing[order], starts)
     # spikes: compare each cell with the median height of the cells around it
+    # (at most NEIGHBOURS cells within the radius: a ball query's lists grow without bound where
+    # far-range cells of rover views get radii of tens of metres, and ran out of memory there)
     tree = cKDTree(centres)
-    neighbourhoods = tree.query_ball_point(centres, r=2.5 * np.maximum(cell_spacing, cell))
-    local = np.array([np.median(medians[group]) for group in neighbourhoods])
+    k = min(NEIGHBOURS, len(centres))
+    distances, neighbours = tree.query(centres, k=k)
+    distances, neighbours = distances.reshape(len(centres), k), neighbours.reshape(len(centres), k)
+    radius = 2.5 * np.maximum(cell_spacing, cell)
+    near = distances <= radius[:, None]
+    local = np.nanmedian(np.where(near, medians[neighbours], np.nan), axis=1)
     spike = np.abs(medians - local) > spike_threshold * np.maximum(cell_spacing, cell)
     keep = ~spike
     u, v, h, vertex_spacing = centres[keep, 0], centres[keep, 1], medians[keep], cell_spacing[keep]

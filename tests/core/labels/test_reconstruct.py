@@ -126,3 +126,23 @@ def test_reconstruct_refuses_scenes_it_cannot_do(tmp_path):
     with pytest.raises(ConfigError, match="best_of"):
         ReconstructOptions(stereo=StereoOptions(neighbours=2, best_of=3)).validate()
     assert not (tmp_path / "mesh").exists()
+
+
+def test_far_range_cells_with_huge_footprints_stay_bounded_and_spikes_still_go():
+    """Rover views' far range: footprints of tens of cells per sample. The spike test compares
+    each cell with a bounded set of neighbours (it used a ball query whose lists grew with the
+    radius squared and ran out of memory on a 30-view aerial + rover scene)."""
+    import tracemalloc
+
+    rng = np.random.default_rng(1)
+    x, y = rng.uniform(0, 20, 30000), rng.uniform(0, 20, 30000)
+    points = np.stack([x, y, 0.01 * x], 1)
+    spike = np.array([[10.02, 10.02, 50.0]])  # above 3 x the 5 m spacing
+    points = np.concatenate([points, spike])
+    footprints = np.full(len(points), 5.0)  # 100 cells of 0.05: every cell's radius covers the whole patch
+    tracemalloc.start()
+    vertices, _, stats, _, _ = mesh_from_points(points, np.array([0, 0, 1.0]), 0.05, 4.0, 3.0, footprints)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 200 * 2**20  # a ball query here holds ~30k x 30k neighbour indices (several GB)
+    assert stats["spikes_removed"] >= 1 and vertices[:, 2].max() < 0.5
