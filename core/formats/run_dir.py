@@ -27,6 +27,25 @@ class RunDir:
         return self.root / "point_cloud.ply"
 
     @property
+    def point_cloud_iterations(self) -> Path:
+        """``point_cloud/``: the 3DGS reference code's layout (formats/reference_3dgs.py)."""
+        return self.root / "point_cloud"
+
+    def point_cloud_iteration(self, step: int) -> Path:
+        """``point_cloud/iteration_<step>/point_cloud.ply``: the final model where 3DGS tools look for it."""
+        return self.point_cloud_iterations / f"iteration_{int(step)}" / "point_cloud.ply"
+
+    @property
+    def cameras_json(self) -> Path:
+        """``cameras.json``: the 3DGS reference code's camera list (formats/reference_3dgs.py)."""
+        return self.root / "cameras.json"
+
+    @property
+    def cfg_args(self) -> Path:
+        """``cfg_args``: the 3DGS reference code's model parameters (SIBR's viewer reads it)."""
+        return self.root / "cfg_args"
+
+    @property
     def metrics(self) -> Path:
         return self.root / "metrics.json"
 

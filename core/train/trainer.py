@@ -566,12 +566,17 @@ class Trainer:
 
     def _finish(self, status: str) -> TrainResult:
         from ..formats.ply import write_gaussians_ply
+        from ..formats.reference_3dgs import cfg_args_text, write_reference_layout
 
         config = self.config
         model = self.gaussians
         for hook in self.hooks:
             model = hook.export_model(self, model) or model
         write_gaussians_ply(self.run_dir.point_cloud, model.to_ply())
+        write_reference_layout(self.run_dir, self.step, [*self.data.train, *self.data.test], cfg_args=cfg_args_text(
+            sh_degree=config.sh_degree, source_path=self.scene, model_path=self.run_dir.root, images=config.images_dir,
+            resolution=config.width if config.width > 0 else config.resolution,
+            white_background=tuple(config.background) == (1.0, 1.0, 1.0), eval=config.test_every > 0))
         if self.sky is not None:
             save_sky(self.run_dir.sky, self.sky)
         metrics = None
