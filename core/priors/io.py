@@ -171,11 +171,16 @@ def load_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, size
         elif frame != CAMERA_FRAME:
             raise DatasetError(f"unknown normal frame {frame!r} (expected {CAMERA_FRAME} or world)", path=normal_path)
         normal = np.nan_to_num(normal.astype(np.float32))
+    if depth is None and normal is None and not mask_path.exists():
+        raise DatasetError(f"no depth, normal or mask prior for image {image_name!r}", path=root,
+                           hint=f"expected {depth_path.name} under depth/ or normal/, or {mask_path.name} under mask/")
     if depth is None and normal is None:
-        raise DatasetError(f"no depth or normal prior for image {image_name!r}", path=root,
-                           hint=f"expected {depth_path.name} under depth/ or normal/")
-    reference = depth if depth is not None else normal
-    height, width = reference.shape[:2]
+        # masks alone (a folder of sky masks): their size is the maps' size
+        mask_image = read_image(mask_path)
+        height, width = mask_image.shape[:2]
+    else:
+        reference = depth if depth is not None else normal
+        height, width = reference.shape[:2]
     if depth is not None and normal is not None and normal.shape[:2] != depth.shape:
         raise DatasetError(f"normal map {normal.shape[1]}x{normal.shape[0]} does not match depth map "
                            f"{width}x{height}", path=normal_path)

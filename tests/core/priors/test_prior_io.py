@@ -71,7 +71,7 @@ def test_clear_errors(tmp_path):
     with pytest.raises(DatasetError, match="mask 12x4 does not match") as info:
         load_prior_maps(tmp_path, "gt", "x.png")
     assert "x.png" in str(info.value)
-    with pytest.raises(DatasetError, match="no depth or normal prior for image 'y.png'"):
+    with pytest.raises(DatasetError, match="no depth, normal or mask prior for image 'y.png'"):
         load_prior_maps(tmp_path, "gt", "y.png")
     write_prior_maps(tmp_path, "gt", "z.png", depth=depth)
     with pytest.raises(DatasetError, match="different aspect ratio"):
@@ -138,3 +138,14 @@ def test_files_without_mask_kind_follow_their_source(tmp_path):
     with pytest.raises(DatasetError, match="mask_kind") as error:
         load_prior_maps(tmp_path, "gt", "b.png")
     assert "b.exr" in str(error.value)
+
+
+def test_a_folder_of_masks_alone_reads_as_sky_masks(tmp_path):
+    depth, normal, mask = _maps()
+    write_prior_maps(tmp_path, "gt", "x.png", mask=mask)
+    maps = load_prior_maps(tmp_path, "gt", "x.png")
+    assert maps.depth is None and maps.normal is None
+    np.testing.assert_array_equal(maps.mask, mask)
+    np.testing.assert_array_equal(maps.sky, ~mask)  # gt masks' zeros are sky
+    half = load_prior_maps(tmp_path, "gt", "x.png", size=(mask.shape[1] // 2, mask.shape[0] // 2))
+    assert half.mask.shape == (mask.shape[0] // 2, mask.shape[1] // 2)
