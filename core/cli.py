@@ -14,7 +14,14 @@ import sys
 from typing import Sequence
 
 from . import commands as _commands_package
-from .errors import ESGSError
+from .errors import ConfigError, ESGSError
+
+#: Exit statuses of ``esgs`` (README, "Command line"). Argparse's own usage errors exit with 2
+#: too; ``esgs train`` stopped on request (SIGTERM, stop file) exits with 143 and can resume.
+EXIT_OK = 0
+EXIT_FAILURE = 1  # a runtime failure: bad or missing data, a failed run (any other ESGSError)
+EXIT_USAGE = 2  # bad usage: argparse errors and ConfigError (an option value out of range, unknown, inconsistent)
+EXIT_INTERRUPTED = 130  # Ctrl-C
 
 
 def _command_modules() -> dict[str, object]:
@@ -54,16 +61,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
-        parser.print_help()
-        return 0
+        parser.print_help()  # a bare ``esgs`` asks what there is: help on stdout, success
+        return EXIT_OK
     try:
-        return int(args._run(args) or 0)
+        return int(args._run(args) or EXIT_OK)
+    except ConfigError as err:
+        print(f"esgs {args.command}: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
     except ESGSError as err:
         print(f"esgs {args.command}: error: {err}", file=sys.stderr)
-        return 2
+        return EXIT_FAILURE
     except KeyboardInterrupt:
         print(f"esgs {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

@@ -175,7 +175,7 @@ def test_cli_reports_and_writes_json(tmp_path, capsys):
     assert report["gaussians_to_mesh"]["mean"] == pytest.approx(0.02, abs=1e-6)
     assert report["n_gaussians_filtered"] == 40 and report["precision"] == 1.0
     assert json.loads(capsys.readouterr().out) == report
-    assert main(["compare", str(mesh_path), str(mesh_path)]) == 2  # a mesh is not a Gaussian PLY
+    assert main(["compare", str(mesh_path), str(mesh_path)]) == 1  # a mesh is not a Gaussian PLY
 
 
 def test_cli_restricts_recall_to_what_the_training_cameras_saw(tmp_path, capsys):

@@ -83,9 +83,9 @@ def test_ply_export_is_the_3dgs_ply(run, tmp_path, monkeypatch):
 
 def test_export_errors(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
-    assert main(["export", str(tmp_path / "empty"), "--format", "splat"]) != 0
+    assert main(["export", str(tmp_path / "empty"), "--format", "splat"]) == 1  # missing data
     assert "no point_cloud.ply" in capsys.readouterr().err
     ply = tmp_path / "g.ply"
     write_gaussians_ply(ply, _gaussians(count=3))
-    assert main(["export", str(ply), "--format", "ply", "--out", str(ply)]) != 0
+    assert main(["export", str(ply), "--format", "ply", "--out", str(ply)]) == 2  # a bad option value
     assert "--out is the file being exported" in capsys.readouterr().err

@@ -171,5 +171,5 @@ def test_cli_check_reports_missing_weights(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("ESGS_LPIPS_OFFLINE", "1")
     assert main(["lpips-weights", "--check"]) == 1
     assert "not available" in capsys.readouterr().out
-    assert main(["lpips-weights"]) == 2  # offline and nothing cached: a clear error, no traceback
+    assert main(["lpips-weights"]) == 1  # offline and nothing cached: a clear error, no traceback
     assert "ESGS_LPIPS_OFFLINE" in capsys.readouterr().err

@@ -25,6 +25,6 @@ def test_from_panorama_writes_a_scene(panorama_file, tmp_path, capsys):
 
 def test_from_images_error_is_reported(tmp_path, capsys):
     write_png(tmp_path / "in" / "only.png", np.zeros((16, 16), np.uint8))
-    assert main(["dataset", "from-images", str(tmp_path / "in"), "--out", str(tmp_path / "scene")]) == 2
+    assert main(["dataset", "from-images", str(tmp_path / "in"), "--out", str(tmp_path / "scene")]) == 1
     assert "needs at least 2 images, found 1" in capsys.readouterr().err
     assert not (tmp_path / "scene").exists()

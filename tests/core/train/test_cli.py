@@ -35,7 +35,7 @@ def test_train_eval_render(tiny_scene, tmp_path, capsys):
 
 
 def test_errors_are_reported_without_traceback(tiny_scene, tmp_path, capsys):
-    assert main(["train", str(tmp_path / "missing"), "--out", str(tmp_path / "run"), "--backend", "reference"]) == 2
+    assert main(["train", str(tmp_path / "missing"), "--out", str(tmp_path / "run"), "--backend", "reference"]) == 1
     assert "scene folder not found" in capsys.readouterr().err
-    assert main(["render", str(tmp_path / "run2"), "--all"]) == 2
+    assert main(["render", str(tmp_path / "run2"), "--all"]) == 1
     assert "not a run folder" in capsys.readouterr().err
