@@ -21,13 +21,6 @@ def test_manifest_passes_blenders_validator():
     assert manifest["license"] == ["SPDX:GPL-3.0-or-later"]
 
 
-def test_package_version_is_the_manifests():
-    """The panel's title shows the package's ``__version__``; Blender lists the manifest's."""
-    import esgs
-
-    assert esgs.__version__ == packaging.read_manifest()["version"]
-
-
 def test_manifest_wheels_are_cp311_or_pure_and_never_numpy():
     wheels = packaging.manifest_wheels(packaging.read_manifest())
     assert wheels, "the add-on side needs bundled wheels"
