@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import ast
+import os
 import subprocess
 import sys
 import textwrap
@@ -20,6 +21,9 @@ SCRIPT = textwrap.dedent(
             return None
 
     sys.meta_path.insert(0, Block())
+    import os
+    import cv2  # its own loader adds to LD_LIBRARY_PATH: a third party's doing, before we look
+    environment = dict(os.environ)
     import esgs, esgs.core
     failures = []
     count = 0
@@ -36,13 +40,48 @@ SCRIPT = textwrap.dedent(
                 raise
     assert not failures, failures
     assert not any(m == "bpy" or m.startswith("bpy.") for m in sys.modules)
+    changed = sorted(set(environment.items()) ^ set(os.environ.items()))
+    assert not changed, f"importing the engine changed the environment: {changed}"
     print("imported", count)
     """
 )
 
 
+def _environment_without_thread_settings() -> dict[str, str]:
+    """This process's environment less what tests/conftest.py and a CLI would set, so a module
+    that sets one of them on import is caught."""
+    return {k: v for k, v in os.environ.items() if k not in _THREAD_VARIABLES}
+
+
+_THREAD_VARIABLES = ("OMP_WAIT_POLICY", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS", "ESGS_THREADS")
+
+IMPORT_ONLY = textwrap.dedent(
+    """
+    import os, sys
+    before = dict(os.environ)
+    import torch
+    threads = torch.get_num_threads()
+    import esgs, esgs.core, esgs.core.cli, esgs.core.render, esgs.core.train, esgs.core.train.trainer
+    changed = sorted(set(before.items()) ^ set(os.environ.items()))
+    assert not changed, f"importing the engine changed the environment: {changed}"
+    assert torch.get_num_threads() == threads, "importing the engine changed torch's thread count"
+    print("unchanged")
+    """
+)
+
+
+def test_importing_the_engine_changes_nothing_global():
+    """No environment variable (OMP_WAIT_POLICY included) and no thread count changes on import:
+    the process may be Blender's. The CLI's main() and the runtime's children set them."""
+    result = subprocess.run([sys.executable, "-c", IMPORT_ONLY], capture_output=True, text=True, timeout=600,
+                            env=_environment_without_thread_settings())
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.split()[-1] == "unchanged"
+
+
 def test_every_core_module_imports_without_bpy():
-    result = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True, timeout=600)
+    result = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True, timeout=600,
+                            env=_environment_without_thread_settings())
     assert result.returncode == 0, result.stdout + result.stderr
     count = int(result.stdout.split()[-1])
     assert count >= 5
