@@ -113,8 +113,9 @@ def warm_up() -> float:
     return compile_gsplat()
 
 
-def run_plan(plan_path: Path, out: Path, workers: int, deadline_s: float) -> int:
-    """Run every entry of the plan, ``workers`` at a time, until done or ``deadline_s``."""
+def run_plan(plan_path: Path, out: Path, workers: int, deadline_s: float, grace_s: float = 150.0) -> int:
+    """Run every entry of the plan, ``workers`` at a time; none starts after ``deadline_s``, and
+    those still running ``grace_s`` later are stopped (their rows are lost: leave enough)."""
     plan = json.loads(plan_path.read_text())
     work = out / "work"
     work.mkdir(parents=True, exist_ok=True)
@@ -142,7 +143,7 @@ def run_plan(plan_path: Path, out: Path, workers: int, deadline_s: float) -> int
             queue.clear()
         for index, (process, entry) in list(running.items()):
             if process.poll() is None:
-                if time.time() - started > deadline_s * 1.15:
+                if time.time() - started > deadline_s + grace_s:
                     process.kill()
                 continue
             del running[index]
@@ -231,7 +232,8 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("plan", type=Path)
     run.add_argument("--out", type=Path, required=True)
     run.add_argument("--workers", type=int, default=8)
-    run.add_argument("--deadline-s", type=float, default=480)
+    run.add_argument("--deadline-s", type=float, default=480, help="start no run after this many seconds")
+    run.add_argument("--grace-s", type=float, default=150, help="then stop what still runs after this many more")
     combine = sub.add_parser("merge")
     combine.add_argument("folders", type=Path, nargs="+")
     combine.add_argument("--scene-root", action="append", default=[], help="PREFIX=LOCAL_FOLDER (repeat)")
@@ -240,7 +242,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "one":
         return run_one(json.loads(args.entry.read_text()), args.run_dir, args.row)
     if args.command == "run":
-        return run_plan(args.plan, args.out, args.workers, args.deadline_s)
+        return run_plan(args.plan, args.out, args.workers, args.deadline_s, args.grace_s)
     return merge(args.folders, dict(item.split("=", 1) for item in args.scene_root), args.json)
 
 
