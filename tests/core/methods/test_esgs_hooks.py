@@ -317,3 +317,33 @@ def test_gpdfn_starts_from_the_run_seed_whatever_ran_before(scene, tmp_path):
     other, _ = initial_weights(tmp_path / "c", 6)
     assert all(torch.equal(a, b) for a, b in zip(first, again))
     assert not all(torch.equal(a, b) for a, b in zip(first, other))
+
+
+def test_a_confidence_map_scales_the_prior_losses_the_trainer_adds(scene, tmp_path):
+    """The same maps with confidence 0.5 everywhere: both prior terms of the first step are half."""
+    import shutil
+
+    from esgs.core.formats.scene_dir import SceneDir
+    from esgs.core.priors import load_prior_maps
+
+    copy = tmp_path / "scene"
+    shutil.copytree(scene, copy)
+    model = read_model(copy / "sparse" / "0")
+    for image in model.images.values():
+        maps = load_prior_maps(copy, "gt", image.name)
+        write_prior_maps(copy, "halfsure", image.name, depth=maps.depth, normal=maps.normal, mask=maps.mask,
+                         confidence=np.full(maps.mask.shape, 0.5, np.float32))
+    assert SceneDir(copy).confidence_map("halfsure", image.name).is_file()
+    values = {}
+    for source in ("gt", "halfsure"):
+        esgs = ESGSConfig(priors=source, depth=True, normal=True, prior_start_step=0, sky_weight=0.0)
+        trainer = _trainer(copy, tmp_path / source, esgs)
+        confidence = trainer.hooks[0].priors[trainer.data.train[0].name].confidence
+        assert confidence is None if source == "gt" else bool((confidence == 0.5).all())
+        recorder = _Recorder()
+        trainer.hooks.append(recorder)
+        trainer.train_step(1)
+        values[source] = recorder.values[0]
+    for term in ("depth_prior", "normal_prior"):
+        assert values["gt"][term] > 0
+        assert values["halfsure"][term] == pytest.approx(0.5 * values["gt"][term], rel=1e-5)
