@@ -110,7 +110,7 @@ def test_priors_command_writes_sfm_maps(tmp_path):
     assert sorted(p.name for p in (tmp_path / "priors/sfm/depth").iterdir()) == ["00.exr", "01.exr", "02.exr", "03.exr"]
     missing = subprocess.run([sys.executable, "-m", "esgs.core", "priors", str(tmp_path / "nope")],
                              capture_output=True, text=True)
-    assert missing.returncode == 2 and "Traceback" not in missing.stderr
+    assert missing.returncode == 1 and "Traceback" not in missing.stderr  # bad data: 1 (README, exit status)
 
 
 def test_mask_kind_says_whether_unmasked_pixels_are_sky(tmp_path):
