@@ -192,11 +192,16 @@ def priors_made_first(scene_dir: str | Path, config: Optional[TrainConfig]) -> O
 
     settings = getattr(config, "method_config", None)
     source = getattr(settings, "priors", "")
-    # the parts that read prior maps (as esgs.core.methods.prepare_priors decides)
-    uses_priors = any(getattr(settings, name, False) for name in ("depth", "normal", "sky_loss_on"))
-    if source == PriorSource.AUTO and uses_priors and not SceneDir(Path(scene_dir)).has_prior_maps(source, "depth"):
+    if source == PriorSource.AUTO and reads_prior_maps(settings) \
+            and not SceneDir(Path(scene_dir)).has_prior_maps(source, "depth"):
         return str(source)
     return None
+
+
+def reads_prior_maps(method_config: Any) -> bool:
+    """Whether a method's settings switch on a part that reads prior maps (as
+    :func:`esgs.core.methods.prepare_priors` decides: depth, normal or the sky loss)."""
+    return any(getattr(method_config, name, False) for name in ("depth", "normal", "sky_loss_on"))
 
 
 def new_run_dir(scene_dir: Path) -> Path:

@@ -6,7 +6,7 @@ import bpy
 from ..core.apps.jobs import format_duration
 from ..core.formats.scene_dir import SceneDir
 from ..core.methods import get_method
-from ..esgs_addon import interrupted_jobs, settings_training, training_job
+from ..esgs_addon import interrupted_jobs, settings_training, training_estimate, training_job
 from ..esgs_addon.properties import property_values
 from ._section import ESGSSection
 
@@ -38,6 +38,9 @@ class ESGS_PT_training(ESGSSection, bpy.types.Panel):
         column.prop(settings, "run_dir")
         column.prop(settings, "method")
         column.prop(settings, "iterations")
+        if not running:  # a running job shows its ETA instead
+            for index, line in enumerate(training_estimate.estimate_lines(settings, context, scene_dir)):
+                column.label(text=line, icon="TIME" if index == 0 else "BLANK1")
         column.prop(settings, "width")
         method = settings_training.chosen_method(settings)
         if method == settings_training.ESGS_METHOD:

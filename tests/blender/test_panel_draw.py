@@ -127,6 +127,44 @@ def test_a_finished_run_without_held_out_views_says_so(tmp_path):
     assert not any(text.startswith("Held-out") for text in training)
 
 
+def test_the_training_time_estimate_below_iterations(tmp_path, monkeypatch):
+    """Below Iterations: the estimate of the run (the default figures, then this machine's
+    finished run), ESGS's auto priors when they are still to be made, read from files once."""
+    from esgs.core.apps import estimate
+    from esgs.esgs_addon import preferences, training_estimate
+    from tests.core.test_estimate import write_run, write_scene
+
+    training_estimate.clear_cache()
+    monkeypatch.setattr(preferences, "trainer_threads", lambda context=None: 2)
+    reads = []
+    scene_image_size = estimate.scene_image_size
+    monkeypatch.setattr(estimate, "scene_image_size", lambda folder: reads.append(folder) or scene_image_size(folder))
+    scene = write_scene(tmp_path / "scene", views=12, width=640, height=360)
+    settings = bpy.context.scene.esgs.training
+    settings.scene_dir, settings.iterations, settings.width = str(scene), 2000, 320
+
+    def estimate_labels() -> list[str]:
+        calls = draw_panel(bpy.types.ESGS_PT_training)[1]
+        after = [call.text for call in calls[[call.text for call in calls].index("iterations") + 1:]]
+        return after[:after.index("width")]  # what is drawn between Iterations and Image width
+
+    # 3DGS at 320x180: 15 s + 2000 x 0.12 s + 2 held-out views x 0.5 s = 256 s
+    assert estimate_labels() == ["≈ 4 min (typical 2-core laptop)"]
+    assert estimate_labels() == ["≈ 4 min (typical 2-core laptop)"] and len(reads) == 1  # no file read at a redraw
+    # ESGS on auto priors not made yet: 15 + 2000 x 0.20 + 1 = 416 s; the priors of 12 views of
+    # 640x360: 10 s + 12 x (1.7 + 4.0 x 4) s = 222 s
+    settings.method = "esgs"
+    assert settings.priors == "auto"
+    assert estimate_labels() == ["≈ 7 min (typical 2-core laptop)", "+ auto priors first, about 4 min"]
+    # a run of this scene finished here at 0.1 s a step at 320x180 (ESGS): 15 + 200 + 1 s
+    run = write_run(tmp_path / "esgs_runs" / "run", step_s=0.1, size=(320, 180), method="esgs", scene=str(scene))
+    settings.status, settings.last_run_dir = "finished", str(run)
+    assert estimate_labels()[0] == "≈ 4 min (measured here)"
+    # a running job shows its ETA instead
+    training_job.copy_state(settings, jobs.JobState(status="running", step=3, total=10, eta_s=9.0))
+    assert estimate_labels() == []
+
+
 def test_the_gaussians_panel_with_gaussians_selected(tmp_path):
     from esgs.core.formats.ply import GaussianPly, write_gaussians_ply
 
