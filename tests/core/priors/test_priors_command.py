@@ -40,9 +40,9 @@ def test_events_file_follows_the_sfm_priors_and_ends_with_done(scene, tmp_path, 
     assert maps.mask.sum() == np.count_nonzero(maps.depth) > 0
 
 
-def test_an_error_is_an_error_event_and_exit_code_2(tmp_path, capsys):
+def test_an_error_is_an_error_event_and_exit_code_1(tmp_path, capsys):
     events = tmp_path / "events.jsonl"
-    assert main(["priors", str(tmp_path / "missing"), "--method", "sfm", "--events", str(events)]) == 2
+    assert main(["priors", str(tmp_path / "missing"), "--method", "sfm", "--events", str(events)]) == 1  # bad data
     (line,) = _events(events)
     assert line["kind"] == "error" and "COLMAP model folder does not exist" in line["message"]
     assert not (tmp_path / "missing").exists()
