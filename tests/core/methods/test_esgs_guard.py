@@ -4,7 +4,9 @@ A tiny synthetic scene (rendered in Blender), SfM points triangulated from its o
 the known poses (what a user has), the ``auto`` priors computed from those images (stereo
 labels, NDN, SfM; never the ground truth), then ``esgs train`` and ``esgs train --esgs`` with
 nothing but defaults and a fixed seed. Without this test nothing in the suite notices ESGS
-falling behind 3DGS on geometry (issue #23).
+falling behind 3DGS on geometry (issue #23). Measured when written (2026-11-26, idle 2-core
+machine, about a minute): ESGS 0.141 m against 3DGS 0.201 m, a ratio of 0.70 against the 0.9
+the test allows.
 """
 from __future__ import annotations
 
