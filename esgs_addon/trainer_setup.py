@@ -60,7 +60,7 @@ TORCH_INDEX = {
 REQUIREMENT_MODULES = {
     "torch": "torch", "numpy": "numpy", "numba": "numba", "scipy": "scipy",
     "opencv-contrib-python-headless": "cv2", "openexr": "OpenEXR", "trimesh": "trimesh",
-    "rtree": "rtree", "pycolmap": "pycolmap", "tqdm": "tqdm",
+    "pycolmap": "pycolmap", "tqdm": "tqdm",
 }
 
 #: pip output that means the package index (or a proxy in front of it) was not reached

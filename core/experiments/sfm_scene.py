@@ -101,9 +101,13 @@ def make_sfm_scene(scene: str | Path, out: str | Path, *, overwrite: bool = Fals
 
 
 def point_to_mesh_distances(points: np.ndarray, mesh_path: str | Path) -> np.ndarray:
-    """[N] unsigned distances of ``points`` [N, 3] to the surface of the mesh at ``mesh_path``."""
-    import trimesh
+    """[N] unsigned distances of ``points`` [N, 3] to the surface of the mesh at ``mesh_path``.
 
-    mesh = trimesh.load(str(mesh_path), force="mesh", process=False)
-    _, distances, _ = trimesh.proximity.closest_point(mesh, np.asarray(points, np.float64))
-    return np.asarray(distances)
+    The same exact kernel as ``esgs compare`` (:func:`..metrics.geometry.point_to_mesh_distances`),
+    so the acceptance study and the comparison measure with one piece of code.
+    """
+    from ..metrics.geometry import load_mesh
+    from ..metrics.geometry import point_to_mesh_distances as exact_distances
+
+    vertices, faces = load_mesh(mesh_path)
+    return exact_distances(np.asarray(points, np.float64), vertices, faces)
