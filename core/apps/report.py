@@ -1,8 +1,9 @@
 """The demo's report: one Markdown file with pictures beside it (``OUT/report.md``).
 
-Pictures are composed with OpenCV (no plotting library needed): held-out renders beside the
-ground truth with magnified crops, one view during training, priors against rendered depth
-and normals, loss and PSNR curves, and the Blender heat map.
+Pictures are composed with OpenCV: held-out renders beside the ground truth with magnified
+crops, one view during training, priors against rendered depth and normals; the loss and PSNR
+curves and the Blender heat map's colour bar are drawn with matplotlib when it is installed
+(:mod:`.plots`, an optional dependency; plain OpenCV drawings otherwise).
 """
 from __future__ import annotations
 
@@ -484,21 +485,23 @@ def write_report(config: Any, scene: Path, runs: dict[str, dict], distances: dic
     except Exception as error:  # noqa: BLE001 - a figure must not sink the whole report
         lines += ["## Geometry", "", f"(figure not made: {error})", ""]
 
-    curve_images = []
-    for key, log_y in (("loss", True), ("psnr", False)):
-        series = {name: read_curves(RunDir(config.out / "runs" / folder).events)[key]
-                  for name, folder in (("ESGS", "esgs"), ("3DGS", "3dgs"))
-                  if (config.out / "runs" / folder).is_dir()}
-        curve_images.append(plot_curves(series, f"training {key} (smoothed)", log_y=log_y))
-    write_png(out / "curves.png", _hstack(curve_images))
-    lines += ["## Training curves", "", "![curves](report/curves.png)", ""]
+    from .plots import curves_image, write_heat_map
+
+    read = {name: read_curves(RunDir(config.out / "runs" / folder).events)
+            for name, folder in (("ESGS", "esgs"), ("3DGS", "3dgs")) if (config.out / "runs" / folder).is_dir()}
+    write_png(out / "curves.png", curves_image({key: {name: curves[key] for name, curves in read.items()}
+                                                for key in ("loss", "psnr")}))
+    lines += ["## Training curves", "", "Training loss (log scale) and PSNR (dB) on the training views against the "
+              "step, per method (moving averages, as the progress line prints them).", "",
+              "![curves](report/curves.png)", ""]
 
     if blender and Path(blender.get("heat_map", "")).is_file():
         heat = out / "heat_map.png"
-        write_png(heat, read_image(blender["heat_map"]))
+        saturation, what = write_heat_map(Path(blender["heat_map"]), blender, heat)
         lines += ["## Distance heat map (Blender)", "",
-                  "ESGS Gaussian centres coloured by distance to the ground-truth mesh (blue = 0, red = 95th "
-                  f"percentile). Open `{Path(blender['blend']).relative_to(config.out)}` in Blender 5.0 to inspect it.",
+                  "ESGS Gaussian centres coloured by distance to the ground-truth mesh: blue = 0 m, red = "
+                  f"{saturation:.3g} m (the {what} of the distances) and beyond; the bar beside the render gives "
+                  f"the scale. Open `{Path(blender['blend']).relative_to(config.out)}` in Blender 5.0 to inspect it.",
                   "", "![heat map](report/heat_map.png)", ""]
 
     lines += ["## Timings", "", "| stage | wall (s) | CPU (s) |", "|---|---|---|"]
