@@ -3,7 +3,7 @@
 matplotlib is an optional dependency (``make setup`` installs it, see requirements.txt). It is
 imported lazily and used through its object-oriented API with the Agg canvas, so no global
 backend is chosen for the process (Blender included). Without it the pictures are drawn with
-OpenCV as before (:func:`esgs.core.apps.report.plot_curves`, a plain bar) and one message says so.
+OpenCV as before (:func:`esgs.core.apps.drawing.plot_curves`, a plain bar) and one message says so.
 """
 from __future__ import annotations
 
@@ -95,7 +95,7 @@ def curves_image(curves: dict[str, dict[str, list[tuple[float, float]]]]) -> np.
     installed, else the OpenCV line plots the report drew before (no axis labels)."""
     if matplotlib_available():
         return figure_to_rgb(curves_figure(curves))
-    from .report import _hstack, plot_curves
+    from .drawing import _hstack, plot_curves
 
     return _hstack([plot_curves(curves.get(key) or {}, f"training {key} (smoothed)", log_y=key == "loss")
                     for key in ("loss", "psnr")])

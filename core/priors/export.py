@@ -105,7 +105,7 @@ def export_3dgs_depths(scene_dir: str | Path, source: str, out: str | Path | Non
         write_png(path, code)
         params[stem] = {"scale": scale, "offset": 0.0}
         coverage.append(float((values > 0).mean()))
-    params_path = out / "sparse" / "0" / "depth_params.json"
+    params_path = SceneDir(out).model / "depth_params.json"
     params_path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(params_path, params)
     return ExportResult(out=out, depths=depths, depth_params=params_path, views=len(params), scale=scale,
