@@ -126,6 +126,7 @@ def run_plan(plan_path: Path, out: Path, workers: int, deadline_s: float, grace_
     running: dict[int, tuple[subprocess.Popen, dict]] = {}
     rows: list[dict] = []
     failed: dict[str, str] = {}
+    not_started: list[str] = []
     while queue or running:
         late = time.time() - started > deadline_s
         while queue and len(running) < workers and not late:
@@ -139,7 +140,7 @@ def run_plan(plan_path: Path, out: Path, workers: int, deadline_s: float, grace_
             print(f"[{time.time() - started:6.0f} s] start {entry['name']}", flush=True)
         if late and queue:
             print(f"[{time.time() - started:6.0f} s] deadline: {len(queue)} runs not started", flush=True)
-            queue_names = [entry["name"] for _, entry in queue]
+            not_started = [entry["name"] for _, entry in queue]
             queue.clear()
         for index, (process, entry) in list(running.items()):
             if process.poll() is None:
@@ -159,7 +160,6 @@ def run_plan(plan_path: Path, out: Path, workers: int, deadline_s: float, grace_
             pending = [e["name"] for _, e in queue] + [e["name"] for _, e in running.values()]
             _write_results(out, rows, pending, failed, started, plan_path)
         time.sleep(1.0)
-    not_started = locals().get("queue_names", [])
     _write_results(out, rows, not_started, failed, started, plan_path)
     return 0
 

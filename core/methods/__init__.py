@@ -127,7 +127,9 @@ def prepare_priors(config: TrainConfig, progress: Optional["ProgressCallback"] =
     ``events.jsonl`` and ``config.events``), so a job runner following them sees this stage too.
     """
     settings = get_method(config.method).settings_of(config)
-    if not isinstance(settings, ESGSConfig) or settings.priors != "auto":
+    from ..formats.scene_dir import PriorSource
+
+    if not isinstance(settings, ESGSConfig) or settings.priors != PriorSource.AUTO:
         return None
     if not (settings.depth or settings.normal or settings.sky_loss_on):
         return None
