@@ -21,6 +21,8 @@ BACKENDS = ("auto", "cpu", "reference", "cuda")
 #: ``sky`` values: a learned environment map (train/sky.py), or the constant background (3DGS).
 SKY_MODELS = ("envmap", "none")
 GRAYSCALE_MODES = ("auto", "on", "off")
+#: ``densify_gradient`` values: which loss terms' screen-space gradients decide clone/split.
+DENSIFY_GRADIENTS = ("photometric", "all")
 
 #: The settings that make a run plain 3DGS as published (``esgs train --vanilla``; the bench's
 #: baseline rows): the constant background instead of the sky model, no sky masks (so no
@@ -117,6 +119,11 @@ class TrainConfig:
     densify_every: int = field(default=100, metadata=_help("steps between densifications (scaled)"))
     densify_grad_threshold: float = field(default=2e-4, metadata=_help(
         "mean screen-space gradient norm, in 3DGS's NDC units, above which a Gaussian is cloned or split"))
+    densify_gradient: str = field(default="photometric", metadata=_help(
+        "which screen-space gradients the clone/split statistic accumulates: photometric = only the loss terms "
+        "that fit the images (prior losses still move the Gaussians but do not grow their number; "
+        "docs/training.md), all = every term (the behaviour before this setting existed)",
+        choices=DENSIFY_GRADIENTS))
     percent_dense: float = field(default=0.01, metadata=_help("Gaussians larger than this fraction of the extent are split, smaller ones cloned"))
     prune_opacity: float = field(default=0.005, metadata=_help("prune Gaussians whose opacity is below this"))
     prune_screen_size_px: float = field(default=20.0, metadata=_help("after the first opacity reset, prune Gaussians whose screen radius exceeds this"))
@@ -174,6 +181,9 @@ class TrainConfig:
             raise ConfigError(f"background must have 3 values (RGB), got {len(self.background)}")
         if self.grayscale not in GRAYSCALE_MODES:
             raise ConfigError(f"grayscale must be one of {', '.join(GRAYSCALE_MODES)}, got {self.grayscale!r}")
+        if self.densify_gradient not in DENSIFY_GRADIENTS:
+            raise ConfigError(f"densify_gradient must be one of {', '.join(DENSIFY_GRADIENTS)}, "
+                              f"got {self.densify_gradient!r}")
         if self.sky not in SKY_MODELS:
             raise ConfigError(f"sky must be one of {', '.join(SKY_MODELS)}, got {self.sky!r}")
         if not 0 <= self.sky_degree <= 3:
@@ -216,7 +226,8 @@ class TrainConfig:
 #: older run resumes as it was going (Gaussians in their old order) instead of changing.
 #: A dotted name ("esgs.sky_weight") is a setting of a section of the legacy layout below.
 PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0, "sky": "none", "mask_photometric": True,
-                          "surface_alpha_weight": 0.0, "grayscale": "off", "sky_smooth_weight": 0.0}
+                          "surface_alpha_weight": 0.0, "grayscale": "off", "sky_smooth_weight": 0.0,
+                          "densify_gradient": "all"}
 
 #: Legacy layout (runs saved before methods were registered): the method's settings were
 #: the sections "esgs" (ESGSConfig) and "baselines" (Mip-Splatting and DropoutGS switches

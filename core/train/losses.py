@@ -56,6 +56,10 @@ class LossTerm:
 
     ``needs``: render channels the term reads ("depth", "normals"). Step numbers are
     this run's steps (scale 30,000-step values with ``TrainConfig.scaled_step``).
+    ``densifies``: whether the term's screen-space gradient counts towards the clone/split
+    statistic (``TrainConfig.densify_gradient = "photometric"`` leaves out the terms that say
+    False: prior losses pull Gaussians towards a surface, which says nothing about where the
+    images lack detail).
     """
 
     name: str
@@ -64,6 +68,7 @@ class LossTerm:
     start_step: int = 0
     end_step: Optional[int] = None
     needs: frozenset = frozenset()
+    densifies: bool = True
 
     def active(self, step: int) -> bool:
         return self.weight != 0.0 and step >= self.start_step and (self.end_step is None or step < self.end_step)
@@ -96,9 +101,25 @@ def needed_channels(terms: list[LossTerm], step: int) -> set[str]:
     return needs
 
 
-def total_loss(terms: list[LossTerm], context: LossContext) -> tuple[torch.Tensor, dict[str, float]]:
-    """Weighted sum of the active terms, and each term's unweighted value (for logging)."""
-    total: Optional[torch.Tensor] = None
+@dataclass
+class LossParts:
+    """The step's loss split by :attr:`LossTerm.densifies`: ``densifying`` and ``other`` are the
+    weighted sums of each group (None when the group has no active term); ``values`` each
+    active term's unweighted value (for logging)."""
+
+    densifying: Optional[torch.Tensor]
+    other: Optional[torch.Tensor]
+    values: dict[str, float]
+
+    @property
+    def total(self) -> torch.Tensor:
+        parts = [part for part in (self.densifying, self.other) if part is not None]
+        return parts[0] if len(parts) == 1 else parts[0] + parts[1]
+
+
+def loss_parts(terms: list[LossTerm], context: LossContext) -> LossParts:
+    """Evaluate the active terms once, summed per group (see :class:`LossParts`)."""
+    sums: dict[bool, Optional[torch.Tensor]] = {True: None, False: None}
     values: dict[str, float] = {}
     for term in terms:
         if not term.active(context.step):
@@ -106,7 +127,13 @@ def total_loss(terms: list[LossTerm], context: LossContext) -> tuple[torch.Tenso
         value = term.function(context)
         values[term.name] = float(value.detach())
         weighted = term.weight * value
-        total = weighted if total is None else total + weighted
-    if total is None:
-        total = context.image.sum() * 0.0
-    return total, values
+        sums[term.densifies] = weighted if sums[term.densifies] is None else sums[term.densifies] + weighted
+    if sums[True] is None and sums[False] is None:
+        sums[True] = context.image.sum() * 0.0
+    return LossParts(densifying=sums[True], other=sums[False], values=values)
+
+
+def total_loss(terms: list[LossTerm], context: LossContext) -> tuple[torch.Tensor, dict[str, float]]:
+    """Weighted sum of the active terms, and each term's unweighted value (for logging)."""
+    parts = loss_parts(terms, context)
+    return parts.total, parts.values

@@ -67,8 +67,14 @@ class Strategy:
     def step_pre_backward(self, step: int, output: Any) -> None:
         """The step's render ``output`` exists; the loss is not differentiated yet."""
 
+    def gathers_statistics(self, step: int) -> bool:
+        """Whether :meth:`step_post_backward` reads screen-space gradients at ``step`` (the trainer
+        then keeps the densifying terms' share apart, ``output.meta['densify_grad']``)."""
+        return False
+
     def step_post_backward(self, step: int, view: Any, output: Any) -> None:
-        """Gradients of this step exist (``output.meta['means2d'].grad``); the optimizer has not stepped."""
+        """Gradients of this step exist (``output.meta['means2d'].grad``, and
+        ``output.meta['densify_grad']`` when the trainer split the loss); the optimizer has not stepped."""
 
     def step_post_optimizer(self, step: int) -> list[DensifyReport]:
         """Change the Gaussian set after the optimizer step; one report per change."""
@@ -130,12 +136,19 @@ class DefaultStrategy(Strategy):
         super().setup(context)
         self.state = DensifyState.zeros(len(context.gaussians), context.device)
 
+    def gathers_statistics(self, step: int) -> bool:
+        return bool(self.schedule.accumulates_gradients(step))
+
     def step_post_backward(self, step: int, view: Any, output: Any) -> None:
         means2d = output.meta.get("means2d")
-        if self.schedule.accumulates_gradients(step) and means2d is not None and means2d.grad is not None \
-                and means2d.shape[1] == len(self.context.gaussians):
+        if not (self.schedule.accumulates_gradients(step) and means2d is not None
+                and means2d.shape[1] == len(self.context.gaussians)):
+            return
+        # the densifying terms' share when the trainer split the loss (prior losses left out)
+        gradient = output.meta.get("densify_grad", means2d.grad)
+        if gradient is not None:
             with torch.no_grad():
-                self.state.accumulate(means2d.grad, output.meta["radii"], view.width, view.height)
+                self.state.accumulate(gradient, output.meta["radii"], view.width, view.height)
 
     def step_post_optimizer(self, step: int) -> list[DensifyReport]:
         reports = []

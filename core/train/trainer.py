@@ -42,7 +42,7 @@ from .dataset import View
 from .gaussians import GaussianModel, RenderParams
 from .hooks import StepContext, TrainHook
 from .memory import release_free_memory
-from .losses import LossContext, LossTerm, needed_channels, photometric_terms, total_loss
+from .losses import LossContext, LossParts, LossTerm, loss_parts, needed_channels, photometric_terms
 from .method import PLAIN_3DGS, Method, MethodParts
 from .optim import ExponentialDecay, TrainOptimizer
 from .rendering import RenderOutput, backend_device, render_view, resolve_backend
@@ -419,12 +419,13 @@ class Trainer:
         loss_context = LossContext(step=step, image=image, target=target, mask=mask, alpha=output.alpha,
                                    depth=output.depth, normals=output.normals, view=view, output=output,
                                    params=params, run=self)
-        loss, values = total_loss(self.loss_terms, loss_context)
+        parts = loss_parts(self.loss_terms, loss_context)
+        loss, values = parts.total, parts.values
         context.loss, context.loss_values = loss, values
         if not bool(torch.isfinite(loss)):
             terms = ", ".join(f"{name}={value:.4g}" for name, value in values.items())
             self._diverged(f"the loss is {float(loss.detach())} at step {step} ({terms})")
-        loss.backward()
+        self._backward(step, parts, output)
         for hook in self.hooks:
             hook.after_backward(self, context)
 
@@ -453,6 +454,24 @@ class Trainer:
         self.psnr_ema = psnr if self.psnr_ema is None else 0.4 * psnr + 0.6 * self.psnr_ema
         context.extras["psnr"] = psnr
         return context
+
+    def _backward(self, step: int, parts: LossParts, output: Any) -> None:
+        """Differentiate the step's loss; with ``densify_gradient = "photometric"`` and terms that
+        do not densify (prior losses), on the steps the strategy gathers statistics, in two
+        passes: the densifying terms first, their screen-space gradient kept for the strategy as
+        ``output.meta["densify_grad"]``, then the others (the parameters' gradients are the sum
+        of both passes, the same as one pass)."""
+        means2d = output.meta.get("means2d") if isinstance(output.meta, dict) else None
+        split = (self.config.densify_gradient == "photometric" and parts.densifying is not None
+                 and parts.other is not None and means2d is not None and means2d.requires_grad
+                 and self.strategy.gathers_statistics(step))
+        if not split:
+            parts.total.backward()
+            return
+        parts.densifying.backward(retain_graph=True)
+        output.meta["densify_grad"] = (means2d.grad.detach().clone() if means2d.grad is not None
+                                       else torch.zeros_like(means2d))
+        parts.other.backward()
 
     def _checkpoint_due(self, step: int) -> bool:
         every = self.config.checkpoint_every

@@ -57,20 +57,20 @@ class PriorLossHook(TrainHook):
             self._load(run)
         if config.depth:
             run.add_loss_term(LossTerm("depth_prior", config.depth_weight, self._depth_term, start_step=start,
-                                       needs=frozenset({"depth"})))
+                                       needs=frozenset({"depth"}), densifies=False))
         if config.normal:
             run.add_loss_term(LossTerm("normal_prior", config.normal_weight, self._normal_term, start_step=start,
-                                       needs=frozenset({"normals"})))
+                                       needs=frozenset({"normals"}), densifies=False))
         if wants_sky and any(p.sky is not None for p in self.priors.values()):
             run.add_loss_term(LossTerm("sky", config.sky_weight, self._sky_term, start_step=start,
-                                       needs=frozenset({"depth"})))
+                                       needs=frozenset({"depth"}), densifies=False))
         elif wants_sky:
             run.message(f"note: prior source {config.priors!r} marks no sky pixels (mask_kind coverage, or no "
                         "sky in view); the sky loss is off")
         if config.consistency:
             run.add_loss_term(LossTerm("depth_normal", config.consistency_weight, self._consistency_term,
                                        start_step=run.scaled_step(config.consistency_start_step),
-                                       needs=frozenset({"depth", "normals"})))
+                                       needs=frozenset({"depth", "normals"}), densifies=False))
 
     def _load(self, run: RunView) -> None:
         source = self.config.priors
