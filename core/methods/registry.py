@@ -12,7 +12,7 @@ from typing import Any
 
 from ..errors import ConfigError
 from ..train.method import PLAIN_3DGS, Method, MethodParts, RenderOptions
-from .baselines.config import DropoutGSConfig, MipSplattingConfig
+from .baselines.config import DropoutGSConfig, MipSplattingConfig, PGSRConfig
 from .esgs.config import ESGSConfig
 
 _METHODS: dict[str, Method] = {}
@@ -72,6 +72,13 @@ def _build_dropout_gs(settings: DropoutGSConfig, config: Any) -> MethodParts:
     return MethodParts(hooks=[DropoutHook(settings)] if settings.dropout_rate > 0 else [])
 
 
+def _build_pgsr(settings: PGSRConfig, config: Any) -> MethodParts:
+    from .baselines.pgsr import PGSRHook
+
+    settings.validate()
+    return MethodParts(hooks=[PGSRHook(settings)])
+
+
 register_method(PLAIN_3DGS)
 register_method(Method(name="esgs", label="ESGS", settings_class=ESGSConfig, build=_build_esgs,
                        description="3DGS with depth/normal prior losses and GPDFN neighbour fusion (the paper's method)"))
@@ -80,3 +87,6 @@ register_method(Method(name="mip-splatting", label="Mip-Splatting", settings_cla
                        description="3D smoothing filter from the training cameras plus a 2D anti-aliasing filter"))
 register_method(Method(name="dropout-gs", label="DropoutGS", settings_class=DropoutGSConfig, build=_build_dropout_gs,
                        description="drops a random fraction of the Gaussians from every training render"))
+register_method(Method(name="pgsr", label="PGSR", settings_class=PGSRConfig, build=_build_pgsr,
+                       description="planar Gaussians: flattening, unbiased depth, single- and multi-view geometric "
+                                   "consistency (Chen et al. 2024)"))
