@@ -13,14 +13,14 @@ clamped to [0, 1], with :mod:`esgs.core.metrics`. When a scene has no test split
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 import torch
 
 from ..errors import CheckpointError
 from ..progress import ProgressCallback, ProgressEvent
-from .gaussians import GaussianModel
+from .gaussians import GaussianModel, RenderParams
 from .method import RenderOptions
 
 
@@ -45,11 +45,15 @@ def _lpips_model(use_lpips: bool) -> tuple[Any, Optional[str]]:
 def evaluate_model(model: GaussianModel, data: Any, *, backend: str, background: torch.Tensor, sh_degree: int,
                    renders_dir: Optional[Path] = None, use_lpips: bool = True, num_threads: Optional[int] = None,
                    progress: Optional[ProgressCallback] = None, views: Optional[list] = None,
-                   antialiased: bool = False, eps2d: float = 0.3, sky: Any = None) -> dict:
+                   antialiased: bool = False, eps2d: float = 0.3, sky: Any = None,
+                   view_params: Optional[Callable[[Any, RenderParams], RenderParams]] = None) -> dict:
     """Render every held-out view of ``data`` (or ``views``) and measure it against its image.
 
     ``antialiased``/``eps2d``: render with the rasterizer's 2D filter (runs trained with Mip-Splatting);
-    ``sky``: the run's :class:`~.sky.SkyModel`, composited behind the Gaussians (None: ``background``).
+    ``sky``: the run's :class:`~.sky.SkyModel`, composited behind the Gaussians (None: ``background``);
+    ``view_params(view, params) -> params``: the parameters each view is rendered with (the
+    trainer's hooks, for methods whose model depends on the view: Scaffold-GS); None: ``model``'s
+    own for every view.
     """
     from ..formats.imageio import write_png
     from ..metrics.image import psnr, ssim
@@ -68,7 +72,8 @@ def evaluate_model(model: GaussianModel, data: Any, *, backend: str, background:
     with torch.no_grad():
         params = model.render_params(sh_degree)
         for number, view in enumerate(views):
-            output = render_view(params, view.viewmat.to(device), view.K.to(device), view.width, view.height,
+            shown = params if view_params is None else view_params(view, params)
+            output = render_view(shown, view.viewmat.to(device), view.K.to(device), view.width, view.height,
                                  background=background, backend=backend, num_threads=num_threads,
                                  antialiased=antialiased, eps2d=eps2d, sky=sky)
             image = output.image.clamp(0.0, 1.0).permute(2, 0, 1)[None]

@@ -16,6 +16,10 @@ similar fixed set of attributes). The trainer calls them in the order the hooks 
 - ``model_params(run, params) -> params``: the parameters as the method shows its model
   outside a training step (GPDFN fuses neighbours, Mip-Splatting filters); used by
   ``Trainer.render_model`` to render the model as it trains;
+- ``view_params(run, view, params) -> params``: the parameters to render one view with
+  outside a training step, after ``model_params`` (``Trainer.render_model``) or after
+  ``export_model`` (the end-of-run evaluation of the held-out views); a view-dependent model
+  (Scaffold-GS decodes its anchors for the view's camera) returns them here;
 - ``after_backward(run, context)``: gradients exist, the optimizer has not stepped;
 - ``on_densify(run, report)``: the Gaussian set changed (clone/split/prune or an
   opacity reset); ``report.source_index`` [N_new] maps every Gaussian to the one it came
@@ -124,6 +128,10 @@ class TrainHook:
 
     def model_params(self, run: RunView, params: "RenderParams") -> "RenderParams":
         """The parameters as this method shows its model between steps (default: unchanged)."""
+        return params
+
+    def view_params(self, run: RunView, view: "View", params: "RenderParams") -> "RenderParams":
+        """The parameters to render ``view`` with outside a training step (default: unchanged)."""
         return params
 
     def after_backward(self, run: RunView, context: StepContext) -> None:

@@ -141,7 +141,9 @@ class Trainer:
     ``config.method_config``. Hooks see the run through :class:`~.hooks.RunView`, which the
     trainer implements: ``seed``, ``scene``, ``device``, ``train_views``, ``test_views``,
     ``gaussians``, ``scaled_step``, ``add_loss_term``, ``add_parameter_group``, ``message``
-    and ``render``. :meth:`render_model` renders the model as the method shows it.
+    and ``render``. :meth:`render_model` renders the model as the method shows it (every
+    hook's ``model_params``, then its ``view_params`` for the view; the end-of-run evaluation
+    passes the exported model's parameters through ``view_params`` too).
     """
 
     def __init__(self, config: TrainConfig, progress: Optional[ProgressCallback] = None,
@@ -235,7 +237,14 @@ class Trainer:
             params = self.gaussians.render_params(degree)
             for hook in self.hooks:
                 params = hook.model_params(self, params)
+            params = self._view_params(view, params)
             return self.render(params, view, render_depth=render_depth, render_normals=render_normals)
+
+    def _view_params(self, view: View, params: RenderParams) -> RenderParams:
+        """``params`` passed through every hook's ``view_params`` for ``view``."""
+        for hook in self.hooks:
+            params = hook.view_params(self, view, params)
+        return params
 
     def message(self, text: str) -> None:
         """Send a message event (warnings, densification summaries) to the progress callbacks."""
@@ -607,7 +616,7 @@ class Trainer:
                                      sh_degree=sh_degree, renders_dir=self.run_dir.test_renders if config.save_renders else None,
                                      use_lpips=config.lpips, num_threads=self.num_threads,
                                      progress=self._progress, antialiased=self.parts.render.antialiased,
-                                     eps2d=self.parts.render.eps2d, sky=self.sky)
+                                     eps2d=self.parts.render.eps2d, sky=self.sky, view_params=self._view_params)
             metrics["step"] = self.step
             atomic_write_json(self.run_dir.metrics, metrics)
         elapsed = self.elapsed_before_s + self._session_elapsed()
