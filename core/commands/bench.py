@@ -1,11 +1,12 @@
-"""``esgs bench --suite quick|full|large --out DIR``: 3DGS, Mip-Splatting, DropoutGS, 3DGS + GPDFN and ESGS compared."""
+"""``esgs bench --suite quick|full|large --out DIR``: 3DGS, Mip-Splatting, DropoutGS, PGSR, 3DGS + GPDFN and ESGS
+compared."""
 from __future__ import annotations
 
 import argparse
 import sys
 from pathlib import Path
 
-HELP = ("compare 3DGS, Mip-Splatting, DropoutGS, 3DGS + GPDFN, ESGS ablations and ESGS on synthetic scenes "
+HELP = ("compare 3DGS, Mip-Splatting, DropoutGS, PGSR, 3DGS + GPDFN, ESGS ablations and ESGS on synthetic scenes "
         "(benchmarks.md)")
 
 

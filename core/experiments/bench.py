@@ -1,4 +1,4 @@
-"""The method comparison (``esgs bench``): 3DGS, Mip-Splatting, DropoutGS, 3DGS + GPDFN, ESGS
+"""The method comparison (``esgs bench``): 3DGS, Mip-Splatting, DropoutGS, PGSR, 3DGS + GPDFN, ESGS
 ablations and full ESGS on synthetic scenes, at equal step counts and at equal wall-clock
 budgets, written as ``OUT/benchmarks.md``.
 
@@ -179,6 +179,8 @@ METHODS = (
     _method("3dgs_sky", "3DGS + sky model (our defaults)"),
     _method("mip_splatting", "Mip-Splatting", "mip-splatting", vanilla=True),
     _method("dropout_gs", "DropoutGS", "dropout-gs", settings={"dropout_rate": 0.1}, vanilla=True),
+    # the geometry specialist among the paper's baselines: planar Gaussians, no priors (docs/baselines.md)
+    _method("pgsr", "PGSR", "pgsr", vanilla=True),
     _method("3dgs_gpdfn", "3DGS + GPDFN", "esgs", full=True, priors=False),
     _method("esgs_depth", "ESGS: depth prior", "esgs", settings={"depth": True}),
     _method("esgs_normal", "ESGS: normal prior", "esgs", settings={"normal": True}),
