@@ -67,6 +67,9 @@ class TrainConfig:
         "weight of the sky model's smoothness prior, the Dirichlet energy of its logit field on the sphere "
         "(sum over SH bands of l(l+1) |c_l|^2): keeps the directions no training view saw near the mean sky "
         "colour unless the data asks for a gradient; 0 = off"))
+    sky_unseen_weight: float = field(default=0.0, metadata=_help(
+        "weight of the sky model's prior on directions no training ray looked along: their colour follows the "
+        "nearest directions seen as sky (train/sky.py UnseenSkyPrior); 0 = off"))
     grayscale: str = field(default="auto", metadata=_help(
         "keep the Gaussians' colours grey (equal SH coefficients in R, G and B) so a panchromatic camera "
         "(Navcam) gives no colour casts: auto = when every training image is grey", choices=GRAYSCALE_MODES))
@@ -119,10 +122,10 @@ class TrainConfig:
     densify_every: int = field(default=100, metadata=_help("steps between densifications (scaled)"))
     densify_grad_threshold: float = field(default=2e-4, metadata=_help(
         "mean screen-space gradient norm, in 3DGS's NDC units, above which a Gaussian is cloned or split"))
-    densify_gradient: str = field(default="photometric", metadata=_help(
-        "which screen-space gradients the clone/split statistic accumulates: photometric = only the loss terms "
-        "that fit the images (prior losses still move the Gaussians but do not grow their number; "
-        "docs/training.md), all = every term (the behaviour before this setting existed)",
+    densify_gradient: str = field(default="all", metadata=_help(
+        "which screen-space gradients the clone/split statistic accumulates: all = every loss term (3DGS; with "
+        "ESGS the prior losses grow Gaussians where the surface disagrees with the priors, which measured "
+        "better: docs/training.md), photometric = only the terms that fit the images (fewer Gaussians)",
         choices=DENSIFY_GRADIENTS))
     percent_dense: float = field(default=0.01, metadata=_help("Gaussians larger than this fraction of the extent are split, smaller ones cloned"))
     prune_opacity: float = field(default=0.005, metadata=_help("prune Gaussians whose opacity is below this"))
@@ -188,7 +191,7 @@ class TrainConfig:
             raise ConfigError(f"sky must be one of {', '.join(SKY_MODELS)}, got {self.sky!r}")
         if not 0 <= self.sky_degree <= 3:
             raise ConfigError(f"sky_degree must be in 0..3, got {self.sky_degree}")
-        for name in ("sky_lr", "sky_alpha_weight", "sky_smooth_weight", "surface_alpha_weight"):
+        for name in ("sky_lr", "sky_alpha_weight", "sky_smooth_weight", "sky_unseen_weight", "surface_alpha_weight"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.test_every == 1:
@@ -227,7 +230,7 @@ class TrainConfig:
 #: A dotted name ("esgs.sky_weight") is a setting of a section of the legacy layout below.
 PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0, "sky": "none", "mask_photometric": True,
                           "surface_alpha_weight": 0.0, "grayscale": "off", "sky_smooth_weight": 0.0,
-                          "densify_gradient": "all"}
+                          "sky_unseen_weight": 0.0}
 
 #: Legacy layout (runs saved before methods were registered): the method's settings were
 #: the sections "esgs" (ESGSConfig) and "baselines" (Mip-Splatting and DropoutGS switches

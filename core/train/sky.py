@@ -22,6 +22,7 @@ only) and in its checkpoints; evaluation and ``esgs render`` composite it the sa
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any, Optional
 
@@ -128,6 +129,78 @@ class SkyModel(torch.nn.Module):
             model.base.copy_(base)
             model.coefficients.copy_(coefficients)
         return model
+
+
+def fibonacci_sphere(count: int) -> torch.Tensor:
+    """[count, 3] nearly uniform unit directions (the Fibonacci lattice on the sphere)."""
+    index = torch.arange(count, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * index / count
+    radius = torch.sqrt((1.0 - z * z).clamp_min(0.0))
+    angle = index * (math.pi * (3.0 - math.sqrt(5.0)))  # the golden angle
+    return torch.stack([radius * torch.cos(angle), radius * torch.sin(angle), z], dim=-1).float()
+
+
+class UnseenSkyPrior:
+    """Directions no training ray looked along take the colour of the nearest directions that
+    were seen as sky.
+
+    The sky model's bands are fitted where the training views saw sky; elsewhere they
+    extrapolate freely, and a held-out view turned towards such a direction (another azimuth
+    of the horizon, say) sees whatever the degree-3 bands happen to do there. This prior
+    samples the sphere (:func:`fibonacci_sphere`), finds the *unseen* directions (farther than
+    ``radius`` from every training ray, sky or ground) and, for each, its ``neighbours``
+    nearest *sky-seen* directions (within ``radius`` of a ray through a sky pixel; through
+    any pixel when no mask marks sky), and penalises the mean squared difference of the
+    logits, the targets detached: the unseen sky continues what the data shows nearby instead
+    of being pulled to one mean colour (what :meth:`SkyModel.dirichlet_energy` does, which
+    also flattens real gradients the views saw). Directions inside a view but behind opaque
+    ground are neither: nothing is asked of them.
+    """
+
+    def __init__(self, unseen: torch.Tensor, seen: torch.Tensor, neighbours: torch.Tensor, samples: int):
+        self.unseen = unseen          # [U, 3]
+        self.seen = seen              # [S, 3]
+        self.neighbours = neighbours  # [U, k] indices into seen
+        self.samples = samples        # directions sampled on the sphere
+
+    @classmethod
+    def from_rays(cls, all_rays: torch.Tensor, sky_rays: torch.Tensor, *, samples: int = 2048,
+                  radius_deg: float = 6.0, neighbours: int = 4) -> Optional["UnseenSkyPrior"]:
+        """From [R, 3] unit directions of training rays (all pixels) and [Q, 3] of the sky pixels
+        among them; None when no direction is unseen or none was seen as sky."""
+        points = fibonacci_sphere(samples).to(all_rays)
+        threshold = math.cos(math.radians(radius_deg))
+        covered = _max_cosine(points, all_rays) >= threshold
+        sky_seen = _max_cosine(points, sky_rays) >= threshold if len(sky_rays) else torch.zeros_like(covered)
+        unseen, seen = points[~covered], points[sky_seen]
+        if len(unseen) == 0 or len(seen) == 0:
+            return None
+        k = min(neighbours, len(seen))
+        nearest = (unseen @ seen.T).topk(k, dim=1).indices
+        return cls(unseen, seen, nearest, samples)
+
+    def to(self, device: torch.device | str) -> "UnseenSkyPrior":
+        return UnseenSkyPrior(self.unseen.to(device), self.seen.to(device), self.neighbours.to(device), self.samples)
+
+    def loss(self, sky: SkyModel) -> torch.Tensor:
+        """Mean over unseen directions and channels of (logit - mean logit of its sky-seen neighbours)^2."""
+        unseen = sky.logits(self.unseen)
+        with torch.no_grad():
+            target = sky.logits(self.seen)[self.neighbours].mean(dim=1)
+        return (unseen - target).square().mean()
+
+    @property
+    def unseen_fraction(self) -> float:
+        """Share of the sphere no training ray looked along."""
+        return len(self.unseen) / self.samples
+
+
+def _max_cosine(points: torch.Tensor, rays: torch.Tensor, chunk: int = 65_536) -> torch.Tensor:
+    """[P] the largest cosine between each point and any ray (-1 when there are none)."""
+    best = torch.full((len(points),), -1.0, dtype=points.dtype, device=points.device)
+    for start in range(0, len(rays), chunk):
+        best = torch.maximum(best, (points @ rays[start:start + chunk].T).max(dim=1).values)
+    return best
 
 
 def save_sky(path: str | Path, sky: SkyModel) -> Path:

@@ -1,4 +1,4 @@
-"""The clone/split statistic of ``densify_gradient = "photometric"``: prior-like terms (LossTerm
+"""The clone/split statistic of ``densify_gradient = "photometric"`` (an option; the default is "all"): prior-like terms (LossTerm
 with ``densifies=False``) move the Gaussians but leave the statistic as the images alone make it."""
 from __future__ import annotations
 
@@ -39,8 +39,9 @@ class _Recorder(TrainHook):
 def _step_one(fast_config, hook, **overrides):
     from esgs.core.train.trainer import Trainer
 
+    overrides.setdefault("densify_gradient", "photometric")
     config = fast_config(iterations=30, evaluate=False, **overrides)
-    config.out = config.out.with_name(f"run_{hook.weight}_{hook.densifies}_{len(overrides)}")
+    config.out = config.out.with_name(f"run_{hook.weight}_{hook.densifies}_{config.densify_gradient}")
     trainer = Trainer(config, hooks=[hook])
     trainer._start_run_dir(None)
     trainer.setup()
@@ -98,3 +99,16 @@ def test_loss_parts_groups_terms_by_densifies():
 def test_unknown_densify_gradient_is_refused(tiny_scene, tmp_path):
     with pytest.raises(ConfigError, match="densify_gradient must be one of photometric, all"):
         TrainConfig(scene=tiny_scene, out=tmp_path / "r", densify_gradient="prior").validate()
+
+
+def test_default_statistic_takes_every_term(fast_config):
+    from esgs.core.train.trainer import Trainer
+
+    assert TrainConfig().densify_gradient == "all"
+    hook = _Recorder(weight=5.0)
+    config = fast_config(iterations=30, evaluate=False)
+    trainer = Trainer(config, hooks=[hook])
+    trainer._start_run_dir(None)
+    trainer.setup()
+    trainer.train_step(1)
+    assert hook.record["kept"] is None  # one pass: means2d.grad, prior terms included

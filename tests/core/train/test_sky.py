@@ -408,3 +408,81 @@ def test_a_resumed_run_with_the_smoothness_prior_continues_exactly(fast_config, 
     train(config(tmp_path / "split", resume=True))
     a, b = load_sky(tmp_path / "full" / "sky.json"), load_sky(tmp_path / "split" / "sky.json")
     assert torch.equal(a.base, b.base) and torch.equal(a.coefficients, b.coefficients)
+
+
+# --- the unseen-sky prior -------------------------------------------------------------------
+def test_fibonacci_directions_are_unit_and_cover_the_sphere_evenly():
+    from esgs.core.train.sky import fibonacci_sphere
+
+    points = fibonacci_sphere(4000).double()
+    assert torch.allclose(points.norm(dim=-1), torch.ones(4000, dtype=torch.float64), atol=1e-6)
+    assert abs(float(points.mean(dim=0).norm())) < 1e-3  # no side favoured
+    # every hemisphere of a few axes holds half the points
+    for axis in torch.eye(3, dtype=torch.float64):
+        assert abs(float((points @ axis > 0).double().mean()) - 0.5) < 0.01
+
+
+def test_unseen_directions_are_those_no_ray_came_near_and_their_targets_are_sky_seen():
+    from esgs.core.train.sky import UnseenSkyPrior, fibonacci_sphere
+
+    rays = fibonacci_sphere(20_000)
+    all_rays = rays[rays[:, 2] > -0.2]          # the views looked everywhere but far below the horizon
+    sky_rays = all_rays[all_rays[:, 0] > 0.0]   # and saw sky only on the +x side
+    prior = UnseenSkyPrior.from_rays(all_rays, sky_rays, samples=1000, radius_deg=3.0, neighbours=4)
+    assert prior is not None
+    assert bool((prior.unseen[:, 2] < -0.15).all())          # unseen: only the far-below cap
+    assert 0.2 < prior.unseen_fraction < 0.45                # about (1 - 0.2) / 2 of the sphere
+    assert bool((prior.seen[:, 0] > -0.06).all())           # targets among sky-seen directions only
+    # a target is among the nearest sky-seen directions (cosines in descending order)
+    cosines = prior.unseen @ prior.seen.T
+    best = cosines.max(dim=1).values
+    assert torch.allclose(cosines.gather(1, prior.neighbours[:, :1])[:, 0], best)
+    # full coverage, or no sky seen: no prior
+    assert UnseenSkyPrior.from_rays(rays, rays, samples=500, radius_deg=3.0) is None
+    assert UnseenSkyPrior.from_rays(all_rays, all_rays[:0], samples=500) is None
+
+
+def test_the_unseen_prior_costs_nothing_for_a_uniform_sky_and_pulls_unseen_directions_to_their_neighbours():
+    from esgs.core.train.sky import UnseenSkyPrior, fibonacci_sphere
+
+    rays = fibonacci_sphere(20_000)
+    seen = rays[rays[:, 2] > 0.3]
+    prior = UnseenSkyPrior.from_rays(seen, seen, samples=800, radius_deg=4.0)
+    uniform = SkyModel(3, initial_color=(0.6, 0.4, 0.3))
+    assert float(prior.loss(uniform).detach()) == pytest.approx(0.0, abs=1e-12)
+    sky = SkyModel(3, initial_color=(0.6, 0.4, 0.3))
+    with torch.no_grad():
+        sky.coefficients.copy_(torch.randn(sky.coefficients.shape, generator=torch.Generator().manual_seed(3)))
+    # the value by hand: logits at the unseen points against the mean logits of their neighbours
+    with torch.no_grad():
+        expected = (sky.logits(prior.unseen) - sky.logits(prior.seen)[prior.neighbours].mean(1)).square().mean()
+    loss = prior.loss(sky)
+    assert float(loss.detach()) == pytest.approx(float(expected), rel=1e-6)
+    # descending it moves the unseen side towards the seen one, while the seen directions,
+    # held by a data term, keep their colours
+    target = sky.logits(seen).detach()
+    optimizer = torch.optim.Adam(sky.parameters(), lr=0.05)
+    for _ in range(300):
+        optimizer.zero_grad()
+        (prior.loss(sky) + 10.0 * (sky.logits(seen) - target).square().mean()).backward()
+        optimizer.step()
+    assert float(prior.loss(sky).detach()) < 0.2 * float(expected)
+    assert float((sky.logits(seen) - target).abs().mean().detach()) < 0.3
+
+
+def test_the_unseen_term_trains_only_when_its_weight_is_set_and_round_trips(fast_config, sky_scene, tmp_path):
+    from esgs.core.config import config_from_dict, config_to_dict
+    from esgs.core.train import TrainConfig
+    from esgs.core.train.trainer import Trainer
+
+    config = _config(fast_config, sky_scene, tmp_path / "unseen", iterations=4, sky_unseen_weight=0.5)
+    trainer = Trainer(config)
+    trainer.setup()
+    assert "sky_unseen" in {term.name for term in trainer.loss_terms}
+    assert 0.0 < trainer._unseen_sky.unseen_fraction < 1.0
+    values = [trainer.train_step(step).loss_values for step in range(1, 5)]
+    assert all("sky_unseen" in step for step in values)
+    assert config_from_dict(TrainConfig, config_to_dict(config)).sky_unseen_weight == 0.5
+    off = Trainer(_config(fast_config, sky_scene, tmp_path / "off", iterations=4))
+    off.setup()
+    assert "sky_unseen" not in {term.name for term in off.loss_terms}
