@@ -1,7 +1,7 @@
 """Training methods on top of the trainer, and the one way to run them.
 
 The trainer (:mod:`esgs.core.train`) knows no method; this package registers those that
-ship (:mod:`.registry`: ``3dgs``, ``esgs``, ``mip-splatting``, ``dropout-gs``, ``pgsr``) and gives
+ship (:mod:`.registry`: ``3dgs``, ``esgs``, ``mip-splatting``, ``dropout-gs``, ``pgsr``, ``scaffold-gs``) and gives
 every caller (CLI, demo, bench, experiments, Blender) the same entry points:
 
 - :func:`train` / :func:`make_trainer`: run ``config.method`` with ``config.method_config``;
@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any, Optional, Sequence
 from ..train.config import TrainConfig, run_config_from_dict
 from ..train.config import load_run_config as _load_saved_config
 from ..train.method import Method, MethodParts, RenderOptions
-from .baselines.config import DropoutGSConfig, MipSplattingConfig, PGSRConfig
+from .baselines.config import DropoutGSConfig, MipSplattingConfig, PGSRConfig, ScaffoldGSConfig
 from .esgs.config import ESGSConfig
 from .registry import get_method, method_names, register_method, unregister_method
 
@@ -31,7 +31,7 @@ if TYPE_CHECKING:
     from ..train.trainer import Trainer, TrainResult
 
 __all__ = [
-    "DropoutGSConfig", "ESGSConfig", "Method", "MethodParts", "MipSplattingConfig", "PGSRConfig", "RenderOptions",
+    "DropoutGSConfig", "ESGSConfig", "Method", "MethodParts", "MipSplattingConfig", "PGSRConfig", "RenderOptions", "ScaffoldGSConfig",
     "AUTO_DEPTH_WEIGHT", "esgs_config", "evaluate_run", "full_esgs", "get_method", "load_run_config", "make_trainer",
     "method_names", "prepare_priors", "register_method", "render_options", "render_run", "resolve", "train",
     "train_config_from_dict",

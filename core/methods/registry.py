@@ -12,7 +12,7 @@ from typing import Any
 
 from ..errors import ConfigError
 from ..train.method import PLAIN_3DGS, Method, MethodParts, RenderOptions
-from .baselines.config import DropoutGSConfig, MipSplattingConfig, PGSRConfig
+from .baselines.config import DropoutGSConfig, MipSplattingConfig, PGSRConfig, ScaffoldGSConfig
 from .esgs.config import ESGSConfig
 
 _METHODS: dict[str, Method] = {}
@@ -79,6 +79,12 @@ def _build_pgsr(settings: PGSRConfig, config: Any) -> MethodParts:
     return MethodParts(hooks=[PGSRHook(settings)])
 
 
+def _build_scaffold_gs(settings: ScaffoldGSConfig, config: Any) -> MethodParts:
+    from .baselines.scaffold_gs import scaffold_parts
+
+    return scaffold_parts(settings, config)
+
+
 register_method(PLAIN_3DGS)
 register_method(Method(name="esgs", label="ESGS", settings_class=ESGSConfig, build=_build_esgs,
                        description="3DGS with depth/normal prior losses and GPDFN neighbour fusion (the paper's method)"))
@@ -90,3 +96,7 @@ register_method(Method(name="dropout-gs", label="DropoutGS", settings_class=Drop
 register_method(Method(name="pgsr", label="PGSR", settings_class=PGSRConfig, build=_build_pgsr,
                        description="planar Gaussians: flattening, unbiased depth, single- and multi-view geometric "
                                    "consistency (Chen et al. 2024)"))
+register_method(Method(name="scaffold-gs", label="Scaffold-GS", settings_class=ScaffoldGSConfig,
+                       build=_build_scaffold_gs,
+                       description="anchors on a voxel grid whose features decode view-dependent neural Gaussians "
+                                   "through small MLPs, grown and pruned by gradient and opacity (Lu et al. 2024)"))
