@@ -1,13 +1,13 @@
-"""``esgs bench --suite quick|full|large --out DIR``: 3DGS, Mip-Splatting, DropoutGS, PGSR, 3DGS + GPDFN and ESGS
-compared."""
+"""``esgs bench --suite quick|full|large --out DIR``: 3DGS, Mip-Splatting, DropoutGS, PGSR, Scaffold-GS,
+3DGS + GPDFN and ESGS compared."""
 from __future__ import annotations
 
 import argparse
 import sys
 from pathlib import Path
 
-HELP = ("compare 3DGS, Mip-Splatting, DropoutGS, PGSR, 3DGS + GPDFN, ESGS ablations and ESGS on synthetic scenes "
-        "(benchmarks.md)")
+HELP = ("compare 3DGS, Mip-Splatting, DropoutGS, PGSR, Scaffold-GS, 3DGS + GPDFN, ESGS ablations and ESGS on "
+        "synthetic scenes (benchmarks.md)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -1,5 +1,5 @@
-"""The method comparison (``esgs bench``): 3DGS, Mip-Splatting, DropoutGS, PGSR, 3DGS + GPDFN, ESGS
-ablations and full ESGS on synthetic scenes, at equal step counts and at equal wall-clock
+"""The method comparison (``esgs bench``): 3DGS, Mip-Splatting, DropoutGS, PGSR, Scaffold-GS, 3DGS + GPDFN,
+ESGS ablations and full ESGS on synthetic scenes, at equal step counts and at equal wall-clock
 budgets, written as ``OUT/benchmarks.md``.
 
 Scenes are made with ``esgs scene`` in a child process (Blender's ``bpy`` never enters
@@ -181,6 +181,8 @@ METHODS = (
     _method("dropout_gs", "DropoutGS", "dropout-gs", settings={"dropout_rate": 0.1}, vanilla=True),
     # the geometry specialist among the paper's baselines: planar Gaussians, no priors (docs/baselines.md)
     _method("pgsr", "PGSR", "pgsr", vanilla=True),
+    # anchors decoding neural Gaussians per view, no priors; scored on its decoded Gaussians (docs/baselines.md)
+    _method("scaffold_gs", "Scaffold-GS", "scaffold-gs", vanilla=True),
     _method("3dgs_gpdfn", "3DGS + GPDFN", "esgs", full=True, priors=False),
     _method("esgs_depth", "ESGS: depth prior", "esgs", settings={"depth": True}),
     _method("esgs_normal", "ESGS: normal prior", "esgs", settings={"normal": True}),

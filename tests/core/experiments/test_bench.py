@@ -59,7 +59,8 @@ def test_suites_name_their_presets_and_the_plan_skips_methods_without_priors(tmp
     # with gt priors the full-ESGS row on gt is the labelled upper bound: one row, not two
     assert len([t for t in tasks if t.scene_name == "tiny"]) == len(METHODS) - 1
     assert {t.variant for t in tasks if t.scene_name == "bare"} == {"3DGS", "3DGS + sky model (our defaults)",
-                                                                   "Mip-Splatting", "DropoutGS", "PGSR", "3DGS + GPDFN"}
+                                                                   "Mip-Splatting", "DropoutGS", "PGSR", "Scaffold-GS",
+                                                                   "3DGS + GPDFN"}
     assert len(notes) == 4 and all("bare" in note for note in notes)
     full = next(t for t in tasks if t.name == f"tiny/{UPPER_BOUND_KEY}")
     assert full.config["method"] == "esgs" and "upper bound" in full.variant
@@ -106,11 +107,12 @@ def test_prior_rows_use_the_chosen_source_and_only_the_labelled_upper_bound_row_
     # the tiny scene has gt priors only: with the default (auto) the ESGS rows have nothing to read
     tasks, notes = plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=5)
     planned = {t.name.split("/")[1]: t for t in tasks}
-    assert set(planned) == {"3dgs", "3dgs_sky", "mip_splatting", "dropout_gs", "pgsr", "3dgs_gpdfn",
+    assert set(planned) == {"3dgs", "3dgs_sky", "mip_splatting", "dropout_gs", "pgsr", "scaffold_gs", "3dgs_gpdfn",
                             UPPER_BOUND_KEY}
     # the published baselines run vanilla; the sky-model row and ESGS keep the defaults
-    for key in ("3dgs", "mip_splatting", "dropout_gs", "pgsr"):
+    for key in ("3dgs", "mip_splatting", "dropout_gs", "pgsr", "scaffold_gs"):
         assert planned[key].config["sky"] == "none" and planned[key].config["mask_source"] == "none"
+    assert planned["pgsr"].config["method"] == "pgsr" and planned["scaffold_gs"].config["method"] == "scaffold-gs"
     for key in ("3dgs_sky", "3dgs_gpdfn", UPPER_BOUND_KEY):
         assert "sky" not in planned[key].config and "mask_source" not in planned[key].config
     assert planned[UPPER_BOUND_KEY].config["method_config"]["priors"] == "gt" and "upper bound" in planned[UPPER_BOUND_KEY].variant
@@ -144,8 +146,8 @@ def test_the_default_rows_are_esgs_on_auto_priors_and_3dgs_plus_gpdfn(tmp_path, 
     tasks, notes = plan_bench({"tiny": (copy, 0)}, tmp_path / "out", iterations=5)
     planned = {t.name.split("/")[1]: t for t in tasks}
     assert notes == [] and "3dgs_gpdfn" in {m.key for m in METHODS}
-    assert set(planned) == {"3dgs", "3dgs_sky", "mip_splatting", "dropout_gs", "pgsr", "3dgs_gpdfn", "esgs_depth",
-                            "esgs_normal", "esgs_depth_normal", "esgs_full_auto", UPPER_BOUND_KEY}
+    assert set(planned) == {"3dgs", "3dgs_sky", "mip_splatting", "dropout_gs", "pgsr", "scaffold_gs", "3dgs_gpdfn",
+                            "esgs_depth", "esgs_normal", "esgs_depth_normal", "esgs_full_auto", UPPER_BOUND_KEY}
     # full ESGS on auto, the one definition (esgs.core.methods.full_esgs); the ablations read auto too
     full = planned["esgs_full_auto"]
     assert full.variant == "ESGS (auto)" and full.config["method"] == "esgs"
