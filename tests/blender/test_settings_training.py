@@ -169,6 +169,18 @@ def test_the_panel_draws_the_chosen_methods_settings():
     shown = props(draw(ESGS_PT_training))
     assert {"mip_filter_3d", "mip_filter_2d", "mip_frustum_margin"} <= set(shown) and "depth" not in shown
 
+    # PGSR and Scaffold-GS are offered, and each draws every one of its settings under its label, none of the other's
+    offered = [item.identifier for item in _properties()["method"].enum_items]
+    for method, other in (("pgsr", "scaffold-gs"), ("scaffold-gs", "pgsr")):
+        assert method in offered
+        settings.method = method
+        record = draw(ESGS_PT_training)
+        own = {fld.name for fld in dataclasses.fields(get_method(method).settings_class)}
+        others = {fld.name for fld in dataclasses.fields(get_method(other).settings_class)}
+        assert ("label", get_method(method).label) in record
+        assert own <= set(props(record)) and not others & set(props(record)), method
+        assert not {"depth", "mip_filter_3d", "dropout_rate"} & set(props(record)), method
+
 
 def test_the_prior_source_offers_what_the_scene_folder_holds(tmp_path):
     from esgs.panels.training_panel import ESGS_PT_training
