@@ -15,6 +15,11 @@ Steps (each cached, so the script can be stopped and started again):
 3. the runs, one after another, seed first (3DGS and ESGS with every prior source; on the
    sky scene ESGS with ``gt_skyfilled`` with masks honoured and ignored), each followed by a
    rewrite of the report (``OUT/acceptance.json`` and ``--doc``).
+
+``--baselines pgsr scaffold-gs`` (opt-in; any published baseline of ``esgs bench``) adds a row
+per method to every scene of the main study: run as published, like the bench's rows
+(constant background, no sky masks, no priors), with the 3DGS arm's steps, seeds and width;
+each ESGS row is then also compared with each of them by the same criteria.
 """
 from __future__ import annotations
 
@@ -88,6 +93,48 @@ def sky_tasks(scene: Path, out: Path, iterations: int, seeds, train: dict, basel
     return tasks
 
 
+def baseline_rows(names) -> list:
+    """The rows of ``esgs bench`` (:data:`esgs.core.experiments.bench.METHODS`) of the published
+    baselines named by their training method (``pgsr``, ``scaffold-gs``, ...), each once, in the
+    order given; ConfigError for a name that is not one."""
+    from esgs.core.errors import ConfigError
+    from esgs.core.experiments.bench import METHODS
+
+    offered = baseline_choices()
+    rows = {row.method: row for row in METHODS if row.method in offered}
+    for name in names:
+        if name not in rows:
+            raise ConfigError(f"--baselines {name!r}: not a published baseline of esgs bench",
+                              hint=f"choose among {', '.join(offered)}")
+    return [rows[name] for name in dict.fromkeys(names)]
+
+
+def baseline_choices() -> tuple[str, ...]:
+    """Training methods of the bench's published baselines (its rows run as published) other than 3DGS."""
+    from esgs.core.experiments.bench import METHODS
+
+    return tuple(dict.fromkeys(row.method for row in METHODS if row.train and row.method != "3dgs"))
+
+
+def baseline_tasks(scenes: dict, out: Path, *, iterations: int, seeds, train: dict, names) -> list[RunTask]:
+    """The ``--baselines`` rows: each method with the bench's settings, run as published
+    (:data:`~esgs.core.train.config.VANILLA_3DGS` over ``train``), with the 3DGS arm's steps and
+    seeds, seed first; runs in ``OUT/runs/<scene>/<bench key>/seed<k>`` beside the study's."""
+    tasks = []
+    rows = baseline_rows(names)
+    for seed in seeds:
+        for name, scene in scenes.items():
+            mesh = SceneDir(scene).ground_truth_mesh
+            for row in rows:
+                config = {**train, **dict(row.train), "iterations": iterations, "seed": seed,
+                          "method": row.method, "method_config": row.method_config("", Path(scene))}
+                tasks.append(RunTask(name=f"{name}/{row.key}/seed{seed}", scene=Path(scene),
+                                     out=Path(out) / "runs" / name / row.key / f"seed{seed}", config=config,
+                                     variant=row.label, seed=seed, scene_name=name,
+                                     mesh=mesh if mesh.is_file() else None, measure_render=False))
+    return tasks
+
+
 def esgs_options(items: list[str]) -> dict:
     """``["depth_weight=3", ...]`` -> ``{"depth_weight": 3.0}``, checked against ESGSConfig's fields."""
     import dataclasses
@@ -125,26 +172,44 @@ def with_sky_figures(task: RunTask, summary: dict) -> dict:
 
 def report(args, scenes: dict, summaries: list[dict], sky: list[dict], failed: list[str], started: float) -> None:
     rows = scene_rows(summaries)
-    verdicts = {}
+    baselines = [row.label for row in baseline_rows(getattr(args, "baselines", None) or [])]
+    verdicts, versus = {}, {}
     for scene, scene_table in rows.items():
+        candidates = [row for row in scene_table if row["variant"] != "3DGS" and row["variant"] not in baselines]
         base = next((row for row in scene_table if row["variant"] == "3DGS"), None)
-        if base is None:
-            continue
-        for row in scene_table:
-            if row["variant"] != "3DGS":
+        if base is not None:
+            for row in candidates:
                 verdicts.setdefault(scene, {})[row["variant"]] = verdict(base, row)
+        # each ESGS row against each published baseline, by the same criteria
+        for label in baselines:
+            other = next((row for row in scene_table if row["variant"] == label), None)
+            for row in candidates if other is not None else []:
+                versus.setdefault(scene, {}).setdefault(label, {})[row["variant"]] = verdict(other, row)
     sky_rows = aggregate(sky, list(SKY_KEYS), group_by=("variant",)) if sky else []
-    atomic_write_json(Path(args.out) / "acceptance.json", {"rows": rows, "verdicts": verdicts, "sky": sky_rows,
-                                                           "failed": failed, "settings": vars(args) | {"out": str(args.out)}})
+    result = {"rows": rows, "verdicts": verdicts, "sky": sky_rows, "failed": failed,
+              "settings": vars(args) | {"out": str(args.out)}}
+    if baselines:
+        result["versus_baselines"] = versus
+    atomic_write_json(Path(args.out) / "acceptance.json", result)
     if args.doc:
-        atomic_write_text(Path(args.doc), markdown(args, scenes, rows, verdicts, sky_rows, failed, started))
+        atomic_write_text(Path(args.doc), markdown(args, scenes, rows, verdicts, sky_rows, failed, started, versus))
 
 
 def _mark(value) -> str:
     return "n/a" if value is None else ("yes" if value else "**no**")
 
 
-def markdown(args, scenes, rows, verdicts, sky_rows, failed, started) -> str:
+def _verdict_line(label: str, against: str, result: dict) -> str:
+    ratio = result["distance"].get("ratio")
+    psnr = result["psnr"]
+    change = "n/a" if psnr["change_db"] is None else f"{psnr['change_db']:+.2f} dB" + (
+        " (beyond the spread)" if psnr["significant"] else " (within the spread)")
+    return (f"- {label} vs {against}: higher SSIM {_mark(result['ssim']['pass'])}; lower LPIPS "
+            f"{_mark(result['lpips']['pass'])}; distance >= 20 % lower {_mark(result['distance']['pass'])}"
+            f"{'' if ratio is None else f' (ratio {ratio:.2f})'}; PSNR change {change}.")
+
+
+def markdown(args, scenes, rows, verdicts, sky_rows, failed, started, versus=None) -> str:
     from esgs.core.experiments.acceptance import DISTANCE_RATIO
 
     lines = ["# ESGS acceptance study (issue #6)", "",
@@ -165,6 +230,11 @@ def markdown(args, scenes, rows, verdicts, sky_rows, failed, started) -> str:
              *([f"- ESGS rows with {', '.join(args.esgs_option)} (`--esgs-option`)."] if args.esgs_option else []),
              "- 3DGS: the trainer's baseline. ESGS: depth + normal prior losses (the ones the source has: `sfm` has "
              "depth only) + GPDFN with K = 3.",
+             *([f"- Published baselines (`--baselines`): "
+                f"{', '.join(row.label for row in baseline_rows(args.baselines))}, run as published like `esgs bench`'s "
+                "rows (constant background, no sky masks, no priors; docs/baselines.md) with the same steps, seeds "
+                "and width. Each ESGS row is also compared with each of them by the same criteria."]
+               if getattr(args, "baselines", None) else []),
              "- Metrics on the held-out views: SSIM, PSNR, LPIPS (AlexNet, v0.1); distances: Gaussian centres with opacity "
              ">= 0.5 to `mesh/ground_truth.ply` (scene units, metres). Mean ± std over seeds (population std).",
              f"- Verdict: ESGS with each non-gt source against 3DGS on the same scene. A criterion passes when "
@@ -174,13 +244,10 @@ def markdown(args, scenes, rows, verdicts, sky_rows, failed, started) -> str:
     for scene, table in rows.items():
         lines += [f"## {scene}", "", markdown_table(table, columns)]
         for label, result in verdicts.get(scene, {}).items():
-            ratio = result["distance"].get("ratio")
-            psnr = result["psnr"]
-            change = "n/a" if psnr["change_db"] is None else f"{psnr['change_db']:+.2f} dB" + (
-                " (beyond the spread)" if psnr["significant"] else " (within the spread)")
-            lines.append(f"- {label} vs 3DGS: higher SSIM {_mark(result['ssim']['pass'])}; lower LPIPS "
-                         f"{_mark(result['lpips']['pass'])}; distance >= 20 % lower {_mark(result['distance']['pass'])}"
-                         f"{'' if ratio is None else f' (ratio {ratio:.2f})'}; PSNR change {change}.")
+            lines.append(_verdict_line(label, "3DGS", result))
+        for against, results in (versus or {}).get(scene, {}).items():
+            for label, result in results.items():
+                lines.append(_verdict_line(label, against, result))
         lines.append("")
     if sky_rows:
         lines += ["## The sky fix (rover_horizon)", "",
@@ -230,6 +297,9 @@ def main() -> int:
     parser.add_argument("--train-defaults", action="store_true",
                         help="train with today's defaults (sky model, masks from --mask-source auto) instead of the "
                              "study's historical --mask-source none")
+    parser.add_argument("--baselines", nargs="+", default=[], choices=baseline_choices(), metavar="METHOD",
+                        help="also train these published baselines on every scene of the main study, as published "
+                             f"like esgs bench's rows, with 3DGS's steps and seeds ({', '.join(baseline_choices())})")
     parser.add_argument("--doc", type=Path, default=None)
     parser.add_argument("--report-only", action="store_true", help="rewrite the report from finished runs")
     args = parser.parse_args()
@@ -251,6 +321,8 @@ def main() -> int:
         train["mask_source"] = "none"  # the study's historical setting: photometric loss on whole images
     tasks = plan_runs(scenes, args.out, iterations=args.iterations, seeds=args.seeds, train=train,
                       sources=args.sources, esgs_options=esgs_options(args.esgs_option))
+    tasks += baseline_tasks(scenes, args.out, iterations=args.iterations, seeds=args.seeds, train=train,
+                            names=args.baselines)
     sky = []
     if args.sky_preset:
         sky_scene = sfm_variant(make_scene(args.sky_preset, root / f"{args.sky_preset}_{args.views}v_{args.resolution}",
