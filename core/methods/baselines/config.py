@@ -111,7 +111,7 @@ class ScaffoldGSConfig:
         "help": "weight of the volume regulariser, mean over the rendered neural Gaussians of the product of "
                 "their scales (paper: 0.01)"})
     scaffold_grow_threshold: float = field(default=2e-4, metadata={
-        "help": "mean screen-space gradient (NDC units, as --densify-grad-threshold) above which a neural "
+        "help": "mean screen-space gradient (NDC units, as the densification gradient threshold) above which a neural "
                 "Gaussian asks for a new anchor at the coarsest level; x2 per finer level (paper: 2e-4)"})
     scaffold_grow_levels: int = field(default=3, metadata={
         "help": "voxel levels anchors grow on: 16, 4 and 1 voxel sizes for 3 levels (paper: 3)"})
@@ -126,7 +126,7 @@ class ScaffoldGSConfig:
                 "(scaled; paper: 500)"})
     scaffold_grow_from: int = field(default=1500, metadata={
         "help": "first anchor update (growing and pruning), of 30,000 (scaled; paper: 1,500); updates then "
-                "follow the trainer's densification interval until --densify-until"})
+                "follow the trainer's densification interval until the end of densification"})
 
     def validate(self) -> None:
         for name in ("scaffold_feature_dim", "scaffold_offsets", "scaffold_grow_levels"):

@@ -614,7 +614,7 @@ def decoded_model(params: RenderParams, max_sh_degree: int) -> GaussianModel:
     eps = 1e-6
     rest = (max_sh_degree + 1) ** 2 - 1
     return GaussianModel.from_tensors(
-        means=params.means, sh_dc=params.colors[:, :1, :], sh_rest=torch.zeros(count, rest, 3),
+        means=params.means, sh_dc=params.colors[:, :1, :], sh_rest=torch.zeros(count, rest, 3, device=params.means.device, dtype=params.means.dtype),
         opacity_logit=inverse_sigmoid(params.opacities.clamp(eps, 1.0 - eps)),
         log_scales=torch.log(params.scales.clamp_min(1e-12)), quats=params.quats, max_sh_degree=max_sh_degree)
 

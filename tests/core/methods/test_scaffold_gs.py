@@ -131,6 +131,17 @@ def test_the_ply_export_round_trips(tmp_path):
     torch.testing.assert_close(back.sh_coefficients()[:, :1], decoded.params.colors)
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_the_export_stays_on_the_decoding_device():
+    # the first CUDA run failed at evaluation: the export's zero higher SH bands were made on the CPU
+    positions, features, offsets, log_scaling = (t.cuda() for t in _anchors(count=20))
+    decoded = decode_anchors(positions, features, offsets, log_scaling, ScaffoldDecoder(8, 4, seed=1).cuda(),
+                             torch.tensor([0.0, 0.0, 5.0], device="cuda"))
+    model = decoded_model(decoded.params, 3)
+    assert {value.device.type for value in model.params.values()} == {"cuda"}
+    assert model.render_params(3).colors.device.type == "cuda"
+
+
 # --- the volume regulariser --------------------------------------------------------------
 def test_volume_regulariser_by_hand_and_by_finite_differences():
     scales = torch.tensor([[1.0, 2.0, 3.0], [0.5, 0.5, 4.0]], dtype=torch.float64)
