@@ -27,6 +27,24 @@ def quaternion_to_matrix(quats: torch.Tensor) -> torch.Tensor:
     ], dim=-1).reshape(quats.shape[0], 3, 3)
 
 
+def project_points(points: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, *,
+                   near_plane: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Pinhole projection of [N, 3] world points into one camera (viewmat [4, 4] world-to-camera,
+    OpenCV axes; K [3, 3]): ``(u [N], v [N], z [N], in_front [N] bool)`` in pixels and camera z.
+
+    Points at or behind ``near_plane`` get ``in_front`` False, z = 1 and finite (meaningless)
+    pixels, so no inf or NaN leaks into later arithmetic (a caller may divide by z).
+    """
+    viewmat, K = viewmat.to(points), K.to(points)
+    camera = points @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = camera[:, 2]
+    in_front = z > near_plane
+    safe_z = torch.where(in_front, z, torch.ones_like(z))
+    u = K[0, 0] * camera[:, 0] / safe_z + K[0, 2]
+    v = K[1, 1] * camera[:, 1] / safe_z + K[1, 2]
+    return u, v, safe_z, in_front
+
+
 def project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height, *, near_plane, far_plane,
                       antialiased, eps2d, need_normals):
     """Project N Gaussians into C cameras.

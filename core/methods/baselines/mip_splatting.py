@@ -22,6 +22,7 @@ from typing import Any, Optional, Sequence
 
 import torch
 
+from ...render.projection import project_points
 from ...train.gaussians import GaussianModel, RenderParams
 from ...train.hooks import RunView, StepContext, TrainHook
 from .config import MipSplattingConfig
@@ -47,14 +48,8 @@ def max_sampling_rate(means: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Ten
     rate = torch.zeros(means.shape[0], dtype=means.dtype, device=means.device)
     seen = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
     for camera in range(viewmats.shape[0]):
-        viewmat = viewmats[camera].to(means)
         K = Ks[camera].to(means)
-        points = means @ viewmat[:3, :3].T + viewmat[:3, 3]
-        z = points[:, 2]
-        in_front = z > near_plane
-        safe_z = torch.where(in_front, z, torch.ones_like(z))
-        u = K[0, 0] * points[:, 0] / safe_z + K[0, 2]
-        v = K[1, 1] * points[:, 1] / safe_z + K[1, 2]
+        u, v, safe_z, in_front = project_points(means, viewmats[camera], K, near_plane=near_plane)
         width, height = float(widths[camera]), float(heights[camera])
         inside = (in_front & (u >= -margin * width) & (u <= (1.0 + margin) * width)
                   & (v >= -margin * height) & (v <= (1.0 + margin) * height))

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ...render.projection import project_points
 from ...train.densify import DensifyReport
 from ...train.gaussians import PARAMETER_NAMES, GaussianModel, RenderParams, inverse_sigmoid, rgb_to_sh_dc
 from ...train.hooks import RunView, StepContext, TrainHook
@@ -197,14 +198,9 @@ def visible_anchors(positions: torch.Tensor, offsets: torch.Tensor, log_scaling:
     with torch.no_grad():
         scaling = torch.exp(log_scaling)
         radius = (offsets * scaling[:, None, :3]).norm(dim=-1).amax(dim=1) + 3.0 * scaling[:, 3:].amax(dim=1)
-        viewmat, K = viewmat.to(positions), K.to(positions)
-        points = positions @ viewmat[:3, :3].T + viewmat[:3, 3]
-        z = points[:, 2]
-        in_front = z > near_plane
-        safe_z = torch.where(in_front, z, torch.ones_like(z))
-        u = K[0, 0] * points[:, 0] / safe_z + K[0, 2]
-        v = K[1, 1] * points[:, 1] / safe_z + K[1, 2]
-        pixels = torch.maximum(K[0, 0], K[1, 1]) * radius / safe_z
+        u, v, z, in_front = project_points(positions, viewmat, K, near_plane=near_plane)
+        K = K.to(positions)
+        pixels = torch.maximum(K[0, 0], K[1, 1]) * radius / z
         return in_front & (u >= -pixels) & (u <= width + pixels) & (v >= -pixels) & (v <= height + pixels)
 
 

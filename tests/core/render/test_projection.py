@@ -40,3 +40,18 @@ def test_numba_projection_matches_torch(antialiased):
         assert torch.allclose(numba_out[key][valid], torch_out[key][valid], rtol=1e-10, atol=1e-10), key
     for name in names:
         assert relative_error(numba_grads[name], torch_grads[name]) < 1e-10, name
+
+
+def test_project_points_by_hand_and_behind_the_camera():
+    from esgs.core.render.projection import project_points
+
+    viewmat = torch.eye(4, dtype=torch.float64)
+    viewmat[:3, 3] = torch.tensor([0.5, -1.0, 2.0], dtype=torch.float64)  # camera frame = world + t
+    K = torch.tensor([[100.0, 0.0, 32.0], [0.0, 80.0, 24.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    points = torch.tensor([[0.5, 1.0, 2.0], [0.0, 0.0, -2.0], [1.0, 1.0, -5.0]], dtype=torch.float64)
+    u, v, z, in_front = project_points(points, viewmat, K, near_plane=0.01)
+    # first point: camera (1, 0, 4) -> u = 100 * 1 / 4 + 32, v = 80 * 0 / 4 + 24
+    assert in_front.tolist() == [True, False, False]
+    assert float(z[0]) == 4.0 and float(u[0]) == 57.0 and float(v[0]) == 24.0
+    # on the near plane and behind it: z is 1 and every value finite
+    assert z[1:].tolist() == [1.0, 1.0] and bool(torch.isfinite(torch.stack([u, v])).all())
