@@ -148,7 +148,7 @@ class TrainConfig:
 
     # --- method ---------------------------------------------------------------------
     method: str = field(default="3dgs", metadata=_help(
-        "training method (esgs train --list-methods): 3dgs, esgs, mip-splatting, dropout-gs"))
+        "training method (esgs train --list-methods): 3dgs, esgs, mip-splatting, dropout-gs, pgsr, scaffold-gs"))
     method_config: Any = field(default=None, metadata=_help(
         "the method's settings: its dataclass (e.g. ESGSConfig), a dict of its fields when read from JSON, "
         "or None for its defaults"))
