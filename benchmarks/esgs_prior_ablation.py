@@ -7,7 +7,7 @@ statistic fed by the images only), the normal prior alone, and GPDFN alone. Exac
 isolate the method from the quality of the priors: if a part moves the Gaussians away from
 the mesh with exact depth and normals, no better prior will fix it.
 
-    python benchmarks/esgs_prior_ablation.py SCENE PLAN.json [--seeds 0] [--backend cpu] [--threads 2]
+    python benchmarks/esgs_prior_ablation.py SCENE PLAN.json [--seeds 0] [--arms A ...] [--backend cpu] [--threads 2]
     python benchmarks/device_study.py run PLAN.json --out DIR --workers 1 --deadline-s 3000
     python benchmarks/device_study.py merge DIR --json RESULT.json
     python benchmarks/esgs_prior_ablation.py signed RESULT.json DIR ... --mesh SCENE/mesh/ground_truth.ply
@@ -54,13 +54,18 @@ def ablation_arms() -> dict[str, dict[str, Any]]:
     }
 
 
-def make_plan(scene: str, *, seeds: list[int], backend: str, threads: int, iterations: int) -> list[dict[str, Any]]:
+def make_plan(scene: str, *, seeds: list[int], backend: str, threads: int, iterations: int,
+              arms: list[str] | None = None) -> list[dict[str, Any]]:
+    chosen = ablation_arms()
+    unknown = sorted(set(arms or []) - set(chosen))
+    if unknown:
+        raise SystemExit(f"unknown arms {', '.join(unknown)} (known: {', '.join(chosen)})")
     base = {"lpips": True, "save_renders": False, "checkpoint_every": 0, "iterations": iterations,
             "backend": backend, "threads": threads}
     group = Path(scene).name
     return [{"name": f"{group}/{arm}/{backend}/seed{seed}", "group": group, "arm": arm, "seed": seed, "scene": scene,
              "config": {**base, "seed": seed, **overrides}}
-            for seed in seeds for arm, overrides in ablation_arms().items()]
+            for seed in seeds for arm, overrides in chosen.items() if not arms or arm in arms]
 
 
 def signed_distances(centres: Any, mesh: Any, samples: int = 4000) -> dict[str, float]:
@@ -119,9 +124,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--backend", default="cpu")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--iterations", type=int, default=600)
+    parser.add_argument("--arms", nargs="+", default=None, help="a subset of the arms (default: all)")
     args = parser.parse_args(argv)
     plan = make_plan(args.scene, seeds=args.seeds, backend=args.backend, threads=args.threads,
-                     iterations=args.iterations)
+                     iterations=args.iterations, arms=args.arms)
     args.plan.write_text(json.dumps(plan, indent=1))
     print(f"{len(plan)} runs -> {args.plan}")
     return 0
