@@ -48,8 +48,11 @@ REFERENCE_THREADS = 2
 
 #: seconds per training step at 320x180, 40,000 Gaussians, 2 cores, per method (README:
 #: 3DGS 0.12 s, ESGS 0.20 s; docs/benchmarks.md's equal-step tables: Mip-Splatting 0.92x
-#: and DropoutGS 0.97x the time of 3DGS, so they take its figure)
-DEFAULT_STEP_S = {"3dgs": 0.12, "esgs": 0.20, "mip-splatting": 0.12, "dropout-gs": 0.12}
+#: and DropoutGS 0.97x the time of 3DGS, so they take its figure; the quick suite of
+#: 2026-11-27, benchmarks/results/bench_quick_2026-11-27.json: PGSR 2.5x, its neighbour
+#: renders and patch losses, and Scaffold-GS 1.1x the time of 3DGS as published)
+DEFAULT_STEP_S = {"3dgs": 0.12, "esgs": 0.20, "mip-splatting": 0.12, "dropout-gs": 0.12, "pgsr": 0.30,
+                  "scaffold-gs": 0.13}
 #: a method not in :data:`DEFAULT_STEP_S` (a plug-in) is costed as plain 3DGS
 FALLBACK_METHOD = "3dgs"
 

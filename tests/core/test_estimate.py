@@ -179,3 +179,11 @@ def test_durations_are_said_to_an_estimate_s_precision():
     assert estimate.format_estimate(89 * 60) == "89 min"
     assert estimate.format_estimate(100 * 60) == "1 h 40 min"
     assert estimate.format_estimate(3 * 3600 + 100) == "3 h"
+
+
+def test_every_shipped_method_has_a_measured_step_cost():
+    # a method costed by the fallback would show 3DGS's time in the panel: PGSR's steps cost 2.5x
+    from esgs.core.methods import method_names
+
+    assert set(method_names()) <= set(estimate.DEFAULT_STEP_S)
+    assert estimate.DEFAULT_STEP_S["pgsr"] > estimate.DEFAULT_STEP_S["esgs"] > estimate.DEFAULT_STEP_S["3dgs"]
