@@ -179,6 +179,23 @@ class UnseenSkyPrior:
         nearest = (unseen @ seen.T).topk(k, dim=1).indices
         return cls(unseen, seen, nearest, samples)
 
+    @classmethod
+    def from_views(cls, views: Any, marks_sky: bool, *, stride: int = 4) -> Optional["UnseenSkyPrior"]:
+        """From training views (``viewmat``, ``K``, ``width``, ``height``, ``mask``): rays through
+        every ``stride``-th pixel, the sky ones where the masks mark sky (every ray when they do not)."""
+        all_rays, sky_rays = [], []
+        for view in views:
+            rays = ray_directions(view.viewmat, view.K, view.width, view.height)[::stride, ::stride].reshape(-1, 3)
+            all_rays.append(rays)
+            if not marks_sky:
+                sky_rays.append(rays)
+            elif view.mask is not None:
+                sky = ~view.mask[::stride, ::stride, 0].bool().reshape(-1)
+                sky_rays.append(rays[sky.to(rays.device)])
+        if not all_rays:
+            return None
+        return cls.from_rays(torch.cat(all_rays), torch.cat(sky_rays) if sky_rays else all_rays[0][:0])
+
     def to(self, device: torch.device | str) -> "UnseenSkyPrior":
         return UnseenSkyPrior(self.unseen.to(device), self.seen.to(device), self.neighbours.to(device), self.samples)
 

@@ -48,7 +48,7 @@ from .optim import ExponentialDecay, TrainOptimizer
 from .rendering import RenderOutput, backend_device, render_view, resolve_backend
 from ..formats.run_dir import RunDir
 from ..formats.scene_dir import PriorSource
-from .sky import SkyModel, UnseenSkyPrior, ray_directions, save_sky
+from .sky import SkyModel, UnseenSkyPrior, save_sky
 from .strategy import DefaultStrategy, Strategy, StrategyContext
 
 #: Settings that may change when a run is resumed (they do not change what is computed).
@@ -351,7 +351,7 @@ class Trainer:
         if config.surface_alpha_weight > 0 and marks_sky:
             self.add_loss_term(LossTerm("surface_alpha", config.surface_alpha_weight, _surface_alpha_term))
         if config.sky_unseen_weight > 0:
-            self._unseen_sky = _unseen_sky_prior(self.data.train, marks_sky)
+            self._unseen_sky = UnseenSkyPrior.from_views(self.data.train, marks_sky)
             if self._unseen_sky is None:
                 self.message("note: every direction was seen by a training view, or none as sky: "
                              "the unseen-sky prior is off")
@@ -653,23 +653,6 @@ def _marks_sky(mask_source: Optional[str]) -> bool:
     if mask_source is None or mask_source not in {source.value for source in PriorSource}:
         return False
     return PriorSource(mask_source).masks_sky
-
-
-def _unseen_sky_prior(views: Sequence[View], marks_sky: bool, stride: int = 4) -> Optional[UnseenSkyPrior]:
-    """The unseen-sky prior of the training views: rays through every ``stride``-th pixel, the sky
-    ones where the masks mark sky (every ray when they do not)."""
-    all_rays, sky_rays = [], []
-    for view in views:
-        rays = ray_directions(view.viewmat, view.K, view.width, view.height)[::stride, ::stride].reshape(-1, 3)
-        all_rays.append(rays)
-        if not marks_sky:
-            sky_rays.append(rays)
-        elif view.mask is not None:
-            sky = ~view.mask[::stride, ::stride, 0].bool().reshape(-1)
-            sky_rays.append(rays[sky.to(rays.device)])
-    if not all_rays:
-        return None
-    return UnseenSkyPrior.from_rays(torch.cat(all_rays), torch.cat(sky_rays) if sky_rays else all_rays[0][:0])
 
 
 def _mean_sky_colour(views: Sequence[View]) -> Optional[torch.Tensor]:

@@ -476,11 +476,12 @@ class PGSRHook(TrainHook):
 
 
 def _scene_extent(views: Sequence[Any]) -> float:
-    """3DGS's scene extent of the training cameras: 1.1 x the largest distance of a camera
-    centre from their mean (1 for a single camera or coincident ones)."""
+    """3DGS's scene extent of the training cameras (:func:`~esgs.core.train.dataset.scene_extent`:
+    1.1 x the largest distance of a camera centre from their mean), centres from the viewmats."""
+    from ...train.dataset import scene_extent
+
     if not views:
         return 1.0
     viewmats = torch.stack([view.viewmat.detach().to(torch.float64).cpu() for view in views])
     centres = -(viewmats[:, :3, :3].transpose(1, 2) @ viewmats[:, :3, 3:])[..., 0]
-    radius = float((centres - centres.mean(0)).norm(dim=-1).max()) * 1.1
-    return radius if radius > 1e-9 else 1.0
+    return scene_extent(centres.numpy())[0]
