@@ -85,6 +85,9 @@ class TrainConfig:
     backend: str = field(default="auto", metadata=_help("rasterizer backend", choices=BACKENDS))
     resume: bool = field(default=False, metadata=_help("continue from the last checkpoint in --out"))
     events: Optional[Path] = field(default=None, metadata=_help("also append progress events to this JSON-lines file"))
+    tensorboard: Optional[Path] = field(default=None, metadata=_help(
+        "also write TensorBoard scalars into this folder: losses per term, training PSNR, Gaussian count, learning "
+        "rates, seconds per step, held-out PSNR/SSIM/LPIPS (needs pip install tensorboard; docs/training.md)"))
     stop_file: Optional[Path] = field(default=None, metadata=_help(
         "stop request: when this file appears the run finishes its step, saves a checkpoint and ends as "
         "'interrupted' (works on every platform; RUN/STOP is always watched too)"))

@@ -50,11 +50,12 @@ from ..formats.run_dir import RunDir
 from ..formats.scene_dir import PriorSource
 from .sky import SkyModel, UnseenSkyPrior, save_sky
 from .strategy import DefaultStrategy, Strategy, StrategyContext
+from .tensorboard import TensorBoardScalars, summary_writer_class
 
 #: Settings that may change when a run is resumed (they do not change what is computed).
 RESUMABLE_SETTINGS = frozenset({
     "scene", "out", "resume", "max_minutes", "threads", "events", "stop_file", "checkpoint_every", "keep_checkpoints",
-    "progress_every", "evaluate", "save_renders", "lpips", "backend",
+    "progress_every", "evaluate", "save_renders", "lpips", "backend", "tensorboard",
 })
 
 CHECKPOINT_FORMAT = 1
@@ -184,6 +185,9 @@ class Trainer:
         self.optimizer: TrainOptimizer
         self._progress: ProgressCallback = progress or (lambda event: None)
         self._events_files: list[JsonLinesProgress] = []
+        self._scalars: Optional[TensorBoardScalars] = None
+        if config.tensorboard is not None:
+            summary_writer_class()  # a missing optional package fails here, before any training work
 
     # --- the RunView that hooks see (see hooks.RunView) -----------------------------
     @property
@@ -531,12 +535,22 @@ class Trainer:
             self._events_files.append(JsonLinesProgress(self.config.events))
         self._progress = combine(*callbacks, *self._events_files)
 
+    def _open_scalars(self) -> None:
+        """The TensorBoard sink (``config.tensorboard``), once the run's step is known."""
+        if self.config.tensorboard is not None:
+            # a resumed run hides what an interrupted session wrote after its last checkpoint
+            self._scalars = TensorBoardScalars(self.config.tensorboard, purge_step=self.step + 1 if self.step else None)
+
     def _close_progress(self) -> None:
         for handle in self._events_files:
             handle.close()
         self._events_files = []
+        if self._scalars is not None:
+            self._scalars.close()
+            self._scalars = None
 
-    def _report(self, step: int, started_step: int, *, kind: str = "progress") -> None:
+    def _report(self, step: int, started_step: int, context: Optional[StepContext] = None, *,
+                kind: str = "progress") -> None:
         elapsed = self._session_elapsed()
         done = step - started_step
         seconds_per_step = elapsed / done if done > 0 else float("nan")
@@ -547,6 +561,10 @@ class Trainer:
                    "eta_s": seconds_per_step * remaining if done > 0 else float("nan"),
                    "s_per_step": seconds_per_step}
         self._progress(ProgressEvent(step=step, total=self.config.iterations, stage="train", metrics=metrics, kind=kind))
+        if self._scalars is not None and context is not None:
+            self._scalars.train_step(step, metrics, loss=context.loss, loss_terms=context.loss_values,
+                                     learning_rates={name: self.optimizer.learning_rate(name)
+                                                     for name in self.optimizer.groups})
 
     def run(self) -> TrainResult:
         """Train (or continue) the run and return its result."""
@@ -574,6 +592,7 @@ class Trainer:
         if checkpoint_state is not None:
             self.message(f"resuming from step {self.step} ({len(self.gaussians)} Gaussians)")
         start_step = self.step
+        self._open_scalars()
         self._session_start = time.monotonic()
         status = "completed"
         saved_step = self.step if checkpoint_state is not None else -1
@@ -582,7 +601,7 @@ class Trainer:
             Path(path).unlink(missing_ok=True)  # a request left by an earlier session must not stop this one
         with _StopRequests() as stop:
             for step in range(start_step + 1, config.iterations + 1):
-                self.train_step(step)
+                context = self.train_step(step)
                 if stop.signal_name is None and any(Path(path).exists() for path in stop_files):
                     stop.signal_name = "stop request"
                     for path in stop_files:
@@ -597,7 +616,7 @@ class Trainer:
                     self.save_checkpoint()
                     saved_step = step
                 if step % config.progress_every == 0 or step == config.iterations:
-                    self._report(step, start_step)
+                    self._report(step, start_step, context)
                 if config.max_minutes and self._session_elapsed() > config.max_minutes * 60.0:
                     status = "time_limit"
                     self.message(f"max_minutes ({config.max_minutes:g}) reached at step {step}: stopping and evaluating")
@@ -634,6 +653,8 @@ class Trainer:
                                      eps2d=self.parts.render.eps2d, sky=self.sky, view_params=self._view_params)
             metrics["step"] = self.step
             atomic_write_json(self.run_dir.metrics, metrics)
+            if self._scalars is not None:
+                self._scalars.evaluation(self.step, metrics)
         elapsed = self.elapsed_before_s + self._session_elapsed()
         result = TrainResult(run_dir=self.run_dir.root, status=status, step=self.step, iterations=config.iterations,
                              n_gaussians=len(self.gaussians), elapsed_s=elapsed, metrics=metrics,
