@@ -107,7 +107,10 @@ def trainer_choice(context: Optional[bpy.types.Context] = None) -> tuple[str, st
     if managed is not None:
         return str(managed), "Set Up Trainer"
     python = find_python()
-    return python, ("the checkout's .venv" if ".venv" in Path(python).parts else "Blender's own Python")
+    # find_python's .venv is the one of the add-on's own folder (a checkout); Blender's Python may
+    # well live in some other .venv (the bpy module installed in a virtual environment)
+    from_checkout = Path(python).absolute().is_relative_to(trainer_setup.PACKAGE_ROOT / ".venv")
+    return python, ("the checkout's .venv" if from_checkout else "Blender's own Python")
 
 
 def trainer_python(context: Optional[bpy.types.Context] = None) -> str:
