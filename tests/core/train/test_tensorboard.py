@@ -105,3 +105,19 @@ def test_without_the_package_the_flag_is_a_usage_error(tiny_scene, tmp_path, cap
     assert code == 2
     assert len(err.strip().splitlines()) == 1 and "pip install tensorboard" in err and "--tensorboard" in err
     assert not run.exists() and not (tmp_path / "board").exists()  # before any training work
+
+
+def test_a_resumed_run_writes_on_without_drawing_steps_twice(fast_config, tmp_path):
+    from esgs.core.train.checkpoint import list_checkpoints
+
+    board = tmp_path / "board"
+    train(fast_config(iterations=12, checkpoint_every=5, keep_checkpoints=5, evaluate=False, tensorboard=board))
+    checkpoints = dict(list_checkpoints(fast_config().out / "checkpoints"))
+    assert sorted(checkpoints) == [5, 10, 12]
+    checkpoints[12].unlink()  # as if the first session had been killed after step 12's report
+    first = dict(_scalars(board)["train/loss"])
+    train(fast_config(iterations=12, checkpoint_every=5, keep_checkpoints=5, evaluate=False, tensorboard=board,
+                      resume=True))
+    steps = [step for step, _ in _scalars(board)["train/loss"]]
+    assert steps == [5, 10, 12]  # step 12 of the first session hidden, the resumed session's shown
+    assert dict(_scalars(board)["train/loss"])[10] == first[10]
