@@ -20,7 +20,7 @@ stand-in's path, so installing them is not covered here; nor are downloading tor
 a torch index, Windows and macOS.
 
 The trace shows the priors and training children ran with the set-up environment's Python
-and imported the engine from the installed extension (``esgs_engine.pth``), not the checkout.
+and imported the engine from the installed extension, not the checkout.
 """
 from __future__ import annotations
 
@@ -47,11 +47,13 @@ REPO_ROOT = packaging.REPO_ROOT
 SITE_PACKAGES = Path(sysconfig.get_paths()["purelib"])
 DRIVER = Path(__file__).with_name("zip_end_to_end.py")
 
-#: the .pth line of the stand-in torch wheel: every start of the environment's Python appends
-#: its interpreter and command line to $ESGS_E2E_TRACE (when set)
-TRACE_LINE = ('import os, sys; _esgs_trace = os.environ.get("ESGS_E2E_TRACE"); _esgs_trace and '
-              'open(_esgs_trace, "a").write(sys.executable + "\\t" + '
-              'open("/proc/self/cmdline").read().replace("\\0", " ").replace("\\n", " ") + "\\n")')
+#: the .pth line of the stand-in torch wheel: every Python of the environment appends, as it
+#: exits, its interpreter, the file of the ``esgs`` it imported ("-": none) and its command line
+#: to $ESGS_E2E_TRACE (when set)
+TRACE_LINE = ('import atexit, os, sys; _esgs_trace = os.environ.get("ESGS_E2E_TRACE"); _esgs_trace and atexit.register('
+              'lambda path=_esgs_trace, command=open("/proc/self/cmdline").read().replace("\\0", " ")'
+              '.replace("\\n", " "): open(path, "a").write("\\t".join([sys.executable, getattr(sys.modules.get('
+              '"esgs"), "__file__", None) or "-", command]) + "\\n"))')
 
 
 def build_wheel(folder: Path, name: str, version: str, files: dict[str, bytes]) -> Path:
@@ -166,7 +168,7 @@ def test_the_zip_alone_sets_up_a_trainer_and_runs_the_whole_flow(tmp_path):
     purelib = next(environment.glob("lib/python3*/site-packages"))
     assert (purelib / trainer_setup.ENGINE_PTH_NAME).read_text().strip() == str(extension.parent)
     started_by = [line.split("\t") for line in trace.read_text().splitlines()]
-    pip_requirements = [command for _, command in started_by if " -m pip install " in command and " -r " in command]
+    pip_requirements = [command for _, _, command in started_by if " -m pip install " in command and " -r " in command]
     assert pip_requirements and all(f"--find-links {extension / 'wheels'} " in command for command in
                                     pip_requirements), pip_requirements  # the zip's wheels offered to pip
 
@@ -193,10 +195,12 @@ def test_the_zip_alone_sets_up_a_trainer_and_runs_the_whole_flow(tmp_path):
     assert json.loads((run / "config.json").read_text())["scene"] == str(scene)
 
     # the children ran with the set-up environment's Python and its engine from the extension
-    children = [command for executable, command in started_by if "esgs.core.runtime.child" in command]
-    assert any(" priors " in f" {c} " for c in children) and any(" train " in f" {c} " for c in children), children
-    assert all(executable == str(python) for executable, command in started_by
-               if "esgs.core.runtime.child" in command), started_by
+    children = [(executable, engine, command) for executable, engine, command in started_by
+                if "esgs.core.runtime.child" in command]
+    assert any(" priors " in command for _, _, command in children), children
+    assert any(" train " in command for _, _, command in children), children
+    assert {(executable, engine) for executable, engine, _ in children} == {
+        (str(python), str(extension / "__init__.py"))}, children
 
     # Import: Train imported its result, and File > Import Gaussians reads the same file
     assert found["trained_object"] is not None and found["trained_object"][2] == n_gaussians, found["trained_object"]
