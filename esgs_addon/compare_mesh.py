@@ -183,6 +183,9 @@ def compare_to_mesh(gaussian_obj: bpy.types.Object, mesh_obj: bpy.types.Object |
 
 def describe(summary: dict[str, Any]) -> str:
     """One sentence for a report: F-score, threshold in metres and its rule, recall's scope."""
+    if summary.get("fscore") is None:
+        return (f"no Gaussian has opacity >= {summary.get('opacity_min') or 0:g}, so precision, recall and F-score "
+                f"are undefined: lower the opacity filter (of {summary.get('n_gaussians', 0):,} Gaussians)")
     text = (f"F-score {summary['fscore']:.3f} (precision {summary['precision']:.3f}, recall {summary['recall']:.3f}) "
             f"at {summary['threshold_m']:.4g} m")
     if summary.get("threshold_rule") and summary["threshold_rule"] != "given":

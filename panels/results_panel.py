@@ -73,15 +73,20 @@ def draw_summary(layout: bpy.types.UILayout, summary: dict) -> None:
         grid = layout.grid_flow(columns=3, even_columns=True)
         for key in ("mean", "std", "median", "p95", "rms", "max"):
             grid.label(text=f"{key} {stats[key]:.4g}")
-    layout.label(text=f"At {summary.get('threshold_m', 0):.4g} m: precision {summary.get('precision', 0):.3f}, "
-                      f"recall {summary.get('recall', 0):.3f}, F {summary.get('fscore', 0):.3f}")
+    if summary.get("fscore") is None:
+        layout.label(text=f"No Gaussian at opacity >= {summary.get('opacity_min') or 0:g}: scores undefined, "
+                          "lower the opacity filter", icon="ERROR")
+    else:
+        layout.label(text=f"At {summary.get('threshold_m', 0):.4g} m: precision {summary['precision']:.3f}, "
+                          f"recall {summary['recall']:.3f}, F {summary['fscore']:.3f}")
     rule = summary.get("threshold_rule")
     if rule and rule != "given":
         layout.label(text=f"Threshold: {rule}")
     if summary.get("n_visible_samples") is not None:
         layout.label(text=f"Recall over the {summary.get('visible_fraction', 0):.0%} of the mesh the "
                           f"{summary.get('n_cameras', 0)} training cameras saw", icon="HIDE_OFF")
-        layout.label(text=f"(whole mesh: recall {summary.get('recall_whole_mesh', 0):.3f})")
+        if summary.get("recall_whole_mesh") is not None:
+            layout.label(text=f"(whole mesh: recall {summary['recall_whole_mesh']:.3f})")
     else:
         layout.label(text="Recall over the whole mesh (no training cameras known)", icon="INFO")
     if summary.get("legend"):

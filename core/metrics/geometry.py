@@ -316,7 +316,8 @@ def compare_points_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
         to filtered centres), ``precision``, ``recall``, ``fscore``, ``threshold_m`` and
         ``threshold_rule``, and the settings used. With cameras also ``recall_scope``
         ("visible"), ``n_cameras``, ``n_visible_samples``, ``visible_fraction`` and
-        ``recall_whole_mesh`` (recall over every sample, for reference).
+        ``recall_whole_mesh`` (recall over every sample, for reference). Precision, recall,
+        F-score and ``recall_whole_mesh`` are None when no centre passes ``opacity_min``.
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if threshold_m is not None and threshold_m <= 0:
@@ -343,10 +344,15 @@ def compare_points_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
     else:
         rule = "given"
     filtered = distances[kept]
-    precision = float(np.mean(filtered <= threshold_m)) if len(filtered) else 0.0
     seen_completeness = completeness[visible]
-    recall = float(np.mean(seen_completeness <= threshold_m)) if len(seen_completeness) else 0.0
-    fscore = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    if len(filtered):
+        precision = float(np.mean(filtered <= threshold_m))
+        recall = float(np.mean(seen_completeness <= threshold_m)) if len(seen_completeness) else 0.0
+        fscore = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    else:
+        # no centre passes the opacity filter: the scores are undefined, not zero (a run
+        # whose Gaussians are all faint is not "a bad match"; lowering the filter tells)
+        precision = recall = fscore = None
     summary = {
         "units": "scene units (metres for synthetic scenes)",
         "n_gaussians": int(len(points)),
@@ -362,14 +368,14 @@ def compare_points_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
         "mesh_to_gaussians": distance_statistics(seen_completeness if len(filtered) else np.zeros(0)),
         "precision": precision,
         "recall": recall,
-        "fscore": float(fscore),
+        "fscore": None if fscore is None else float(fscore),
     }
     if cameras is not None:
         summary.update({
             "n_cameras": len(list(cameras)),
             "n_visible_samples": int(visible.sum()),
             "visible_fraction": float(visible.mean()),
-            "recall_whole_mesh": float(np.mean(completeness <= threshold_m)),
+            "recall_whole_mesh": float(np.mean(completeness <= threshold_m)) if len(filtered) else None,
         })
     return MeshComparison(distances=distances, kept=kept, summary=summary)
 

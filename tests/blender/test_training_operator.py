@@ -344,6 +344,14 @@ def test_panels_draw_progress_and_results(tmp_path):
     assert "Recall over the whole mesh (no training cameras known)" in labels
     assert sum(1 for kind, text in record if kind == "prop" and text.startswith('["')) == 8  # display + heat map
 
+    # every Gaussian below the opacity filter: the scores are undefined, and the panel says why
+    summary = compare_mesh.compare_to_mesh(obj, plane_mesh(), opacity_min=0.99, n_surface_samples=200, threshold_m=0.05)
+    assert summary["precision"] is None and summary["fscore"] is None
+    assert "lower the opacity filter" in compare_mesh.describe(summary)
+    labels = [text for kind, text in draw_panel(ESGS_PT_results) if kind == "label"]
+    assert "No Gaussian at opacity >= 0.99: scores undefined, lower the opacity filter" in labels
+    assert not any(text.startswith("At 0.05 m: precision") for text in labels)
+
 
 @pytest.mark.slow
 def test_real_trainer_end_to_end(tmp_path):

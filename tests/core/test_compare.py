@@ -104,6 +104,18 @@ def test_statistics_scores_and_opacity_filter():
     json.dumps(summary)  # plain JSON types only
 
 
+def test_scores_are_undefined_when_no_centre_passes_the_opacity_filter():
+    vertices, faces = grid_plane(half_size=1.0, cells=4)
+    points = np.array([[0.0, 0.0, 0.01], [0.5, 0.5, 0.02]])
+    result = compare.compare_points_to_mesh(points, vertices, faces, opacities=np.array([0.1, 0.2]), opacity_min=0.5,
+                                            threshold_m=0.05, n_surface_samples=500)
+    summary = result.summary
+    assert summary["n_gaussians_filtered"] == 0
+    assert summary["precision"] is None and summary["recall"] is None and summary["fscore"] is None
+    np.testing.assert_allclose(result.distances, [0.01, 0.02], atol=1e-12)  # the unfiltered figures stay
+    json.dumps(summary)
+
+
 def test_recall_drops_when_part_of_the_surface_is_missing():
     vertices, faces = grid_plane(half_size=1.0, cells=4)
     coords = np.linspace(-1, 1, 81)
