@@ -314,7 +314,8 @@ class GPDFN(nn.Module):
         return index, weight
 
     def forward(self, means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
-                opacity_logits: torch.Tensor, sh_dc: torch.Tensor, unit_quats: bool = False) -> dict[str, torch.Tensor]:
+                opacity_logits: torch.Tensor, sh_dc: torch.Tensor, unit_quats: bool = False,
+                rows: Optional[torch.Tensor] = None) -> dict[str, torch.Tensor]:
         """Residuals for the rendering parameters.
 
         Inputs: means [N,3], log_scales [N,3], quats [N,4] (wxyz), opacity_logits [N],
@@ -322,6 +323,10 @@ class GPDFN(nn.Module):
         to ADD to the Gaussians' own parameters (all zero when disabled or at initialisation).
         ``unit_quats``: ``quats`` are already normalised as ``q / max(|q|, 1e-12)`` (the trainer
         hook passes the renderer's, so a step normalises once; same values and gradients).
+        ``rows`` [M] int64 (sorted, unique): fuse only these Gaussians; the others get zero
+        residuals. The voxel features still average every Gaussian, so the residuals of
+        ``rows`` and every gradient of a loss that reads only them are those of the full
+        forward (the trainer hook passes the Gaussians a step can render).
         """
         count = means.shape[0]
         if not self.enabled or count == 0:
@@ -338,6 +343,14 @@ class GPDFN(nn.Module):
         voxel_features = voxel_features / per_voxel
         centroids = means.new_zeros(voxels, 3).index_add_(0, table.inverse, means.detach()) / per_voxel
         neighbours = self.config.fused_k - 1
+        full_count = count
+        if rows is not None and rows.numel() == 0:
+            zeros = means.new_zeros
+            return {"sh_dc": zeros(full_count, 3), "opacity_logits": zeros(full_count), "log_scales": zeros(full_count, 3)}
+        if rows is not None:
+            # the per-Gaussian work (sampling, fusion and their backward) for the chosen rows only
+            features, means = features.index_select(0, rows), means.index_select(0, rows)
+            count = int(rows.shape[0])
         # mean + voxel_size * (base_offset + max_shift * tanh(offset_head(features))), in two passes
         # entry-major [K-1, N, 3], the fusion core's layout (see _fusion_forward_block)
         shift = torch.tanh(self.offset_head(features)).view(count, neighbours, 3).transpose(0, 1)
@@ -356,4 +369,6 @@ class GPDFN(nn.Module):
                                      weight.view(neighbours, count), first.bias, second.weight, second.bias,
                                      self.attention.weight[0], self.attention.bias[0], self.head.weight,
                                      self.head.bias)
+        if rows is not None:
+            residual = residual.new_zeros(full_count, residual.shape[1]).index_copy(0, rows, residual)
         return {"sh_dc": residual[:, 0:3], "opacity_logits": residual[:, 3], "log_scales": residual[:, 4:7]}

@@ -17,15 +17,52 @@ from .gpdfn import GPDFN
 from .config import ESGSConfig
 
 
-def gpdfn_residuals(module: GPDFN, gaussians: Any, params: Any) -> dict[str, torch.Tensor]:
+def gpdfn_residuals(module: GPDFN, gaussians: Any, params: Any,
+                    rows: Optional[torch.Tensor] = None) -> dict[str, torch.Tensor]:
     """GPDFN's residuals for ``gaussians`` (raw parameters) given their activated ``params``.
 
     The rotations come from ``params.quats``, the renderer's unit quaternions
-    (``GaussianModel.render_params``), so a step normalises them once, not twice.
+    (``GaussianModel.render_params``), so a step normalises them once, not twice. ``rows``:
+    fuse only these Gaussians (:meth:`GPDFN.forward`), the others get zero residuals.
     """
     raw = gaussians.params
     return module(raw["means"], raw["log_scales"], params.quats, raw["opacity_logit"].reshape(-1),
-                  raw["sh_dc"].reshape(-1, 3), unit_quats=True)
+                  raw["sh_dc"].reshape(-1, 3), unit_quats=True, rows=rows)
+
+
+#: How far GPDFN's log-scale residual may grow a Gaussian for :func:`frustum_rows` to still
+#: count it (e^1.4 ~ 4x its own scale); the rasterizer's radius rule is 3.33 sigma at most.
+_RESIDUAL_GROWTH = 4.0
+_SIGMA_RADIUS = 3.33
+_NEAR_PLANE = 0.01  # the rasterizer's default: centres nearer than this are never drawn
+
+
+def frustum_rows(means: torch.Tensor, scales: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor,
+                 width: int, height: int) -> torch.Tensor:
+    """[M] sorted indices of the Gaussians one camera can draw, with a margin for GPDFN's residuals.
+
+    A Gaussian counts when its centre is beyond the rasterizer's near plane and its projected
+    centre lies within the image grown by a radius bound: 3.33 sigma of its largest scale
+    grown :data:`_RESIDUAL_GROWTH` times, times the camera's focal length over the depth
+    (off-screen Gaussians use a clamped Jacobian, which the growth factor also covers), plus a
+    pixel for the 2D dilation. The Gaussians left out are drawn by no rasterizer rule unless a
+    residual grows them more than that, so fusing only these leaves the step's render and its
+    gradients as they are. means [N, 3] world; scales [N, 3] activated; viewmat [4, 4]; K [3, 3].
+    """
+    with torch.no_grad():
+        rotation, translation = viewmat[:3, :3].to(means), viewmat[:3, 3].to(means)
+        camera = means.detach() @ rotation.T + translation
+        depth = camera[:, 2]
+        in_front = depth > _NEAR_PLANE
+        safe = torch.where(in_front, depth, torch.ones_like(depth))
+        fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+        u = fx * camera[:, 0] / safe + cx
+        v = fy * camera[:, 1] / safe + cy
+        radius = _SIGMA_RADIUS * _RESIDUAL_GROWTH * scales.detach().amax(dim=-1) * max(fx, fy) / safe + 1.0
+        outside_u = (u - u.clamp(0.0, float(width))).abs()
+        outside_v = (v - v.clamp(0.0, float(height))).abs()
+        keep = in_front & (outside_u <= radius) & (outside_v <= radius)
+        return torch.nonzero(keep).reshape(-1)
 
 
 def fused_render_params(module: GPDFN, gaussians: Any, params: Any) -> Any:
@@ -81,10 +118,14 @@ class GPDFNHook(TrainHook):
             return params
         if self.every > 1 and self._cached is not None and context.step % self.every != 0:
             return apply_residuals(run.gaussians, params, self._cached)
-        residual = gpdfn_residuals(self.module, run.gaussians, params)
-        if self.every > 1:
+        if self.every > 1:  # the cached residuals serve later views too: every Gaussian's
+            residual = gpdfn_residuals(self.module, run.gaussians, params)
             self._cached = {name: value.detach() for name, value in residual.items()}
-        return apply_residuals(run.gaussians, params, residual)
+            return apply_residuals(run.gaussians, params, residual)
+        # the step renders one view: fuse only the Gaussians it can draw (same render and gradients)
+        view = context.view
+        rows = frustum_rows(params.means, params.scales, view.viewmat, view.K, view.width, view.height)
+        return apply_residuals(run.gaussians, params, gpdfn_residuals(self.module, run.gaussians, params, rows))
 
     def model_params(self, run: RunView, params: RenderParams) -> RenderParams:
         """The model with every Gaussian fused with its neighbours by the current weights."""

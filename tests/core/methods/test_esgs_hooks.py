@@ -130,7 +130,7 @@ def test_gpdfn_hook_trains_its_module_and_bakes_residuals(scene, tmp_path):
     changed = [not torch.equal(a, b.detach()) for a, b in zip(before, hook.module.parameters())]
     assert all(changed), "every GPDFN weight (offsets included) must learn"
     params = trainer.gaussians.render_params(1)
-    fused = hook.before_render(trainer, None, params)
+    fused = hook.model_params(trainer, params)  # every Gaussian fused (a step fuses what its view can draw)
     assert not torch.allclose(fused.opacities, params.opacities)
     hook.bake(trainer.gaussians)
     baked = trainer.gaussians.render_params(1)

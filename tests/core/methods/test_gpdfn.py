@@ -319,3 +319,96 @@ def test_hook_residuals_equal_the_module_on_raw_parameters():
     expected = torch.autograd.grad(residual["sh_dc"].sum() + torch.sigmoid(raw["opacity_logit"] + residual["opacity_logits"]).sum()
                                    + torch.exp(raw["log_scales"] + residual["log_scales"]).sum(), raw["quats"])[0]
     torch.testing.assert_close(gradient, expected, rtol=1e-4, atol=1e-6)
+
+
+def test_fusing_chosen_rows_gives_the_full_forwards_residuals_and_gradients():
+    """Sampling and fusion for a subset of rows: their residuals and every gradient of a loss
+    that reads only them are the full forward's; the other rows get zero residuals."""
+    torch.manual_seed(8)
+    params = {name: value.double() for name, value in _gaussians(count=300).items()}
+    module = GPDFN(GPDFNConfig(fused_k=3)).double()
+    for parameter in module.parameters():
+        torch.nn.init.normal_(parameter, std=0.3)
+    rows = torch.sort(torch.randperm(300, generator=torch.Generator().manual_seed(2))[:170]).values
+    others = torch.ones(300, dtype=torch.bool)
+    others[rows] = False
+
+    def rows_only(function):
+        def read(**inputs):
+            return {name: value[rows] for name, value in function(**inputs).items()}
+        return read
+
+    full, full_gradients = _outputs_and_gradients(rows_only(module), params, module)
+    subset, subset_gradients = _outputs_and_gradients(rows_only(lambda **p: module(**p, rows=rows)), params, module)
+    for name in full:
+        torch.testing.assert_close(subset[name], full[name], rtol=1e-12, atol=1e-14)
+    names = list(params) + [name for name, _ in module.named_parameters()]
+    for name, a, b in zip(names, subset_gradients, full_gradients):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11, msg=f"gradient of {name}")
+    residual = module(**params, rows=rows)
+    assert all(float(value[others].detach().abs().max()) == 0.0 for value in residual.values())
+    assert float(residual["sh_dc"][rows].detach().abs().max()) > 0
+    empty = module(**params, rows=torch.zeros(0, dtype=torch.long))
+    assert all(value.shape[0] == 300 and float(value.abs().max()) == 0.0 for value in empty.values())
+
+
+def _look_at(eye, target):
+    """[4, 4] world-to-camera (OpenCV axes: x right, y down, z forward) of a camera at ``eye``."""
+    eye, target = torch.tensor(eye, dtype=torch.float32), torch.tensor(target, dtype=torch.float32)
+    forward = torch.nn.functional.normalize(target - eye, dim=0)
+    right = torch.nn.functional.normalize(torch.linalg.cross(forward, torch.tensor([0.0, 0.0, 1.0])), dim=0)
+    down = torch.linalg.cross(forward, right)
+    rotation = torch.stack([right, down, forward])
+    viewmat = torch.eye(4)
+    viewmat[:3, :3] = rotation
+    viewmat[:3, 3] = -rotation @ eye
+    return viewmat
+
+
+def test_hook_fuses_only_the_gaussians_the_view_can_draw_and_renders_the_same():
+    from types import SimpleNamespace
+
+    from esgs.core.methods import ESGSConfig
+    from esgs.core.methods.esgs.gpdfn_hook import GPDFNHook, fused_render_params, frustum_rows
+    from esgs.core.train.gaussians import GaussianModel
+    from esgs.core.train.hooks import StepContext
+    from esgs.core.train.rendering import render_view
+
+    params = _gaussians(count=400)
+    params["log_scales"] = torch.full((400, 3), -3.5)
+    model = GaussianModel.from_tensors(means=params["means"], sh_dc=params["sh_dc"][:, None, :],
+                                       sh_rest=torch.zeros(400, 3, 3), opacity_logit=params["opacity_logits"],
+                                       log_scales=params["log_scales"], quats=params["quats"], max_sh_degree=1)
+    hook = GPDFNHook(ESGSConfig(gpdfn=True, fused_k=3))
+    torch.manual_seed(3)
+    for parameter in hook.module.parameters():
+        torch.nn.init.normal_(parameter, std=0.1)
+    # a camera that sees one corner of the 4 x 4 m patch, some Gaussians behind it
+    view = SimpleNamespace(viewmat=_look_at([0.5, 0.5, 1.5], [1.0, 1.0, 0.0]), K=torch.tensor(
+        [[120.0, 0.0, 40.0], [0.0, 120.0, 30.0], [0.0, 0.0, 1.0]]), width=80, height=60)
+    rows = frustum_rows(model.params["means"], torch.exp(model.params["log_scales"]), view.viewmat, view.K, 80, 60)
+    assert 0 < len(rows) < 300  # the test leaves Gaussians out
+
+    def render_and_gradients(fuse):
+        for parameter in list(hook.module.parameters()) + list(model.params.values()):
+            parameter.grad = None
+        output = render_view(fuse(), view.viewmat, view.K, 80, 60, backend="cpu", render_depth=True)
+        weights = torch.linspace(0.0, 1.0, output.image.numel()).reshape(output.image.shape)
+        ((output.image * weights).sum() + output.depth.sum()).backward()
+        grads = [p.grad.clone() if p.grad is not None else None
+                 for p in list(model.params.values()) + list(hook.module.parameters())]
+        return output.image.detach(), output.alpha.detach(), grads
+
+    trainer = SimpleNamespace(gaussians=model)
+    context = StepContext(step=1, view=view, sh_degree=1)
+    image, alpha, grads = render_and_gradients(lambda: hook.before_render(trainer, context, model.render_params(1)))
+    full_image, full_alpha, full_grads = render_and_gradients(
+        lambda: fused_render_params(hook.module, model, model.render_params(1)))
+    assert float(alpha.max()) > 0.5
+    torch.testing.assert_close(image, full_image, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(alpha, full_alpha, rtol=1e-5, atol=1e-6)
+    for a, b in zip(grads, full_grads):
+        if b is None:
+            assert a is None
+        else:
+            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
