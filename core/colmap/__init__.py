@@ -1,9 +1,10 @@
-"""COLMAP sparse models: the project's own small dataclasses, read/written through pycolmap.
+"""COLMAP sparse models: the project's own small dataclasses, read by a checked parser, written through pycolmap.
 
 Public API (see :mod:`.model` for the dataclasses):
 
 - ``read_model(path) -> ColmapModel``: text or binary model folder (or a scene folder
-  holding ``sparse/0``), validated with clear :class:`~esgs.core.errors.DatasetError`\\ s.
+  holding ``sparse/0``), validated with clear :class:`~esgs.core.errors.DatasetError`\\ s and read
+  once (``use_pycolmap=True``: pycolmap's reading of the same bytes, the tests' cross-check).
 - ``write_model(model, path, binary=True)``: atomically.
 - ``load_scene(scene_dir) -> (model, images_dir)``: a scene folder (images/ + sparse/0).
 - ``validate_images(model, images_dir)``, ``check_image_sizes(model, images_dir)``.

@@ -93,7 +93,7 @@ def _parse_blobs(folder: Path, extension: str, blobs: dict[str, bytes]) -> Colma
     return model
 
 
-def read_model(path: str | Path, *, use_pycolmap: bool = True) -> ColmapModel:
+def read_model(path: str | Path, *, use_pycolmap: bool = False) -> ColmapModel:
     """Read a COLMAP sparse model (binary or text) into the project's dataclasses.
 
     ``path``: a model folder or a scene folder holding ``sparse/0``. The files are fully
@@ -101,9 +101,11 @@ def read_model(path: str | Path, *, use_pycolmap: bool = True) -> ColmapModel:
     record, image naming an unknown camera, inconsistent tracks, no registered image)
     raises :class:`DatasetError` naming the file and what is wrong.
 
-    ``use_pycolmap=False`` returns the checked parse itself (the same model, as the tests
-    show, about twice as fast on large models: pycolmap's per-point Python objects cost
-    ~25 us per 3D point to convert).
+    The model returned is the checked parse itself, read once (the default everywhere: the
+    add-on, training, priors, the CLI). ``use_pycolmap=True`` also hands the same bytes to
+    pycolmap and returns its reading, after checking the counts agree: the tests' cross-check
+    that both readers see the same model (pycolmap's per-point Python objects cost ~25 us per
+    3D point to convert, ~25 s for a 1M-point model).
     """
     folder, extension = find_model_dir(path)
     # Read each file once: the bytes checked are the bytes pycolmap gets, even if the

@@ -38,7 +38,7 @@ def _read_damaged(extension: str, name: str, data: bytes) -> ColmapModel | None:
                 shutil.copyfile(source / other, Path(folder) / other)
         (Path(folder) / name).write_bytes(data)
         try:
-            model = read_model(folder)
+            model = read_model(folder, use_pycolmap=True)
         except DatasetError as error:
             assert str(error), "a DatasetError must say what is wrong"
             return None
