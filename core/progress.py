@@ -20,7 +20,10 @@ class ProgressEvent:
 
     ``step`` counts from 0 to ``total``; ``stage`` names the phase ("train", "eval",
     "render"...); ``metrics`` holds numbers such as loss, psnr, n_gaussians, eta_s;
-    ``kind`` is "progress", "message", "done" or "error".
+    ``kind`` is "progress", "message", "eval", "done" or "error". An "eval" event is a point of
+    a training run's evaluation curve (``TrainConfig.eval_every``): stage "eval", ``step`` the
+    training step, ``metrics`` the held-out psnr and ssim, train_s (training seconds so far,
+    evaluations excluded) and n_gaussians.
     """
 
     step: int
@@ -77,6 +80,12 @@ class ConsoleProgress:
 
         if event.kind == "message":
             (tqdm.write if self._bar else print)(event.message, file=self.stream)
+            return
+        if event.kind == "eval":  # a line beside the training bar, which goes on
+            metrics = event.metrics
+            line = (f"step {event.step}: held-out PSNR {_short(metrics.get('psnr'))} dB, "
+                    f"SSIM {_short(metrics.get('ssim'))} after {_short(metrics.get('train_s'))} s of training")
+            (tqdm.write if self._bar else print)(line, file=self.stream)
             return
         if self._bar is None or event.stage != self._stage or event.total != self._bar.total:
             self.close()

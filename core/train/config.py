@@ -94,6 +94,10 @@ class TrainConfig:
     checkpoint_every: int = field(default=1000, metadata=_help("steps between checkpoints (not scaled; 0 = only at the end)"))
     keep_checkpoints: int = field(default=2, metadata=_help("checkpoints kept in RUN/checkpoints"))
     progress_every: int = field(default=10, metadata=_help("steps between progress events"))
+    eval_every: int = field(default=0, metadata=_help(
+        "evaluate the held-out views every K steps (PSNR and SSIM; LPIPS only at the end) and write them to "
+        "events.jsonl as 'eval' events with the training seconds so far; evaluation time is not counted as "
+        "training time; 0 = off"))
     evaluate: bool = field(default=True, metadata=_help("evaluate on the held-out views at the end"))
     save_renders: bool = field(default=True, metadata=_help("write renders/test/<name>.png beside <name>_gt.png"))
     lpips: bool = field(default=True, metadata=_help("compute LPIPS when its weights are available"))
@@ -171,7 +175,8 @@ class TrainConfig:
         for name in ("iterations", "resolution", "sh_increase_every", "densify_every", "keep_checkpoints",
                      "progress_every", "random_init_points", "init_scale_neighbours", "max_gaussians"):
             positive(name)
-        for name in ("width", "test_every", "max_minutes", "threads", "checkpoint_every", "opacity_reset_every",
+        for name in ("width", "test_every", "max_minutes", "threads", "checkpoint_every", "eval_every",
+                     "opacity_reset_every",
                      "densify_from", "densify_until", "position_lr_delay_steps", "sh_degree", "lambda_dssim",
                      "prune_opacity", "densify_grad_threshold"):
             positive(name, allow_zero=True)

@@ -16,7 +16,8 @@ Tags (the step is the training step, 1-based as the trainer's):
   unweighted value at that step (``l1``, ``dssim``, the methods' prior terms...);
 - ``lr/<group>``: the learning rate of each optimizer group (``means``, ``sh_dc``, ...);
 - ``eval/psnr``, ``eval/ssim``, ``eval/lpips``: the held-out views' means of ``metrics.json``,
-  at the run's last step.
+  at the run's last step; with ``eval_every`` also PSNR and SSIM every K steps (the "eval"
+  events of ``events.jsonl``).
 """
 from __future__ import annotations
 
@@ -76,7 +77,8 @@ class TensorBoardScalars:
             self._scalar(f"lr/{name}", value, step)
 
     def evaluation(self, step: int, metrics: Mapping[str, Any]) -> None:
-        """The end-of-run evaluation's means (metrics.json); LPIPS only when it was computed."""
+        """An evaluation's means (metrics.json at the end, every ``eval_every`` steps during the
+        run); LPIPS only when it was computed."""
         for key in EVAL_METRICS:
             self._scalar(f"eval/{key}", metrics.get(key), step)
 

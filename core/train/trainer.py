@@ -55,7 +55,7 @@ from .tensorboard import TensorBoardScalars, summary_writer_class
 #: Settings that may change when a run is resumed (they do not change what is computed).
 RESUMABLE_SETTINGS = frozenset({
     "scene", "out", "resume", "max_minutes", "threads", "events", "stop_file", "checkpoint_every", "keep_checkpoints",
-    "progress_every", "evaluate", "save_renders", "lpips", "backend", "tensorboard",
+    "progress_every", "evaluate", "save_renders", "lpips", "backend", "tensorboard", "eval_every",
 })
 
 CHECKPOINT_FORMAT = 1
@@ -70,7 +70,11 @@ class TrainResult:
     """What :func:`train` did.
 
     status: "completed", "time_limit" (max_minutes reached; evaluated) or "interrupted"
-    (SIGTERM/Ctrl-C; checkpoint saved, resume with ``resume=True``).
+    (SIGTERM/Ctrl-C; checkpoint saved, resume with ``resume=True``). ``elapsed_s``: seconds
+    of the run up to its end (every session, the end-of-run evaluation and writes included;
+    mid-run evaluations, ``eval_every``, excluded); ``train_s``: the training seconds when the
+    last step ended (the same clock without the end-of-run work; the time of the last point
+    of the evaluation curve).
     """
 
     run_dir: Path
@@ -82,10 +86,12 @@ class TrainResult:
     metrics: Optional[dict] = None
     point_cloud: Optional[Path] = None
     checkpoint: Optional[Path] = None
+    train_s: Optional[float] = None
 
     def to_dict(self) -> dict:
         return {"run_dir": str(self.run_dir), "status": self.status, "step": self.step,
                 "iterations": self.iterations, "n_gaussians": self.n_gaussians, "elapsed_s": self.elapsed_s,
+                "train_s": self.train_s,
                 "point_cloud": str(self.point_cloud) if self.point_cloud else None,
                 "checkpoint": str(self.checkpoint) if self.checkpoint else None}
 
@@ -180,6 +186,8 @@ class Trainer:
         self.loss_ema: Optional[float] = None
         self.psnr_ema: Optional[float] = None
         self.elapsed_before_s = 0.0
+        #: seconds of this session spent outside training (mid-run evaluations), off its clock
+        self._paused_s = 0.0
         self.data: SceneData
         self.gaussians: GaussianModel
         self.optimizer: TrainOptimizer
@@ -418,8 +426,50 @@ class Trainer:
         return path
 
     def _session_elapsed(self) -> float:
+        """Training seconds of this session: its wall time less the mid-run evaluations'."""
         start = getattr(self, "_session_start", None)
-        return 0.0 if start is None else time.monotonic() - start
+        return 0.0 if start is None else time.monotonic() - start - self._paused_s
+
+    def _exported_model(self) -> GaussianModel:
+        """The model as the method shows it (every hook's ``export_model``; the trained one untouched)."""
+        model = self.gaussians
+        for hook in self.hooks:
+            model = hook.export_model(self, model) or model
+        return model
+
+    def _evaluate_held_out(self, model: GaussianModel, **options: Any) -> dict:
+        """:func:`~.evaluate.evaluate_model` of ``model`` on the held-out views as the run renders them."""
+        from .evaluate import evaluate_model
+
+        return evaluate_model(model, self.data, backend=self.backend, background=self.background,
+                              sh_degree=self.schedule.sh_degree_at(self.step, self.config.sh_degree),
+                              num_threads=self.num_threads, antialiased=self.parts.render.antialiased,
+                              eps2d=self.parts.render.eps2d, sky=self.sky, view_params=self._view_params, **options)
+
+    def _eval_event(self, step: int, metrics: dict, train_s: float) -> None:
+        """One point of the evaluation curve: an "eval" event (events.jsonl) and the TensorBoard scalars."""
+        point = {"psnr": metrics["psnr"], "ssim": metrics["ssim"], "train_s": train_s,
+                 "n_gaussians": len(self.gaussians)}
+        self._progress(ProgressEvent(step=step, total=self.config.iterations, stage="eval", kind="eval",
+                                     metrics=point))
+        if self._scalars is not None:
+            self._scalars.evaluation(step, metrics)
+
+    def _evaluate_during_training(self, step: int) -> None:
+        """``eval_every``: PSNR and SSIM of the held-out views now, off the training clock.
+
+        Nothing of the training changes: no gradients, no draw from the run's random
+        generators (the rasterizer and the hooks' ``export_model``/``view_params`` draw none),
+        the trained parameters untouched (``export_model`` returns a copy where it changes them)."""
+        paused = time.monotonic()
+        train_s = self.elapsed_before_s + self._session_elapsed()
+        try:
+            with torch.no_grad():
+                metrics = self._evaluate_held_out(self._exported_model(), use_lpips=False)
+            if metrics.get("psnr") is not None:
+                self._eval_event(step, metrics, train_s)
+        finally:
+            self._paused_s += time.monotonic() - paused
 
     # --- one step ------------------------------------------------------------------
     def train_step(self, step: int) -> StepContext:
@@ -594,6 +644,7 @@ class Trainer:
         start_step = self.step
         self._open_scalars()
         self._session_start = time.monotonic()
+        self._paused_s = 0.0
         status = "completed"
         saved_step = self.step if checkpoint_state is not None else -1
         stop_files = [path for path in (self.run_dir.stop_request, config.stop_file) if path is not None]
@@ -615,6 +666,8 @@ class Trainer:
                 if config.checkpoint_every and step % config.checkpoint_every == 0:
                     self.save_checkpoint()
                     saved_step = step
+                if config.eval_every and step % config.eval_every == 0 and step < config.iterations:
+                    self._evaluate_during_training(step)
                 if step % config.progress_every == 0 or step == config.iterations:
                     self._report(step, start_step, context)
                 if config.max_minutes and self._session_elapsed() > config.max_minutes * 60.0:
@@ -631,9 +684,8 @@ class Trainer:
         from ..formats.reference_3dgs import cfg_args_text, write_reference_layout
 
         config = self.config
-        model = self.gaussians
-        for hook in self.hooks:
-            model = hook.export_model(self, model) or model
+        train_s = self.elapsed_before_s + self._session_elapsed()
+        model = self._exported_model()
         write_gaussians_ply(self.run_dir.point_cloud, model.to_ply())
         write_reference_layout(self.run_dir, self.step, [*self.data.train, *self.data.test], cfg_args=cfg_args_text(
             sh_degree=config.sh_degree, source_path=self.scene, model_path=self.run_dir.root, images=config.images_dir,
@@ -643,22 +695,19 @@ class Trainer:
             save_sky(self.run_dir.sky, self.sky)
         metrics = None
         if status != "interrupted" and config.evaluate:
-            from .evaluate import evaluate_model
-
-            sh_degree = self.schedule.sh_degree_at(self.step, config.sh_degree)
-            metrics = evaluate_model(model, self.data, backend=self.backend, background=self.background,
-                                     sh_degree=sh_degree, renders_dir=self.run_dir.test_renders if config.save_renders else None,
-                                     use_lpips=config.lpips, num_threads=self.num_threads,
-                                     progress=self._progress, antialiased=self.parts.render.antialiased,
-                                     eps2d=self.parts.render.eps2d, sky=self.sky, view_params=self._view_params)
+            metrics = self._evaluate_held_out(
+                model, renders_dir=self.run_dir.test_renders if config.save_renders else None,
+                use_lpips=config.lpips, progress=self._progress)
             metrics["step"] = self.step
             atomic_write_json(self.run_dir.metrics, metrics)
-            if self._scalars is not None:
+            if config.eval_every and metrics.get("psnr") is not None:
+                self._eval_event(self.step, metrics, train_s)  # the curve's last point
+            elif self._scalars is not None:
                 self._scalars.evaluation(self.step, metrics)
         elapsed = self.elapsed_before_s + self._session_elapsed()
         result = TrainResult(run_dir=self.run_dir.root, status=status, step=self.step, iterations=config.iterations,
                              n_gaussians=len(self.gaussians), elapsed_s=elapsed, metrics=metrics,
-                             point_cloud=self.run_dir.point_cloud, checkpoint=self._last_checkpoint)
+                             point_cloud=self.run_dir.point_cloud, checkpoint=self._last_checkpoint, train_s=train_s)
         atomic_write_json(self.run_dir.result, result.to_dict())
         summary = {"n_gaussians": len(self.gaussians), "elapsed_s": elapsed}
         if metrics:
