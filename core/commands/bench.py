@@ -23,6 +23,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="training minutes per equal-budget run (default: the suite's; 0 = no budget comparison)")
     parser.add_argument("--budget-step-cap", type=int, default=0,
                         help="step cap (and schedule length) of the budget runs (0 = the suite's: twice --iterations)")
+    parser.add_argument("--eval-every", type=int, default=None, metavar="K",
+                        help="evaluate the held-out views of every equal-step run every K steps, the curves of the "
+                             "report's 'time to 3DGS's quality' table (default: a tenth of --iterations; 0 = only at "
+                             "the end of each run)")
     parser.add_argument("--priors", nargs="+", choices=("auto", "labels", "ndn", "sfm", "gt"), default=["auto"],
                         metavar="SOURCE",
                         help="prior source(s) of the ESGS rows: auto (default: stereo labels, NDN and SfM fused per "
@@ -74,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
         result = run_bench(args.out, args.suite, executor=executor, iterations=args.iterations or None,
                            budget_minutes=args.budget_minutes, budget_step_cap=args.budget_step_cap or None,
                            train=train, priors=args.priors, sparse_points=args.sparse_points,
+                           eval_every=args.eval_every,
                            command="esgs " + " ".join(sys.argv[1:]), on_outcome=report)
     print(f"wrote {Path(args.out) / 'benchmarks.md'}")
     for item in result["failed"]:

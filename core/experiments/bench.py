@@ -21,6 +21,11 @@ kept in it), or any list of sources compared side by side (``priors=("auto", "la
 "ndn")``: one full-ESGS row "ESGS (<source>)" per source; the ablation rows use the first).
 One extra row, full ESGS with the generator's exact depth and normals, is labelled as the
 upper bound: no real scene has those priors.
+
+The equal-step runs evaluate their held-out views every ``eval_every`` steps (by default a
+tenth of the run, :attr:`BenchSuite.eval_points`): from these curves the report gives, per
+row, the training seconds to reach the 3DGS row's final held-out PSNR and SSIM on the same
+scene and seed (:func:`.curves.time_to_baseline_quality`).
 """
 from __future__ import annotations
 
@@ -42,7 +47,10 @@ from .tables import COST_COLUMNS, QUALITY_COLUMNS, aggregate, markdown_table
 
 @dataclass(frozen=True)
 class BenchSuite:
-    """Scenes (presets x seeds, rendered at ``resolution`` with ``views`` and ``samples``) and steps."""
+    """Scenes (presets x seeds, rendered at ``resolution`` with ``views`` and ``samples``) and steps.
+
+    ``eval_points``: held-out evaluations of each equal-step run (every ``iterations //
+    eval_points`` steps, :meth:`eval_every`), the curves of the time-to-quality table; 0 = none."""
 
     name: str
     presets: tuple[str, ...]
@@ -55,6 +63,12 @@ class BenchSuite:
     budget_minutes: float = 0.0
     budget_step_cap: int = 0
     description: str = ""
+    eval_points: int = 10
+
+    def eval_every(self, iterations: int = 0) -> int:
+        """Steps between the evaluations of an equal-step run of ``iterations`` (0 = the suite's) steps."""
+        iterations = iterations or self.iterations
+        return max(1, iterations // self.eval_points) if self.eval_points > 0 else 0
 
     @property
     def step_cap(self) -> int:
@@ -167,6 +181,8 @@ PRIOR_CHOICES = (*ENSURED_PRIOR_SOURCES, *names(tuple(s for s in PriorSource if 
 #: The bench's prior source when none is named: the one users get (esgs train --esgs, the demo).
 DEFAULT_PRIORS = ("auto",)
 UPPER_BOUND_KEY = "esgs_full_gt"
+#: The row whose final held-out quality the time-to-quality table measures the others against.
+BASELINE_KEY = "3dgs"
 
 
 #: The published baselines run as published (``vanilla``: constant background, no sky masks);
@@ -310,7 +326,7 @@ def make_scene(preset: str, seed: int, suite: BenchSuite, scenes_dir: Path,
 
 def plan_bench(scenes: dict[str, tuple[Path, int]], out: Path, *, iterations: int, methods: Sequence[Method] = METHODS,
                train: Optional[dict] = None, budget_minutes: float = 0.0, budget_step_cap: int = 0,
-               priors: str | Sequence[str] = DEFAULT_PRIORS) -> tuple[list[RunTask], list[str]]:
+               priors: str | Sequence[str] = DEFAULT_PRIORS, eval_every: int = 0) -> tuple[list[RunTask], list[str]]:
     """Run tasks for every scene (name -> (folder, seed)) and row, and notes on what was left out.
 
     ``priors``: one prior source or several (:func:`bench_rows`): full ESGS runs once per
@@ -322,9 +338,11 @@ def plan_bench(scenes: dict[str, tuple[Path, int]], out: Path, *, iterations: in
     ``budget_minutes`` > 0 every method also trains in ``OUT/runs_budget/<scene>/<method>``
     for that much training time (``max_minutes``), up to ``budget_step_cap`` steps (0 =
     twice ``iterations``); its learning-rate and densification schedules are those of the cap.
+    ``eval_every`` > 0: the equal-step runs evaluate their held-out views every so many steps
+    (``TrainConfig.eval_every``; the curves of the time-to-quality table).
     """
     tasks, notes = [], []
-    modes = [("steps", "runs", {"iterations": iterations})]
+    modes = [("steps", "runs", {"iterations": iterations, **({"eval_every": int(eval_every)} if eval_every else {})})]
     if budget_minutes > 0:
         modes.append(("budget", "runs_budget", {"iterations": budget_step_cap or 2 * iterations,
                                                 "max_minutes": float(budget_minutes)}))
@@ -374,6 +392,57 @@ def _comparison_markdown(part: dict, title: str) -> list[str]:
              markdown_table(part["overall"], extra + COST_COLUMNS)]
     for scene_name, rows in part["per_scene"].items():
         lines += [f"### {title}: {scene_name}", "", markdown_table(rows, QUALITY_COLUMNS + extra + COST_COLUMNS)]
+    return lines
+
+
+#: (figure, column title, decimals) of the time-to-quality table.
+TIME_TO_QUALITY_COLUMNS = (("to_psnr_s", "to its PSNR (s)", 1), ("to_ssim_s", "to its SSIM (s)", 1),
+                           ("to_quality_s", "to both (s)", 1), ("ratio", "both / its train time", 2))
+
+
+def _time_cell(stats: dict, decimals: int, reached: int, runs: int) -> str:
+    """``mean ± std`` over the runs that reached the target, with how many did when not all."""
+    from .tables import format_cell
+
+    if not stats.get("n"):
+        return "not reached"
+    cell = format_cell(stats, decimals)
+    return cell if stats["n"] == runs else f"{cell} ({stats['n']}/{runs} reached)"
+
+
+def _time_to_baseline_table(rows: Sequence[dict]) -> str:
+    titles = ["method", "runs", "its train time (s)", *(title for _, title, _ in TIME_TO_QUALITY_COLUMNS)]
+    lines = ["| " + " | ".join(titles) + " |", "|" + "---|" * len(titles)]
+    for row in rows:
+        cells = [str(row["variant"]), str(row["runs"]), _time_cell(row["baseline_s"], 1, row["runs"], row["runs"])]
+        cells += [_time_cell(row[key], decimals, row["reached"], row["runs"]) for key, _, decimals in
+                  TIME_TO_QUALITY_COLUMNS]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _time_to_baseline_markdown(part: dict, iterations: int) -> list[str]:
+    """The time-to-quality tables: all scenes, then each scene."""
+    baseline = part["baseline"]
+    every = part.get("eval_every") or 0
+    sparse = [run for run in part["runs"] if run["points"] < 2]
+    lines = [f"## Time to {baseline}'s quality: all scenes", "",
+             f"Training seconds each method's {iterations}-step run takes to reach the final held-out PSNR and SSIM "
+             f"of the {baseline} run on the same scene and seed (\"its\" below: {baseline}'s), from the runs' "
+             "evaluation curves "
+             + (f"(held-out views evaluated every {every} steps, evaluation time not counted; " if every else
+                "(no evaluation during the runs: each run's end-of-run evaluation only; ")
+             + "the crossing interpolated linearly between the two evaluations around it). 'to both': when the "
+             f"later of the two is reached; the last column divides it by {baseline}'s own training time. Mean "
+             "± std over the runs that reached it; 'not reached' when none did.", ""]
+    if sparse:
+        lines += [f"{len(sparse)} run(s) have a single evaluation (trained without an evaluation curve): their "
+                  "time is their whole training time when they reach the target.", ""]
+    if part.get("missing_baseline"):
+        lines += [f"No {baseline} run to measure against on: {', '.join(part['missing_baseline'])}.", ""]
+    lines.append(_time_to_baseline_table(part["overall"]))
+    for scene_name, rows in part["per_scene"].items():
+        lines += [f"### Time to {baseline}'s quality: {scene_name}", "", _time_to_baseline_table(rows)]
     return lines
 
 
@@ -458,6 +527,8 @@ def bench_markdown(report: dict) -> str:
     lines += _comparison_markdown(report, f"At equal step count ({report['iterations']} steps)")
     if budget:
         lines += ["", *_comparison_markdown(budget, f"At equal wall-clock budget ({budget['budget_minutes']:g} min)")]
+    if report.get("time_to_baseline"):
+        lines += ["", *_time_to_baseline_markdown(report["time_to_baseline"], report["iterations"])]
     if report["notes"] or report["failed"]:
         lines += ["## Notes", ""]
         lines += [f"- {note}" for note in report["notes"]]
@@ -523,12 +594,26 @@ def _comparison(summaries: list[dict], scene_names: Sequence[str], keys: Sequenc
             "runs": summaries}
 
 
+def _time_to_baseline(outcomes: Sequence[Any], eval_every: int) -> Optional[dict]:
+    """The time-to-quality figures of the finished equal-step runs (their curves read from
+    their folders) against the :data:`BASELINE_KEY` row; None without such a run."""
+    from .curves import read_eval_curve, time_to_baseline_quality
+
+    runs = [{"key": o.task.name.rpartition("/")[2], "variant": o.task.variant, "scene": o.task.scene_name,
+             "seed": o.task.seed, "curve": read_eval_curve(o.task.out)} for o in outcomes]
+    baseline = [run for run in runs if run["key"] == BASELINE_KEY]
+    if not baseline:
+        return None
+    figures = time_to_baseline_quality(runs, BASELINE_KEY)
+    return {"baseline": baseline[0]["variant"], "eval_every": eval_every, **figures}
+
+
 def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: Any = None,
               scenes: Optional[dict[str, tuple[Path, int]]] = None, methods: Sequence[Method] = METHODS,
               iterations: Optional[int] = None, budget_minutes: Optional[float] = None,
               budget_step_cap: Optional[int] = None, train: Optional[dict] = None, command: str = "",
               priors: str | Sequence[str] = DEFAULT_PRIORS, sparse_points: str = "triangulated",
-              on_outcome: Optional[Callable[[Any], None]] = None) -> dict:
+              eval_every: Optional[int] = None, on_outcome: Optional[Callable[[Any], None]] = None) -> dict:
     """Make (or reuse) the suite's scenes, run every method on each, write benchmarks.md/.json.
 
     ``priors``: the prior source(s) of the prior-based rows (:data:`PRIOR_CHOICES`; several:
@@ -539,11 +624,15 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
 
     ``scenes`` (name -> (folder, seed)) replaces the suite's generated scenes (tests,
     existing folders). ``iterations``, ``budget_minutes`` (0 = no equal-budget comparison)
-    and ``budget_step_cap`` override the suite's (None = the suite's). ``executor``: an
+    and ``budget_step_cap`` override the suite's (None = the suite's). ``eval_every``: steps
+    between the held-out evaluations of the equal-step runs (None = the suite's,
+    :meth:`BenchSuite.eval_every`; 0 = none, the time-to-quality table then has each run's
+    end-of-run evaluation only). ``executor``: an
     :class:`~.executor.Executor` (default: a local pool of one worker). Returns the report
     dict (also ``OUT/benchmarks.json``): the equal-step tables at the top level
-    (``overall``, ``per_scene``, ``runs``) and the equal-budget ones under ``budget``
-    (None without a budget).
+    (``overall``, ``per_scene``, ``runs``), the equal-budget ones under ``budget``
+    (None without a budget) and the time to the 3DGS row's quality under
+    ``time_to_baseline`` (None without a 3DGS row).
     """
     from ..io_utils import atomic_write_json, atomic_write_text
     from .executor import LocalExecutor, run_tasks
@@ -559,6 +648,9 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
     if budget_minutes < 0:
         raise ConfigError(f"budget_minutes must be >= 0, got {budget_minutes}")
     step_cap = budget_step_cap or suite.budget_step_cap or 2 * iterations
+    eval_every = suite.eval_every(iterations) if eval_every is None else int(eval_every)
+    if eval_every < 0:
+        raise ConfigError(f"eval_every must be >= 0, got {eval_every}")
     sources = prior_sources(priors)
     if sparse_points not in SPARSE_POINTS:
         raise ConfigError(f"unknown sparse points {sparse_points!r}", hint=f"use one of {', '.join(SPARSE_POINTS)}")
@@ -570,7 +662,8 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
         for folder, _ in scenes.values():
             ensure_priors(folder, source)
     tasks, notes = plan_bench(scenes, out, iterations=iterations, methods=methods, train=train,
-                              budget_minutes=budget_minutes, budget_step_cap=step_cap, priors=sources)
+                              budget_minutes=budget_minutes, budget_step_cap=step_cap, priors=sources,
+                              eval_every=eval_every)
     # runs made with other settings are kept aside and trained again (RunTask.stale_settings)
     retrained = {}
     for task in tasks:
@@ -607,7 +700,10 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
         "iterations": iterations, "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M"),
         "machine": machine_description(), "executor": type(executor).__name__, "command": command or "run_bench(...)",
         "priors": _prior_description(sources, scenes), "sparse_points": _sparse_points_description(scenes),
-        **_comparison(step_runs, list(scenes), keys), "budget": budget, "notes": notes, "failed": failed,
+        **_comparison(step_runs, list(scenes), keys), "budget": budget,
+        "time_to_baseline": _time_to_baseline([o for o in finished if not o.task.config.get("max_minutes")],
+                                              eval_every),
+        "notes": notes, "failed": failed,
     }
     atomic_write_json(out / "benchmarks.json", report)
     atomic_write_text(out / "benchmarks.md", bench_markdown(report))

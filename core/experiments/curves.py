@@ -116,3 +116,60 @@ def time_to_reach(curve: Sequence[EvalPoint], psnr: Optional[float] = None,
             return None
         times.append(seconds)
     return max(times)
+
+
+#: Figures of :func:`time_to_baseline_quality` per run, aggregated per method row.
+TIME_TO_QUALITY_FIGURES = ("to_psnr_s", "to_ssim_s", "to_quality_s", "ratio")
+
+
+def time_to_baseline_quality(runs: Sequence[dict], baseline: str) -> dict:
+    """The training seconds each run takes to reach the final held-out PSNR and SSIM of the
+    baseline run on the same scene and seed.
+
+    ``runs``: dicts with ``key`` (the method row's key), ``variant`` (its label), ``scene``,
+    ``seed`` and ``curve`` (:func:`read_eval_curve`); ``baseline``: the baseline row's key. The
+    target of a (scene, seed) is the last point of the baseline run's curve (its end-of-run
+    evaluation), its training seconds the baseline's time. Returns ``{"runs": [...],
+    "overall": [...], "per_scene": {...}, "missing_baseline": [...]}``: per run ``to_psnr_s``,
+    ``to_ssim_s``, ``to_quality_s`` (both reached; :func:`time_to_reach`), ``ratio`` (that
+    over the baseline's time), None when not reached, and ``points`` (evaluations on its
+    curve); per method row (first-seen order) over all runs and per scene: ``runs``,
+    ``reached`` (runs with ``to_quality_s``) and :func:`~.tables.mean_std` of each figure over
+    the runs that reached it."""
+    from .tables import mean_std
+
+    targets = {}
+    for run in runs:
+        if run["key"] == baseline and run["curve"]:
+            last = run["curve"][-1]
+            if last.psnr is not None and last.ssim is not None:
+                targets[(run["scene"], run["seed"])] = (last.psnr, last.ssim, last.train_s)
+    records, missing = [], []
+    for run in runs:
+        target = targets.get((run["scene"], run["seed"]))
+        if target is None:
+            missing.append(f"{run['scene']} seed {run['seed']}")
+            continue
+        psnr, ssim, baseline_s = target
+        curve = run["curve"]
+        both = time_to_reach(curve, psnr=psnr, ssim=ssim)
+        records.append({"key": run["key"], "variant": run["variant"], "scene": run["scene"], "seed": run["seed"],
+                        "points": len(curve), "target_psnr": psnr, "target_ssim": ssim, "baseline_s": baseline_s,
+                        "to_psnr_s": time_to_reach(curve, psnr=psnr), "to_ssim_s": time_to_reach(curve, ssim=ssim),
+                        "to_quality_s": both,
+                        "ratio": both / baseline_s if both is not None and baseline_s > 0 else None})
+
+    def rows(members: Sequence[dict]) -> list[dict]:
+        groups: dict[str, list[dict]] = {}
+        for record in members:
+            groups.setdefault(record["variant"], []).append(record)
+        return [{"variant": variant, "runs": len(group),
+                 "reached": sum(record["to_quality_s"] is not None for record in group),
+                 "baseline_s": mean_std(record["baseline_s"] for record in group),
+                 **{name: mean_std(record[name] for record in group) for name in TIME_TO_QUALITY_FIGURES}}
+                for variant, group in groups.items()]
+
+    scenes = list(dict.fromkeys(record["scene"] for record in records))
+    return {"runs": records, "overall": rows(records),
+            "per_scene": {scene: rows([r for r in records if r["scene"] == scene]) for scene in scenes},
+            "missing_baseline": sorted(set(missing))}

@@ -474,3 +474,73 @@ def test_a_shipped_run_trains_on_a_scratch_copy_under_the_scene_name(tmp_path, s
 
 def _scene_of(task):
     return Path(task.scene).name, (Path(task.scene) / "sparse").is_dir()
+
+
+def test_equal_step_runs_record_evaluation_curves_and_the_report_times_3dgs_quality(tmp_path, scene):
+    methods = [m for m in METHODS if m.key in ("3dgs", "dropout_gs")]
+    with LocalExecutor(1) as executor:
+        report = run_bench(tmp_path / "bench", "quick", executor=executor, scenes={"tiny": (scene, 0)},
+                           budget_minutes=0, methods=methods, iterations=4, eval_every=2, train=TRAIN)
+    assert report["failed"] == []
+    part = report["time_to_baseline"]
+    assert part["baseline"] == "3DGS" and part["eval_every"] == 2 and part["missing_baseline"] == []
+    runs = {run["variant"]: run for run in part["runs"]}
+    assert set(runs) == {"3DGS", "DropoutGS"} and all(run["points"] == 2 for run in runs.values())
+    baseline = runs["3DGS"]
+    summary = {run["variant"]: run for run in report["runs"]}["3DGS"]
+    assert baseline["target_psnr"] == pytest.approx(summary["psnr"])
+    assert baseline["target_ssim"] == pytest.approx(summary["ssim"])
+    assert 0 < baseline["baseline_s"] <= summary["train_s"]
+    assert baseline["to_quality_s"] <= baseline["baseline_s"]
+    config = json.loads((tmp_path / "bench" / "runs" / "tiny" / "3dgs" / "config.json").read_text())
+    assert config["eval_every"] == 2
+    markdown = (tmp_path / "bench" / "benchmarks.md").read_text()
+    assert "## Time to 3DGS's quality: all scenes" in markdown and "### Time to 3DGS's quality: tiny" in markdown
+    assert "evaluated every 2 steps" in markdown and "| DropoutGS | 1 |" in markdown
+    # a reused bench folder with another eval_every keeps its runs (evaluating changes no training)
+    seen = []
+    with LocalExecutor(1) as executor:
+        again = run_bench(tmp_path / "bench", "quick", executor=executor, scenes={"tiny": (scene, 0)},
+                          budget_minutes=0, methods=methods, iterations=4, eval_every=0, train=TRAIN,
+                          on_outcome=lambda o: seen.append(o.status))
+    assert seen == ["skipped", "skipped"]
+    assert again["time_to_baseline"]["runs"] == json.loads(json.dumps(part["runs"]))
+
+
+def test_eval_every_goes_to_the_equal_step_runs_only_and_defaults_to_a_tenth_of_the_run(tmp_path, scene):
+    tasks, _ = plan_bench({"tiny": (scene, 0)}, tmp_path, iterations=40, methods=METHODS[:1], budget_minutes=1.0,
+                          eval_every=4)
+    assert {task.name: task.config.get("eval_every") for task in tasks} == {"tiny/3dgs": 4, "tiny/3dgs@budget": None}
+    tasks, _ = plan_bench({"tiny": (scene, 0)}, tmp_path, iterations=40, methods=METHODS[:1])
+    assert "eval_every" not in tasks[0].config  # 0: the runs' configs as before
+    assert [SUITES[name].eval_every() for name in ("quick", "full", "large")] == [30, 50, 700]
+    assert SUITES["quick"].eval_every(2000) == 200
+
+
+def test_the_time_to_quality_table_says_not_reached_and_counts_runs_without_a_curve():
+    from esgs.core.experiments.bench import _time_to_baseline_markdown
+    from esgs.core.experiments.curves import EvalPoint, time_to_baseline_quality
+
+    runs = [{"key": "3dgs", "variant": "3DGS", "scene": "s", "seed": 0,
+             "curve": [EvalPoint(5, 1.0, 20.0, 0.6), EvalPoint(10, 2.0, 22.0, 0.7)]},
+            {"key": "esgs", "variant": "ESGS", "scene": "s", "seed": 0, "curve": [EvalPoint(10, 3.0, 21.0, 0.8)]}]
+    part = {"baseline": "3DGS", "eval_every": 0, **time_to_baseline_quality(runs, "3dgs")}
+    markdown = "\n".join(_time_to_baseline_markdown(part, 10))
+    assert "| ESGS | 1 | 2.0 | not reached | 3.0 | not reached | not reached |" in markdown
+    assert "| 3DGS | 1 | 2.0 | 2.0 | 2.0 | 2.0 | 1.00 |" in markdown
+    assert "1 run(s) have a single evaluation" in markdown and "end-of-run evaluation only" in markdown
+
+
+def test_cli_passes_eval_every(monkeypatch):
+    import argparse
+
+    from esgs.core.commands import bench as command
+    from esgs.core.experiments import bench
+
+    parser = argparse.ArgumentParser()
+    command.add_arguments(parser)
+    assert parser.parse_args(["--out", "x"]).eval_every is None  # the suite's
+    seen = {}
+    monkeypatch.setattr(bench, "run_bench", lambda out, suite, **kwargs: seen.update(kwargs) or {"failed": []})
+    command.run(parser.parse_args(["--out", "x", "--eval-every", "25", "--executor", "local"]))
+    assert seen["eval_every"] == 25

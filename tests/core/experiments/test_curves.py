@@ -93,3 +93,36 @@ def test_a_trained_run_gives_its_curve(tmp_path):
     assert curve[-1].train_s == pytest.approx(result.train_s)
     assert curve[-1].psnr == pytest.approx(result.metrics["psnr"])
     assert time_to_reach(curve, psnr=curve[-1].psnr) <= result.train_s
+
+
+def _run(key, scene, seed, *points):
+    return {"key": key, "variant": key.upper(), "scene": scene, "seed": seed,
+            "curve": [EvalPoint(10 * (i + 1), *point) for i, point in enumerate(points)]}
+
+
+def test_time_to_the_baseline_quality_per_run_and_per_method():
+    from esgs.core.experiments.curves import time_to_baseline_quality
+
+    runs = [_run("3dgs", "a", 0, (2.0, 20.0, 0.6), (4.0, 24.0, 0.7)),
+            _run("esgs", "a", 0, (1.0, 22.0, 0.65), (2.0, 26.0, 0.75), (3.0, 27.0, 0.8)),
+            _run("3dgs", "b", 1, (2.0, 20.0, 0.6), (5.0, 21.0, 0.8)),
+            _run("esgs", "b", 1, (2.0, 20.0, 0.6), (4.0, 22.0, 0.7)),  # never reaches SSIM 0.8
+            _run("esgs", "c", 0, (1.0, 30.0, 0.9))]  # no 3DGS run on c
+    figures = time_to_baseline_quality(runs, "3dgs")
+    records = {(r["key"], r["scene"]): r for r in figures["runs"]}
+    a = records[("esgs", "a")]
+    assert (a["target_psnr"], a["target_ssim"], a["baseline_s"]) == (24.0, 0.7, 4.0)
+    assert a["to_psnr_s"] == pytest.approx(1.5) and a["to_ssim_s"] == pytest.approx(1.5)
+    assert a["to_quality_s"] == pytest.approx(1.5) and a["ratio"] == pytest.approx(1.5 / 4.0)
+    assert records[("3dgs", "a")]["to_quality_s"] == pytest.approx(4.0) and records[("3dgs", "a")]["ratio"] == 1.0
+    b = records[("esgs", "b")]
+    assert b["to_psnr_s"] == pytest.approx(3.0)  # 20 dB at 2 s, 22 dB at 4 s: 21 dB at 3 s
+    assert b["to_ssim_s"] is None and b["to_quality_s"] is None and b["ratio"] is None
+    assert figures["missing_baseline"] == ["c seed 0"] and ("esgs", "c") not in records
+    overall = {row["variant"]: row for row in figures["overall"]}
+    assert overall["ESGS"]["runs"] == 2 and overall["ESGS"]["reached"] == 1
+    assert overall["ESGS"]["to_quality_s"]["n"] == 1 and overall["ESGS"]["to_quality_s"]["mean"] == pytest.approx(1.5)
+    assert overall["ESGS"]["to_psnr_s"]["n"] == 2
+    assert overall["3DGS"]["reached"] == 2 and overall["3DGS"]["ratio"]["mean"] == pytest.approx(1.0)
+    assert list(figures["per_scene"]) == ["a", "b"]
+    assert [row["variant"] for row in figures["per_scene"]["b"]] == ["3DGS", "ESGS"]
