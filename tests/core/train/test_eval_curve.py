@@ -140,3 +140,19 @@ def test_tensorboard_gets_the_curve(fast_config, tmp_path):
     accumulator.Reload()
     assert [event.step for event in accumulator.Scalars("eval/psnr")] == [2, 4, 6]
     assert [event.step for event in accumulator.Scalars("eval/ssim")] == [2, 4, 6]
+
+
+def test_the_console_prints_an_evaluation_beside_the_training_bar():
+    import io
+
+    from esgs.core.progress import ConsoleProgress, ProgressEvent
+
+    stream = io.StringIO()
+    console = ConsoleProgress(stream=stream, min_interval_s=0.0)
+    console(ProgressEvent(step=5, total=10, stage="train", metrics={"loss": 0.1}))
+    bar = console._bar
+    console(ProgressEvent(step=5, total=10, stage="eval", kind="eval",
+                          metrics={"psnr": 21.5, "ssim": 0.7, "train_s": 3.25, "n_gaussians": 9}))
+    assert console._bar is bar and console._stage == "train"  # the training bar goes on
+    assert "step 5: held-out PSNR 21.5 dB, SSIM 0.7 after 3.25 s of training" in stream.getvalue()
+    console.close()
