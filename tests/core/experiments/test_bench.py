@@ -477,7 +477,7 @@ def _scene_of(task):
 
 
 def test_equal_step_runs_record_evaluation_curves_and_the_report_times_3dgs_quality(tmp_path, scene):
-    methods = [m for m in METHODS if m.key in ("3dgs", "dropout_gs")]
+    methods = [m for m in METHODS if m.key in ("3dgs", "3dgs_sky", "dropout_gs")]
     with LocalExecutor(1) as executor:
         report = run_bench(tmp_path / "bench", "quick", executor=executor, scenes={"tiny": (scene, 0)},
                            budget_minutes=0, methods=methods, iterations=4, eval_every=2, train=TRAIN)
@@ -485,7 +485,14 @@ def test_equal_step_runs_record_evaluation_curves_and_the_report_times_3dgs_qual
     part = report["time_to_baseline"]
     assert part["baseline"] == "3DGS" and part["eval_every"] == 2 and part["missing_baseline"] == []
     runs = {run["variant"]: run for run in part["runs"]}
-    assert set(runs) == {"3DGS", "DropoutGS"} and all(run["points"] == 2 for run in runs.values())
+    assert set(runs) == {"3DGS", "3DGS + sky model (our defaults)", "DropoutGS"}
+    assert all(run["points"] == 2 for run in runs.values())
+    # and against 3DGS as plain `esgs train` gives it, the run `esgs train --esgs` is compared with
+    defaults = report["time_to_defaults"]
+    assert defaults["baseline"] == "3DGS + sky model (our defaults)"
+    own = {run["variant"]: run for run in defaults["runs"]}["3DGS + sky model (our defaults)"]
+    sky_summary = {run["variant"]: run for run in report["runs"]}["3DGS + sky model (our defaults)"]
+    assert own["target_psnr"] == pytest.approx(sky_summary["psnr"])
     baseline = runs["3DGS"]
     summary = {run["variant"]: run for run in report["runs"]}["3DGS"]
     assert baseline["target_psnr"] == pytest.approx(summary["psnr"])
@@ -497,13 +504,14 @@ def test_equal_step_runs_record_evaluation_curves_and_the_report_times_3dgs_qual
     markdown = (tmp_path / "bench" / "benchmarks.md").read_text()
     assert "## Time to 3DGS's quality: all scenes" in markdown and "### Time to 3DGS's quality: tiny" in markdown
     assert "evaluated every 2 steps" in markdown and "| DropoutGS | 1 |" in markdown
+    assert "## Time to 3DGS + sky model (our defaults)'s quality: all scenes" in markdown
     # a reused bench folder with another eval_every keeps its runs (evaluating changes no training)
     seen = []
     with LocalExecutor(1) as executor:
         again = run_bench(tmp_path / "bench", "quick", executor=executor, scenes={"tiny": (scene, 0)},
                           budget_minutes=0, methods=methods, iterations=4, eval_every=0, train=TRAIN,
                           on_outcome=lambda o: seen.append(o.status))
-    assert seen == ["skipped", "skipped"]
+    assert seen == ["skipped", "skipped", "skipped"]
     assert again["time_to_baseline"]["runs"] == json.loads(json.dumps(part["runs"]))
 
 
