@@ -125,7 +125,7 @@ def test_every_third_party_import_of_the_engine_is_a_requirement():
     the trainer's requirements."""
     import ast
 
-    optional = {"gsplat", "ray", "bpy", "lpips", "matplotlib"}  # CUDA backend, esgs bench, Blender children, optional metric, the report's plots (OpenCV without it)
+    optional = {"gsplat", "ray", "bpy", "lpips", "matplotlib", "gsply"}  # CUDA backend, esgs bench, Blender children, optional metric, the report's plots (OpenCV without it), esgs export --format spz
     provided = set(trainer_setup.REQUIREMENT_MODULES.values()) | set(sys.stdlib_module_names) | {"esgs"}
     missing = {}
     for path in (REPO_ROOT / "core").rglob("*.py"):

@@ -43,7 +43,7 @@ def test_argparse_usage_errors_exit_with_2(capsys):
         main(["export"])  # the run argument is missing
     assert raised.value.code == 2
     with pytest.raises(SystemExit) as raised:
-        main(["export", "x", "--format", "spz"])
+        main(["export", "x", "--format", "obj"])
     assert raised.value.code == 2 and "invalid choice" in capsys.readouterr().err
 
 
