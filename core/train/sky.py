@@ -39,13 +39,37 @@ def ray_directions(viewmat: torch.Tensor, K: torch.Tensor, width: int, height: i
 
     viewmat: [4, 4] world-to-camera (OpenCV axes); K: [3, 3] pinhole intrinsics.
     """
-    dtype = torch.float32
-    viewmat, K = viewmat.to(dtype), K.to(dtype)
-    v, u = torch.meshgrid(torch.arange(height, dtype=dtype, device=K.device) + 0.5,
-                          torch.arange(width, dtype=dtype, device=K.device) + 0.5, indexing="ij")
+    return _directions_at(viewmat, K, torch.arange(width, dtype=torch.float32) + 0.5,
+                          torch.arange(height, dtype=torch.float32) + 0.5)
+
+
+#: :meth:`SkyModel.image` evaluates the sky on a grid whose samples are at most this far apart
+#: (radians at the image centre, ~0.6 degrees) and at most :data:`IMAGE_MAX_STRIDE` pixels.
+IMAGE_SPACING_RAD = 0.01
+IMAGE_MAX_STRIDE = 8
+
+
+def image_stride(K: torch.Tensor) -> int:
+    """Pixel spacing of the sky's evaluation grid for intrinsics ``K``: 1 (every pixel) for wide
+    pixels, up to :data:`IMAGE_MAX_STRIDE` for narrow ones (a 1920-pixel-wide view)."""
+    focal = float(min(K[0, 0], K[1, 1]))
+    return int(max(1, min(IMAGE_MAX_STRIDE, math.floor(IMAGE_SPACING_RAD * focal))))
+
+
+def _coarse_positions(size: int, stride: int) -> torch.Tensor:
+    """Pixel-centre coordinates (j + 0.5) of ``ceil((size - 1) / stride) + 1`` samples evenly spaced
+    from the first to the last pixel, as ``interpolate(align_corners=True)`` places them."""
+    count = max(2, -(-(size - 1) // stride) + 1)
+    return torch.linspace(0.5, size - 0.5, count, dtype=torch.float32)
+
+
+def _directions_at(viewmat: torch.Tensor, K: torch.Tensor, columns: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """[len(rows), len(columns), 3] world-space unit directions through the pixel positions given."""
+    viewmat, K = viewmat.to(torch.float32), K.to(torch.float32)
+    v, u = torch.meshgrid(rows.to(K.device), columns.to(K.device), indexing="ij")
     camera = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], dim=-1)
-    world = camera @ viewmat[:3, :3]  # R^T applied to row vectors: camera -> world
-    return torch.nn.functional.normalize(world, dim=-1)
+    # R^T applied to row vectors: camera -> world
+    return torch.nn.functional.normalize(camera @ viewmat[:3, :3], dim=-1)
 
 
 class SkyModel(torch.nn.Module):
@@ -106,9 +130,28 @@ class SkyModel(torch.nn.Module):
         """
         return (self.band_eigenvalues.to(self.coefficients)[:, None] * self.coefficients.square()).sum()
 
-    def image(self, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int) -> torch.Tensor:
-        """[H, W, 3] the sky as one camera sees it."""
-        return self(ray_directions(viewmat.to(self.base.device), K.to(self.base.device), width, height))
+    def image(self, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, *,
+              stride: Optional[int] = None) -> torch.Tensor:
+        """[H, W, 3] the sky as one camera sees it.
+
+        The logits are evaluated on a grid of every ``stride``-th pixel (the first and the last
+        pixel of each row and column included; default :func:`image_stride`: samples ~0.6
+        degrees apart, at most 8 pixels) and interpolated bilinearly in between; then the
+        sigmoid. The field is a degree-3 harmonic of the direction, nearly linear over that
+        spacing, so this differs from evaluating every pixel by less than 1e-4 in colour for skies
+        as varied as runs learn (tests), at a small fraction of the cost at high resolution (a
+        1920x1080 view has 2M rays). ``stride=1`` evaluates every pixel.
+        """
+        viewmat, K = viewmat.to(self.base.device), K.to(self.base.device)
+        stride = image_stride(K) if stride is None else int(stride)
+        if stride <= 1 or (width <= 2 * stride and height <= 2 * stride):
+            return self(ray_directions(viewmat, K, width, height))
+        columns = _coarse_positions(width, stride)
+        rows = _coarse_positions(height, stride)
+        logits = self.logits(_directions_at(viewmat, K, columns, rows))  # [h, w, 3]
+        fine = torch.nn.functional.interpolate(logits.permute(2, 0, 1)[None], size=(height, width), mode="bilinear",
+                                               align_corners=True)[0].permute(1, 2, 0)
+        return torch.sigmoid(fine)
 
     def to_dict(self) -> dict[str, Any]:
         return {"format": SKY_FORMAT, "kind": "envmap", "degree": self.degree,
