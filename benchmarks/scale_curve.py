@@ -1,0 +1,105 @@
+"""Seconds per step and peak memory of a 3DGS step against Gaussian count and image size.
+
+Each (count, width) point runs in its own process (peak RSS only grows within a process):
+the scene's training views loaded at that width, N Gaussians drawn from its SfM points
+(``profile_step.py``'s rule), steps timed past densification. Peak RSS is reported above the
+floor of a process that imported torch and the engine and did nothing else, and per Gaussian
+above the same floor; the parameters, their Adam moments and gradients are 4 x 59 floats
+(~0.92 KiB) per Gaussian at SH degree 3.
+
+    python benchmarks/scale_curve.py SCENE --gaussians 10000 100000 300000 1000000 \\
+        --widths 480 960 1920 --threads 2 --steps 6 --json benchmarks/results/scale_curve.json
+
+SCENE's images must be at least as wide as the largest width (they are resized down).
+Speed and memory are measured here, never asserted in tests.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+PARAMETER_BYTES = 4 * 59 * 4  # parameters + two Adam moments + gradients, float32, SH degree 3
+
+
+def _child_floor() -> None:
+    import torch  # noqa: F401
+
+    import esgs.core.train.trainer  # noqa: F401
+
+    print(json.dumps({"peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}))
+
+
+def _child_point(scene: str, gaussians: int, width: int, threads: int, steps: int, warmup: int) -> None:
+    sys.path.insert(0, str(Path(__file__).parent))
+    from profile_step import time_arm
+
+    timed = time_arm(Path(scene), {}, gaussians=gaussians, width=width, threads=threads, steps=steps,
+                     warmup=warmup, seed=0, profile=False)
+    print(json.dumps({"mean_s": timed["mean_s"], "min_s": timed["min_s"], "gaussians": timed["gaussians"],
+                      "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}))
+
+
+def _run_child(arguments: list[str]) -> dict[str, Any]:
+    completed = subprocess.run([sys.executable, __file__, *arguments], capture_output=True, text=True)
+    if completed.returncode != 0:
+        return {"error": (completed.stderr.strip().splitlines() or ["failed"])[-1]}
+    return json.loads(completed.stdout.strip().splitlines()[-1])
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["--child-floor"]:
+        _child_floor()
+        return 0
+    if argv[:1] == ["--child-point"]:
+        scene, gaussians, width, threads, steps, warmup = argv[1:7]
+        _child_point(scene, int(gaussians), int(width), int(threads), int(steps), int(warmup))
+        return 0
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("scene", type=Path)
+    parser.add_argument("--gaussians", type=int, nargs="+", default=[10_000, 100_000, 300_000, 1_000_000])
+    parser.add_argument("--widths", type=int, nargs="+", default=[480, 960, 1920])
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--steps", type=int, default=6)
+    parser.add_argument("--warmup", type=int, default=2)
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+
+    floor = _run_child(["--child-floor"])
+    print(f"floor (python + torch + engine imported): {floor.get('peak_rss_mib', float('nan')):.0f} MiB", flush=True)
+    points = []
+    for width in args.widths:
+        for gaussians in args.gaussians:
+            point = _run_child(["--child-point", str(args.scene), str(gaussians), str(width), str(args.threads),
+                                str(args.steps), str(args.warmup)])
+            point.update(width=width, requested_gaussians=gaussians)
+            if "peak_rss_mib" in point and "peak_rss_mib" in floor:
+                above = point["peak_rss_mib"] - floor["peak_rss_mib"]
+                point["above_floor_mib"] = above
+                point["bytes_per_gaussian_above_floor"] = above * 2**20 / gaussians
+            points.append(point)
+            if "error" in point:
+                print(f"width {width:5d}, {gaussians:>9,} Gaussians: failed: {point['error']}", flush=True)
+            else:
+                print(f"width {width:5d}, {gaussians:>9,} Gaussians: {point['mean_s'] * 1e3:8.1f} ms/step, peak RSS "
+                      f"{point['peak_rss_mib']:7.0f} MiB ({point['above_floor_mib']:6.0f} above the floor, "
+                      f"{point['bytes_per_gaussian_above_floor']:6.0f} B per Gaussian)", flush=True)
+    result = {"command": "python " + " ".join([sys.argv[0], *argv]), "scene": str(args.scene),
+              "threads": args.threads, "steps": args.steps, "warmup": args.warmup, "floor": floor,
+              "parameter_bytes_per_gaussian": PARAMETER_BYTES, "load_average_end": os.getloadavg(),
+              "points": points}
+    if args.json:
+        from esgs.core.io_utils import atomic_write_json
+
+        atomic_write_json(args.json, result)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
