@@ -24,8 +24,8 @@ degree, fractional bits, flags) then, per attribute, all Gaussians' bytes:
 
 Coordinates are written as they are in the PLY. SPZ's README says the format holds RUB (OpenGL)
 coordinates and that PLY usually holds RDF, but Niantic's library converts only when the caller
-names a frame (the default, ``UNSPECIFIED``, converts nothing) and gsply never converts: a viewer
-that assumes RUB shows the export turned 180 degrees about x, as it would show our PLY.
+names a frame (the default, ``UNSPECIFIED``, converts nothing) and gsply never converts: a tool
+that converts SPZ from RUB sees the export turned 180 degrees about x (y and z negated).
 """
 from __future__ import annotations
 

@@ -97,7 +97,6 @@ def test_spz_read_back_by_gsply_matches_our_ply(run, tmp_path, capsys):
     np.testing.assert_allclose(theirs * sign[:, None], ours, rtol=0, atol=QUAT_TOL)
     # SH rest, coefficient k and channel c of every Gaussian: a transposed layout would be far off
     np.testing.assert_allclose(back.shN, np.clip(g.sh_rest, -1, 127 / 128), rtol=0, atol=REST_TOL)
-    # gsply's own PLY writer would lose nothing of these: the values are un-activated, 3DGS's
     assert np.any(np.abs(g.sh_rest) > 1) and np.any(np.abs(g.sh_dc) > DC_RANGE)  # the clipping was exercised
 
 
