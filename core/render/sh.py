@@ -69,5 +69,7 @@ def evaluate_sh_colors(degree: int, coefficients: torch.Tensor, directions: torc
     count = num_sh_bases(degree)
     unit = directions / directions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     basis = sh_basis(degree, unit)  # [..., N, count]
-    values = (basis.unsqueeze(-1) * coefficients[:, :count, :]).sum(dim=-2)
+    # a batched [1, count] x [count, 3] product per Gaussian: no [N, count, 3] temporary forward
+    # (192 bytes a Gaussian at degree 3, kept for the backward too)
+    values = torch.matmul(basis.unsqueeze(-2), coefficients[:, :count, :]).squeeze(-2)
     return torch.clamp_min(values + 0.5, 0.0)
