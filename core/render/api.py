@@ -66,14 +66,24 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
         raise ConfigError(f"rasterization: need 0 < near_plane < far_plane, got {near_plane}, {far_plane}")
 
 
-def _color_evaluator(means, colors, viewmats, sh_degree) -> Callable[[int], torch.Tensor]:
-    """Per-camera colour features: raw ``colors`` or SH evaluated towards that camera."""
+def _color_evaluator(means, colors, viewmats, sh_degree, fused: bool = False) -> Callable[[int], torch.Tensor]:
+    """Per-camera colour features: raw ``colors`` or SH evaluated towards that camera.
+
+    ``fused``: the SH in one Numba pass (:mod:`.sh_kernels`; the ``cpu`` backend), which keeps
+    no per-basis temporaries for the backward; otherwise the torch expression (``reference``
+    and ``cuda``), which the tests compare it with.
+    """
     if sh_degree is None:
         return lambda cam: colors
+    fused = fused and means.device.type == "cpu" and means.dtype in (torch.float32, torch.float64)
 
     def evaluate(cam: int) -> torch.Tensor:
         rotation = viewmats[cam, :3, :3]
         centre = -rotation.T @ viewmats[cam, :3, 3]
+        if fused:
+            from .sh_kernels import fused_sh_colors
+
+            return fused_sh_colors(int(sh_degree), colors, means - centre)
         return evaluate_sh_colors(int(sh_degree), colors, means - centre)
 
     return evaluate
@@ -131,7 +141,7 @@ def rasterization(
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
                   backgrounds, extra, backend, tile_size, near_plane, far_plane)
     color_dims = 3 if sh_degree is not None else colors.shape[-1]
-    evaluate_colors = _color_evaluator(means, colors, viewmats, sh_degree)
+    evaluate_colors = _color_evaluator(means, colors, viewmats, sh_degree, fused=backend == "cpu")
     options = dict(near_plane=float(near_plane), far_plane=float(far_plane), sh_degree=sh_degree,
                    backgrounds=backgrounds, render_depth=render_depth, render_normals=render_normals,
                    extra=extra, antialiased=antialiased, eps2d=float(eps2d))
