@@ -14,6 +14,8 @@ import math
 from pathlib import Path
 from typing import NamedTuple, Optional, Sequence
 
+from ..formats.run_dir import RunDir
+
 
 class EvalPoint(NamedTuple):
     """One evaluation of a run: its step, the training seconds so far, held-out PSNR and SSIM."""
@@ -54,9 +56,9 @@ def read_eval_curve(run_dir: str | Path) -> list[EvalPoint]:
     (``train_s``; ``elapsed_s`` for runs saved before it, which includes the end-of-run work)
     when the events do not hold it already. [] for a run with neither; unreadable lines are
     skipped."""
-    run = Path(run_dir)
+    run = RunDir(Path(run_dir))
     points: list[EvalPoint] = []
-    events = run / "events.jsonl"
+    events = run.events
     if events.is_file():
         for line in events.read_text(encoding="utf-8", errors="replace").splitlines():
             try:
@@ -70,8 +72,8 @@ def read_eval_curve(run_dir: str | Path) -> list[EvalPoint]:
             if train_s is None or not isinstance(event.get("step"), int):
                 continue
             _add(points, EvalPoint(event["step"], train_s, _number(metrics.get("psnr")), _number(metrics.get("ssim"))))
-    metrics = _read_json(run / "metrics.json")
-    result = _read_json(run / "train_result.json")
+    metrics = _read_json(run.metrics)
+    result = _read_json(run.result)
     if metrics is not None and result is not None:
         step = metrics.get("step", result.get("step"))
         train_s = _number(result.get("train_s"))

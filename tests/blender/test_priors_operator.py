@@ -176,9 +176,13 @@ def test_ui_polling_follows_the_job_and_cleans_up(sfm_scene, monkeypatch):
     assert ("label", "Priors written: priors/sfm") in record
 
 
-def test_cancel_stops_the_child_and_writes_nothing(ndn_scene):
-    """Cancelled while the network samples (the shipped weights: seconds per batch)."""
-    scene, _ = ndn_scene
+def test_cancel_stops_the_child_and_writes_nothing(tmp_path):
+    """Cancelled while the network samples (the shipped weights). 24 views, so that after the
+    first event there is work left for seconds even on an idle machine (with 4 the child could
+    finish between the first event and the cancel on a loaded one)."""
+    from tests.core.ndn.conftest import make_scene
+
+    scene = make_scene(tmp_path / "scene", views=24)
     before = _files(scene)
     job = priors_job.start_priors(scene, "ndn")
     bpy.context.scene.esgs.priors.last_scene_dir = str(scene)
