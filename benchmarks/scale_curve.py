@@ -11,6 +11,7 @@ above the same floor; the parameters, their Adam moments and gradients are 4 x 5
         --widths 480 960 1920 --threads 2 --steps 6 --json benchmarks/results/scale_curve.json
 
 SCENE's images must be at least as wide as the largest width (they are resized down).
+``python benchmarks/scale_curve.py --plot OUT.png RESULT.json ...`` draws the figures (matplotlib).
 Speed and memory are measured here, never asserted in tests.
 """
 from __future__ import annotations
@@ -52,8 +53,41 @@ def _run_child(arguments: list[str]) -> dict[str, Any]:
     return json.loads(completed.stdout.strip().splitlines()[-1])
 
 
+def plot(results: list[Path], out: Path) -> None:
+    """Seconds per step and peak RSS against Gaussian count, one line per (file, width)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, (speed, memory) = plt.subplots(1, 2, figsize=(10, 4))
+    for path in results:
+        data = json.loads(path.read_text())
+        for width in sorted({p["width"] for p in data["points"] if "mean_s" in p}):
+            points = sorted((p for p in data["points"] if p.get("width") == width and "mean_s" in p),
+                            key=lambda p: p["requested_gaussians"])
+            counts = [p["requested_gaussians"] for p in points]
+            label = f"width {width} ({path.stem})"
+            speed.plot(counts, [p["mean_s"] for p in points], marker="o", label=label)
+            memory.plot(counts, [p["peak_rss_mib"] for p in points], marker="o", label=label)
+    for axis, title, unit in ((speed, "time per 3DGS step (2 threads)", "seconds"),
+                              (memory, "peak resident memory", "MiB")):
+        axis.set_xscale("log")
+        axis.set_xlabel("Gaussians")
+        axis.set_ylabel(unit)
+        axis.set_title(title)
+        axis.grid(True, alpha=0.3)
+    memory.axhline(2.5e9 / 2**20, color="grey", linestyle="--", label="2.5 GB")
+    memory.legend(fontsize=7)
+    figure.tight_layout()
+    figure.savefig(out, dpi=110)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["--plot"]:  # --plot OUT.png RESULT.json ...
+        plot([Path(p) for p in argv[2:]], Path(argv[1]))
+        return 0
     if argv[:1] == ["--child-floor"]:
         _child_floor()
         return 0
