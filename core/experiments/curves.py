@@ -154,11 +154,11 @@ def time_to_baseline_quality(runs: Sequence[dict], baseline: str) -> dict:
             continue
         psnr, ssim, baseline_s = target
         curve = run["curve"]
-        both = time_to_reach(curve, psnr=psnr, ssim=ssim)
+        to_psnr, to_ssim = time_to_reach(curve, psnr=psnr), time_to_reach(curve, ssim=ssim)
+        both = max(to_psnr, to_ssim) if to_psnr is not None and to_ssim is not None else None  # time_to_reach's rule
         records.append({"key": run["key"], "variant": run["variant"], "scene": run["scene"], "seed": run["seed"],
                         "points": len(curve), "target_psnr": psnr, "target_ssim": ssim, "baseline_s": baseline_s,
-                        "to_psnr_s": time_to_reach(curve, psnr=psnr), "to_ssim_s": time_to_reach(curve, ssim=ssim),
-                        "to_quality_s": both,
+                        "to_psnr_s": to_psnr, "to_ssim_s": to_ssim, "to_quality_s": both,
                         "ratio": both / baseline_s if both is not None and baseline_s > 0 else None})
 
     def rows(members: Sequence[dict]) -> list[dict]:

@@ -6,6 +6,7 @@ from typing import Callable
 import torch
 
 from ..errors import ConfigError
+from .constants import NEAR_PLANE
 from .sh import evaluate_sh_colors, num_sh_bases
 
 BACKENDS = ("cpu", "reference", "cuda")
@@ -100,7 +101,7 @@ def rasterization(
     width: int,
     height: int,
     *,
-    near_plane: float = 0.01,
+    near_plane: float = NEAR_PLANE,
     far_plane: float = 1e10,
     sh_degree: int | None = None,
     backgrounds: torch.Tensor | None = None,

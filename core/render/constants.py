@@ -21,3 +21,5 @@ CLASSIC_DILATION = 0.3
 JACOBIAN_MARGIN = 0.15
 #: log(1 / ALPHA_MIN): opacity * exp(-q / 2) >= ALPHA_MIN  <=>  q <= 2 (log(opacity) + this).
 LOG_INV_ALPHA_MIN = math.log(255.0)
+#: Default near plane of :func:`~.api.rasterization`: centres nearer the camera than this are not drawn.
+NEAR_PLANE = 0.01

@@ -72,7 +72,8 @@ class RunView(Protocol):
 
     Facts: ``seed`` (the run's seed), ``scene`` (the folder the scene's files, priors
     included, are read from), ``device``, ``train_views`` / ``test_views``
-    (:class:`~.dataset.View`), ``gaussians`` (the :class:`~.gaussians.GaussianModel` being
+    (:class:`~.dataset.View`), ``extent`` (3DGS's scene extent of the training cameras, the
+    scale the learning rates and densification use), ``gaussians`` (the :class:`~.gaussians.GaussianModel` being
     trained; its tensors change at densification, the object does not) and
     ``scaled_step(reference_step)`` (a step of the 30,000-step reference schedule moved to
     this run's length). Actions: ``add_loss_term``, ``add_parameter_group``, ``message``,
@@ -94,6 +95,9 @@ class RunView(Protocol):
 
     @property
     def test_views(self) -> Sequence["View"]: ...
+
+    @property
+    def extent(self) -> float: ...
 
     @property
     def gaussians(self) -> "GaussianModel": ...

@@ -208,6 +208,10 @@ class Trainer:
         return Path(self.data.source or self.config.scene)
 
     @property
+    def extent(self) -> float:
+        return self.data.extent
+
+    @property
     def train_views(self) -> Sequence[View]:
         return self.data.train
 

@@ -358,7 +358,7 @@ class PGSRHook(TrainHook):
         config = self.config
         views = list(run.train_views)
         self._views = {view.name: index for index, view in enumerate(views)}
-        self.extent = _scene_extent(views)
+        self.extent = run.extent
         self.neighbours = neighbour_views(views, count=config.pgsr_neighbours,
                                           max_angle_deg=config.pgsr_neighbour_max_angle_deg)
         single_from = run.scaled_step(config.pgsr_single_view_from)
@@ -473,15 +473,3 @@ class PGSRHook(TrainHook):
             error_threshold=self.config.pgsr_pixel_error_threshold)
         context.cache["pgsr_multi_view"] = result
         return result
-
-
-def _scene_extent(views: Sequence[Any]) -> float:
-    """3DGS's scene extent of the training cameras (:func:`~esgs.core.train.dataset.scene_extent`:
-    1.1 x the largest distance of a camera centre from their mean), centres from the viewmats."""
-    from ...train.dataset import scene_extent
-
-    if not views:
-        return 1.0
-    viewmats = torch.stack([view.viewmat.detach().to(torch.float64).cpu() for view in views])
-    centres = -(viewmats[:, :3, :3].transpose(1, 2) @ viewmats[:, :3, 3:])[..., 0]
-    return scene_extent(centres.numpy())[0]

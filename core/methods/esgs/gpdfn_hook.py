@@ -11,6 +11,7 @@ from typing import Any, Optional
 
 import torch
 
+from ...render.constants import NEAR_PLANE
 from ...train.gaussians import GaussianModel, RenderParams
 from ...train.hooks import RunView, StepContext, TrainHook
 from .gpdfn import GPDFN
@@ -34,7 +35,6 @@ def gpdfn_residuals(module: GPDFN, gaussians: Any, params: Any,
 #: count it (e^1.4 ~ 4x its own scale); the rasterizer's radius rule is 3.33 sigma at most.
 _RESIDUAL_GROWTH = 4.0
 _SIGMA_RADIUS = 3.33
-_NEAR_PLANE = 0.01  # the rasterizer's default: centres nearer than this are never drawn
 
 
 def frustum_rows(means: torch.Tensor, scales: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor,
@@ -53,7 +53,7 @@ def frustum_rows(means: torch.Tensor, scales: torch.Tensor, viewmat: torch.Tenso
         rotation, translation = viewmat[:3, :3].to(means), viewmat[:3, 3].to(means)
         camera = means.detach() @ rotation.T + translation
         depth = camera[:, 2]
-        in_front = depth > _NEAR_PLANE
+        in_front = depth > NEAR_PLANE
         safe = torch.where(in_front, depth, torch.ones_like(depth))
         fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
         u = fx * camera[:, 0] / safe + cx
