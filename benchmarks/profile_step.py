@@ -89,7 +89,7 @@ def _gaussians(trainer: Any, count: int, seed: int) -> Any:
 
 
 def time_arm(scene: Path, overrides: dict[str, Any], *, gaussians: int, width: int, threads: int, steps: int,
-             warmup: int, seed: int, profile: bool) -> dict[str, Any]:
+             warmup: int, seed: int, profile: bool, backend: str = "cpu") -> dict[str, Any]:
     import torch
 
     from esgs.core.config import config_from_dict
@@ -100,11 +100,16 @@ def time_arm(scene: Path, overrides: dict[str, Any], *, gaussians: int, width: i
     with tempfile.TemporaryDirectory(prefix="esgs_profile_") as out:
         config = config_from_dict(TrainConfig, {
             "scene": str(scene), "out": out, "iterations": 30_000, "width": width, "threads": threads,
-            "seed": seed, "checkpoint_every": 0, **overrides})
+            "seed": seed, "checkpoint_every": 0, "backend": backend, **overrides})
         trainer = Trainer(config, method=get_method(config.method))
         trainer._initial_gaussians = lambda: _gaussians(trainer, gaussians, seed)  # noqa: SLF001 (a benchmark)
         trainer.setup()
         count = len(trainer.gaussians)
+        on_gpu = trainer.device.type == "cuda"
+        # GPU work is asynchronous: a step's time is taken once its kernels have finished
+        synchronize = torch.cuda.synchronize if on_gpu else (lambda: None)
+        if on_gpu:
+            torch.cuda.reset_peak_memory_stats()
         times = []
         profiler = cProfile.Profile() if profile else None
         for index in range(warmup + steps):
@@ -112,6 +117,7 @@ def time_arm(scene: Path, overrides: dict[str, Any], *, gaussians: int, width: i
             if profiler is not None and index >= warmup:
                 profiler.enable()
             trainer.train_step(FIRST_STEP + index)
+            synchronize()
             if profiler is not None and index >= warmup:
                 profiler.disable()
             times.append(time.perf_counter() - started)
@@ -121,7 +127,10 @@ def time_arm(scene: Path, overrides: dict[str, Any], *, gaussians: int, width: i
         result = {"gaussians": count, "mean_s": statistics.fmean(timed), "median_s": statistics.median(timed),
                   "min_s": min(timed),
                   "max_s": max(timed), "steps": len(timed), "torch_threads": torch.get_num_threads(),
-                  "loss_terms": [term.name for term in trainer.loss_terms]}
+                  "loss_terms": [term.name for term in trainer.loss_terms], "backend": backend}
+        if on_gpu:
+            result["peak_gpu_mib"] = torch.cuda.max_memory_allocated() / 2**20
+            result["gpu"] = torch.cuda.get_device_name()
         if profiler is not None:
             result["profile"] = _grouped(profiler, len(timed))
         return result
@@ -157,6 +166,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=3, help="times every arm is timed, arms taking turns")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--arms", nargs="+", default=None, help="subset of arms (default: all)")
+    parser.add_argument("--backend", default="cpu", choices=("cpu", "cuda"),
+                        help="rasterizer backend (cuda: gsplat on the GPU; steps are timed after a synchronize)")
     parser.add_argument("--profile", action="store_true", help="cProfile the full-ESGS and 3DGS arms, grouped")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
@@ -166,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     load_start = os.getloadavg()
     rows: dict[str, Any] = {}
     options = dict(gaussians=args.gaussians, width=args.width, threads=args.threads, steps=args.steps,
-                   warmup=args.warmup, seed=args.seed)
+                   warmup=args.warmup, seed=args.seed, backend=args.backend)
     # timed without the profiler (its overhead is not the same for every arm); the arms take
     # turns over the repeats, so a change of the machine's load touches every arm alike
     for repeat in range(args.repeats):
@@ -174,6 +185,9 @@ def main(argv: list[str] | None = None) -> int:
             timed = time_arm(args.scene, chosen[name], profile=False, **options)
             row = rows.setdefault(name, {"gaussians": timed["gaussians"], "loss_terms": timed["loss_terms"],
                                          "torch_threads": timed["torch_threads"], "repeats": []})
+            if "peak_gpu_mib" in timed:
+                row["peak_gpu_mib"] = max(row.get("peak_gpu_mib", 0.0), timed["peak_gpu_mib"])
+                row["gpu"] = timed["gpu"]
             row["repeats"].append({key: timed[key] for key in ("mean_s", "median_s", "min_s", "max_s", "steps")})
             print(f"[{repeat + 1}/{args.repeats}] {name:26s} mean {timed['mean_s'] * 1e3:7.1f} ms/step "
                   f"(median {timed['median_s'] * 1e3:.1f}, min {timed['min_s'] * 1e3:.1f})", flush=True)
@@ -198,6 +212,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"    {group:62s} {seconds * 1e3:8.1f} ms")
     result = {"command": "python " + " ".join([sys.argv[0], *(argv if argv is not None else sys.argv[1:])]),
               "scene": str(args.scene), "width": args.width, "threads": args.threads, "priors": args.priors,
+              "backend": args.backend,
               "first_step": FIRST_STEP, "load_average_start": load_start, "load_average_end": os.getloadavg(),
               "arms": rows}
     if args.json:

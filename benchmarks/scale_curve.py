@@ -36,14 +36,18 @@ def _child_floor() -> None:
     print(json.dumps({"peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}))
 
 
-def _child_point(scene: str, gaussians: int, width: int, threads: int, steps: int, warmup: int) -> None:
+def _child_point(scene: str, gaussians: int, width: int, threads: int, steps: int, warmup: int,
+                 backend: str = "cpu") -> None:
     sys.path.insert(0, str(Path(__file__).parent))
     from profile_step import time_arm
 
     timed = time_arm(Path(scene), {}, gaussians=gaussians, width=width, threads=threads, steps=steps,
-                     warmup=warmup, seed=0, profile=False)
-    print(json.dumps({"mean_s": timed["mean_s"], "min_s": timed["min_s"], "gaussians": timed["gaussians"],
-                      "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}))
+                     warmup=warmup, seed=0, profile=False, backend=backend)
+    point = {"mean_s": timed["mean_s"], "min_s": timed["min_s"], "gaussians": timed["gaussians"],
+             "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+    if "peak_gpu_mib" in timed:  # the cuda backend: the GPU's peak allocation is the figure that limits a run
+        point.update(peak_gpu_mib=timed["peak_gpu_mib"], gpu=timed["gpu"])
+    print(json.dumps(point))
 
 
 def _run_child(arguments: list[str]) -> dict[str, Any]:
@@ -92,8 +96,8 @@ def main(argv: list[str] | None = None) -> int:
         _child_floor()
         return 0
     if argv[:1] == ["--child-point"]:
-        scene, gaussians, width, threads, steps, warmup = argv[1:7]
-        _child_point(scene, int(gaussians), int(width), int(threads), int(steps), int(warmup))
+        scene, gaussians, width, threads, steps, warmup, backend = argv[1:8]
+        _child_point(scene, int(gaussians), int(width), int(threads), int(steps), int(warmup), backend)
         return 0
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("scene", type=Path)
@@ -102,6 +106,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--steps", type=int, default=6)
     parser.add_argument("--warmup", type=int, default=2)
+    parser.add_argument("--backend", default="cpu", choices=("cpu", "cuda"),
+                        help="rasterizer backend (cuda also reports the GPU's peak allocation)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
 
@@ -111,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     for width in args.widths:
         for gaussians in args.gaussians:
             point = _run_child(["--child-point", str(args.scene), str(gaussians), str(width), str(args.threads),
-                                str(args.steps), str(args.warmup)])
+                                str(args.steps), str(args.warmup), args.backend])
             point.update(width=width, requested_gaussians=gaussians)
             if "peak_rss_mib" in point and "peak_rss_mib" in floor:
                 above = point["peak_rss_mib"] - floor["peak_rss_mib"]
@@ -123,9 +129,10 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 print(f"width {width:5d}, {gaussians:>9,} Gaussians: {point['mean_s'] * 1e3:8.1f} ms/step, peak RSS "
                       f"{point['peak_rss_mib']:7.0f} MiB ({point['above_floor_mib']:6.0f} above the floor, "
-                      f"{point['bytes_per_gaussian_above_floor']:6.0f} B per Gaussian)", flush=True)
+                      f"{point['bytes_per_gaussian_above_floor']:6.0f} B per Gaussian)"
+                      + (f", GPU peak {point['peak_gpu_mib']:.0f} MiB" if "peak_gpu_mib" in point else ""), flush=True)
     result = {"command": "python " + " ".join([sys.argv[0], *argv]), "scene": str(args.scene),
-              "threads": args.threads, "steps": args.steps, "warmup": args.warmup, "floor": floor,
+              "threads": args.threads, "backend": args.backend, "steps": args.steps, "warmup": args.warmup, "floor": floor,
               "parameter_bytes_per_gaussian": PARAMETER_BYTES, "load_average_end": os.getloadavg(),
               "points": points}
     if args.json:

@@ -105,11 +105,12 @@ def needed_channels(terms: list[LossTerm], step: int) -> set[str]:
 class LossParts:
     """The step's loss split by :attr:`LossTerm.densifies`: ``densifying`` and ``other`` are the
     weighted sums of each group (None when the group has no active term); ``values`` each
-    active term's unweighted value (for logging)."""
+    active term's unweighted value (for logging); ``total_value`` the total as a float."""
 
     densifying: Optional[torch.Tensor]
     other: Optional[torch.Tensor]
     values: dict[str, float]
+    total_value: float = float("nan")
 
     @property
     def total(self) -> torch.Tensor:
@@ -120,17 +121,24 @@ class LossParts:
 def loss_parts(terms: list[LossTerm], context: LossContext) -> LossParts:
     """Evaluate the active terms once, summed per group (see :class:`LossParts`)."""
     sums: dict[bool, Optional[torch.Tensor]] = {True: None, False: None}
-    values: dict[str, float] = {}
+    names: list[str] = []
+    detached: list[torch.Tensor] = []
     for term in terms:
         if not term.active(context.step):
             continue
         value = term.function(context)
-        values[term.name] = float(value.detach())
+        names.append(term.name)
+        detached.append(value.detach().reshape(()))
         weighted = term.weight * value
         sums[term.densifies] = weighted if sums[term.densifies] is None else sums[term.densifies] + weighted
     if sums[True] is None and sums[False] is None:
         sums[True] = context.image.sum() * 0.0
-    return LossParts(densifying=sums[True], other=sums[False], values=values)
+    parts = LossParts(densifying=sums[True], other=sums[False], values={})
+    # every value reaches the host in one copy: on a GPU each float() is a wait for the device
+    numbers = torch.stack([value.double() for value in (*detached, parts.total.detach().reshape(()))]).tolist()
+    parts.values = dict(zip(names, numbers[:-1]))
+    parts.total_value = numbers[-1]
+    return parts
 
 
 def total_loss(terms: list[LossTerm], context: LossContext) -> tuple[torch.Tensor, dict[str, float]]:

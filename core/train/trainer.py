@@ -504,9 +504,9 @@ class Trainer:
         parts = loss_parts(self.loss_terms, loss_context)
         loss, values = parts.total, parts.values
         context.loss, context.loss_values = loss, values
-        if not bool(torch.isfinite(loss)):
+        if not math.isfinite(parts.total_value):
             terms = ", ".join(f"{name}={value:.4g}" for name, value in values.items())
-            self._diverged(f"the loss is {float(loss.detach())} at step {step} ({terms})")
+            self._diverged(f"the loss is {parts.total_value} at step {step} ({terms})")
         self._backward(step, parts, output)
         for hook in self.hooks:
             hook.after_backward(self, context)
@@ -531,7 +531,7 @@ class Trainer:
             bad = [name for name, p in self.gaussians.params.items() if not bool(torch.isfinite(p).all())]
             self._diverged(f"Gaussian parameters {', '.join(bad)} are not finite after step {step}")
 
-        loss_value = float(loss.detach())
+        loss_value = parts.total_value
         self.loss_ema = loss_value if self.loss_ema is None else 0.4 * loss_value + 0.6 * self.loss_ema
         self.psnr_ema = psnr if self.psnr_ema is None else 0.4 * psnr + 0.6 * self.psnr_ema
         context.extras["psnr"] = psnr

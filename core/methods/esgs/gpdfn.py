@@ -73,40 +73,85 @@ def _voxel_keys(coords: torch.Tensor) -> torch.Tensor:
 class VoxelTable:
     """Occupied voxels of one Gaussian set (see :mod:`.gpdfn_kernels`).
 
-    coordinates [N, 3] int64 voxel of each Gaussian; keys [N] int64 packed; inverse [N] int64
-    voxel id of each Gaussian; counts [V] Gaussians per voxel (float); slots [S, 2] int64:
-    the hash table (key, voxel id; a NumPy array) that :meth:`lookup` probes.
+    coordinates [N, 3] int64 voxel of each Gaussian; keys [N] int64 packed (a NumPy array on
+    the CPU path, a tensor on the torch path); inverse [N] int64 voxel id of each Gaussian;
+    counts [V] Gaussians per voxel (float). Voxel ids run in order of first appearance on both
+    paths. How :meth:`lookup` finds a voxel depends on where the Gaussians live:
+
+    - CPU (Numba): ``slots`` [S, 2] int64, the hash table (key, voxel id) it probes;
+    - any other device (torch): ``sorted_keys`` [V] and ``sorted_ids`` [V], the distinct keys in
+      ascending order and their voxel ids, searched with ``torch.searchsorted``. On a GPU this
+      keeps the table and its lookups on the device: the Numba path copied every centre and
+      every sample point to the host and back, twice per step.
     """
 
     voxel_size: float
     coordinates: torch.Tensor
-    keys: np.ndarray
+    keys: np.ndarray | torch.Tensor
     inverse: torch.Tensor
     counts: torch.Tensor
-    slots: np.ndarray
+    slots: Optional[np.ndarray] = None
+    sorted_keys: Optional[torch.Tensor] = None
+    sorted_ids: Optional[torch.Tensor] = None
 
     @staticmethod
-    def build(means: torch.Tensor, voxel_size: float, previous: Optional["VoxelTable"] = None) -> "VoxelTable":
+    def build(means: torch.Tensor, voxel_size: float, previous: Optional["VoxelTable"] = None,
+              use_torch: Optional[bool] = None) -> "VoxelTable":
         """Voxel table of the centres ``means`` [N, 3] (no gradient).
 
         ``previous``: the table of an earlier call. When every centre still lies in the voxel
-        it had then (same count, equal keys), its hash table, inverse and counts are reused:
-        they depend only on the keys, so the reuse is exact.
+        it had then (same count, equal keys), its lookup structure, inverse and counts are
+        reused: they depend only on the keys, so the reuse is exact. ``use_torch``: the torch
+        path (default: wherever ``means`` is not on the CPU); both paths give the same table.
         """
+        if use_torch is None:
+            use_torch = means.device.type != "cpu"
+        if use_torch:
+            return VoxelTable._build_torch(means, voxel_size, previous)
         points = means.detach().cpu().contiguous().numpy()
         coordinates, keys = kernels.voxel_coordinates(points, points.dtype.type(voxel_size))
         coordinates_t = torch.from_numpy(coordinates).to(means.device)
-        if previous is not None and previous.voxel_size == voxel_size and previous.keys.shape == keys.shape \
-                and previous.counts.dtype == means.dtype and previous.counts.device == means.device \
-                and np.array_equal(previous.keys, keys):
+        if previous is not None and previous.slots is not None and previous.voxel_size == voxel_size \
+                and previous.keys.shape == keys.shape and previous.counts.dtype == means.dtype \
+                and previous.counts.device == means.device and np.array_equal(previous.keys, keys):
             return VoxelTable(voxel_size, coordinates_t, keys, previous.inverse, previous.counts, previous.slots)
         slots, inverse = kernels.build_table(keys)
         inverse_t = torch.from_numpy(inverse).to(means.device)
         counts = torch.bincount(inverse_t).to(means.dtype)
         return VoxelTable(voxel_size, coordinates_t, keys, inverse_t, counts, slots)
 
+    @staticmethod
+    def _build_torch(means: torch.Tensor, voxel_size: float, previous: Optional["VoxelTable"]) -> "VoxelTable":
+        points = means.detach()
+        # floor(p / size) in the positions' precision, as the Numba kernel computes it
+        coordinates = torch.floor(points / torch.tensor(voxel_size, dtype=points.dtype, device=points.device)).long()
+        keys = _voxel_keys(coordinates)
+        if previous is not None and previous.sorted_keys is not None and previous.voxel_size == voxel_size \
+                and previous.keys.shape == keys.shape and previous.counts.dtype == means.dtype \
+                and previous.counts.device == means.device and torch.equal(previous.keys, keys):
+            return VoxelTable(voxel_size, coordinates, keys, previous.inverse, previous.counts,
+                              sorted_keys=previous.sorted_keys, sorted_ids=previous.sorted_ids)
+        sorted_keys, sorted_inverse = torch.unique(keys, sorted=True, return_inverse=True)
+        # ids by first appearance (as the hash table gives them), not by key order
+        positions = torch.arange(len(keys), device=keys.device)
+        first = torch.full((len(sorted_keys),), len(keys), dtype=torch.long, device=keys.device)
+        first = first.scatter_reduce(0, sorted_inverse, positions, reduce="amin")
+        sorted_ids = torch.empty_like(first)
+        sorted_ids[torch.argsort(first)] = torch.arange(len(first), device=keys.device)
+        inverse = sorted_ids[sorted_inverse]
+        counts = torch.bincount(inverse, minlength=len(sorted_keys)).to(means.dtype)
+        return VoxelTable(voxel_size, coordinates, keys, inverse, counts, sorted_keys=sorted_keys,
+                          sorted_ids=sorted_ids)
+
     def lookup(self, points: torch.Tensor) -> torch.Tensor:
         """Voxel id of each point [M, 3] -> [M] int64, -1 where the voxel is empty."""
+        if self.sorted_keys is not None:
+            detached = points.detach()
+            size = torch.tensor(self.voxel_size, dtype=detached.dtype, device=detached.device)
+            keys = _voxel_keys(torch.floor(detached / size).long())
+            where = torch.searchsorted(self.sorted_keys, keys).clamp_(max=len(self.sorted_keys) - 1)
+            hit = self.sorted_keys[where] == keys
+            return torch.where(hit, self.sorted_ids[where], torch.full_like(where, -1))
         array = points.detach().cpu().contiguous().numpy()
         found = kernels.lookup(array, array.dtype.type(self.voxel_size), self.slots)
         return torch.from_numpy(found).to(points.device)
@@ -116,7 +161,13 @@ class VoxelTable:
 #: H = 16) stay in the CPU cache, where the whole-set tensors (~19 MB each at 100k Gaussians)
 #: made every elementwise pass a trip to memory and a fresh allocation (page faults).
 #: Measured at 100k Gaussians: 2048 to 16384 all within noise; the whole set at once ~1.6x slower.
+#: On a GPU the blocks only multiply kernel launches, so the whole set goes at once there.
 FUSION_BLOCK = 4096
+
+
+def _fusion_block(tensor: torch.Tensor) -> int:
+    """Gaussians per block of :class:`_FusionCore` for tensors on ``tensor``'s device."""
+    return FUSION_BLOCK if tensor.device.type == "cpu" else max(int(tensor.shape[0]), 1)
 
 
 def _fusion_forward_block(own, voxel_projection, index, weight, bias1, weight2, bias2, attention_weight,
@@ -179,8 +230,9 @@ class _FusionCore(torch.autograd.Function):
         summaries = own.new_empty(count, hidden)
         saved = []
         keep = any(ctx.needs_input_grad)
-        for start in range(0, count, FUSION_BLOCK):
-            block = slice(start, start + FUSION_BLOCK)
+        ctx.block = block_size = _fusion_block(own)
+        for start in range(0, count, block_size):
+            block = slice(start, start + block_size)
             outputs = _fusion_forward_block(own[block], voxel_projection, index[:, block], weight[:, block],
                                             *parameters[:5], summaries[block])
             if keep:
@@ -205,10 +257,10 @@ class _FusionCore(torch.autograd.Function):
         grad_head_weight.addmm_(grad_result.t(), summaries)
         grad_head_bias.add_(grad_result.sum(0))
         grad_summaries = grad_result @ head_weight  # [N, H]
-        for start in range(0, count, FUSION_BLOCK):
-            block = slice(start, start + FUSION_BLOCK)
+        for start in range(0, count, ctx.block):
+            block = slice(start, start + ctx.block)
             block_weight = weight[:, block]
-            first, second, attention = ctx.blocks[start // FUSION_BLOCK]
+            first, second, attention = ctx.blocks[start // ctx.block]
             block_index = index[:, block].reshape(-1)
             rows = attention.shape[1]
             grad_summary = grad_summaries[block]  # [B, H]

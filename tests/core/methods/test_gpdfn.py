@@ -89,6 +89,50 @@ def test_hash_lookup_matches_a_dictionary_of_voxels():
     assert 0 < sum(e >= 0 for e in expected) < len(expected)  # both hits and empty voxels were probed
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_torch_voxel_table_equals_the_numba_hash_table(dtype):
+    # the table GPU runs use (torch.unique + searchsorted) against the CPU's Numba hash table
+    generator = np.random.default_rng(5)
+    means = torch.from_numpy(generator.normal(0, 3, (500, 3))).to(dtype)
+    numba_table = VoxelTable.build(means, 0.7, use_torch=False)
+    torch_table = VoxelTable.build(means, 0.7, use_torch=True)
+    assert numba_table.slots is not None and torch_table.slots is None
+    torch.testing.assert_close(torch_table.coordinates, numba_table.coordinates)
+    assert torch.equal(torch_table.inverse, numba_table.inverse)  # same ids: first appearance
+    assert torch.equal(torch_table.counts, numba_table.counts)
+    points = torch.from_numpy(generator.normal(0, 4, (4000, 3))).to(dtype)
+    found = torch_table.lookup(points)
+    assert torch.equal(found, numba_table.lookup(points))
+    assert 0 < int((found >= 0).sum()) < len(found)
+    # reused while no centre changes voxel, rebuilt when one does
+    assert VoxelTable.build(means, 0.7, torch_table, use_torch=True).sorted_keys is torch_table.sorted_keys
+    moved = means.clone()
+    moved[0] += 5.0
+    assert VoxelTable.build(moved, 0.7, torch_table, use_torch=True).sorted_keys is not torch_table.sorted_keys
+
+
+def test_gpu_layout_gives_the_cpu_layouts_outputs_and_gradients(monkeypatch):
+    # what a CUDA run executes (torch voxel table, the fused stack as one block), run on the CPU
+    torch.manual_seed(6)
+    params = {name: value.double() for name, value in _gaussians(count=400).items()}
+    module = GPDFN(GPDFNConfig(fused_k=5)).double()
+    for parameter in module.parameters():
+        torch.nn.init.normal_(parameter, std=0.3)
+    monkeypatch.setattr(gpdfn, "FUSION_BLOCK", 128)
+    cpu, cpu_gradients = _outputs_and_gradients(module, params, module)
+    build = VoxelTable.build
+    monkeypatch.setattr(VoxelTable, "build", staticmethod(
+        lambda means, size, previous=None, use_torch=None: build(means, size, previous, use_torch=True)))
+    monkeypatch.setattr(gpdfn, "_fusion_block", lambda tensor: int(tensor.shape[0]))
+    module._table = None
+    gpu, gpu_gradients = _outputs_and_gradients(module, params, module)
+    assert module._table.sorted_keys is not None
+    for name in cpu:
+        torch.testing.assert_close(gpu[name], cpu[name], rtol=1e-10, atol=1e-12)
+    for a, b in zip(gpu_gradients, cpu_gradients):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11)
+
+
 def _reference_forward(module: GPDFN, means, log_scales, quats, opacity_logits, sh_dc):
     """The module's maths in plain autograd: sorted-key voxels, every row through the full embedding."""
     voxel = module.voxel_size
@@ -118,7 +162,8 @@ def _outputs_and_gradients(function, params, module):
     inputs = {name: value.clone().requires_grad_() for name, value in params.items()}
     out = function(**inputs)
     generator = torch.Generator().manual_seed(1)
-    loss = sum((value * torch.randn(value.shape, generator=generator, dtype=value.dtype)).sum()
+    # drawn on the CPU (one generator for every device), then moved to the outputs' device
+    loss = sum((value * torch.randn(value.shape, generator=generator, dtype=value.dtype).to(value.device)).sum()
                for value in out.values())
     gradients = torch.autograd.grad(loss, list(inputs.values()) + list(module.parameters()))
     return out, gradients
@@ -412,3 +457,21 @@ def test_hook_fuses_only_the_gaussians_the_view_can_draw_and_renders_the_same():
             assert a is None
         else:
             torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_module_gives_the_cpu_modules_outputs_and_gradients():
+    torch.manual_seed(7)
+    params = {name: value.double() for name, value in _gaussians(count=3000).items()}
+    module = GPDFN(GPDFNConfig(fused_k=5)).double()
+    for parameter in module.parameters():
+        torch.nn.init.normal_(parameter, std=0.3)
+    cpu, cpu_gradients = _outputs_and_gradients(module, params, module)
+    module = module.cuda()
+    module._table = None
+    cuda, cuda_gradients = _outputs_and_gradients(module, {k: v.cuda() for k, v in params.items()}, module)
+    assert module._table.sorted_keys is not None and module._table.sorted_keys.is_cuda  # the table stayed there
+    for name in cpu:
+        torch.testing.assert_close(cuda[name].cpu(), cpu[name], rtol=1e-9, atol=1e-11)
+    for a, b in zip(cuda_gradients, cpu_gradients):
+        torch.testing.assert_close(a.cpu(), b, rtol=1e-8, atol=1e-10)
