@@ -58,6 +58,10 @@ class TrainConfig:
         "loss on every pixel; RUN/sky.json; docs/training.md), none = the constant background (plain 3DGS)",
         choices=SKY_MODELS))
     sky_degree: int = field(default=3, metadata=_help("spherical-harmonics degree of the sky model (0..3)"))
+    sky_grid_rows: int = field(default=0, metadata=_help(
+        "rows of a direction grid added to the sky model's harmonics (an equirectangular map of 2 x rows columns, "
+        "read bilinearly; local support, so the unseen-sky prior fills unseen directions without moving the rest); "
+        "0 = harmonics only"))
     sky_lr: float = field(default=0.05, metadata=_help(
         "Adam learning rate of the sky model (its colour in logit units, its directional bands)"))
     sky_alpha_weight: float = field(default=0.05, metadata=_help(
@@ -199,6 +203,8 @@ class TrainConfig:
             raise ConfigError(f"sky must be one of {', '.join(SKY_MODELS)}, got {self.sky!r}")
         if not 0 <= self.sky_degree <= 3:
             raise ConfigError(f"sky_degree must be in 0..3, got {self.sky_degree}")
+        if self.sky_grid_rows < 0 or self.sky_grid_rows == 1 or self.sky_grid_rows > 90:
+            raise ConfigError(f"sky_grid_rows must be 0 (no grid) or 2..90, got {self.sky_grid_rows}")
         for name in ("sky_lr", "sky_alpha_weight", "sky_smooth_weight", "sky_unseen_weight", "surface_alpha_weight"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -238,7 +244,7 @@ class TrainConfig:
 #: A dotted name ("esgs.sky_weight") is a setting of a section of the legacy layout below.
 PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0, "sky": "none", "mask_photometric": True,
                           "surface_alpha_weight": 0.0, "grayscale": "off", "sky_smooth_weight": 0.0,
-                          "sky_unseen_weight": 0.0}
+                          "sky_unseen_weight": 0.0, "sky_grid_rows": 0}
 
 #: Legacy layout (runs saved before methods were registered): the method's settings were
 #: the sections "esgs" (ESGSConfig) and "baselines" (Mip-Splatting and DropoutGS switches

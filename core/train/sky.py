@@ -73,19 +73,30 @@ def _directions_at(viewmat: torch.Tensor, K: torch.Tensor, columns: torch.Tensor
 
 
 class SkyModel(torch.nn.Module):
-    """Colour of the sky in every direction: spherical harmonics of ``degree`` (0..3) through a sigmoid.
+    """Colour of the sky in every direction: spherical harmonics of ``degree`` (0..3) through a sigmoid,
+    optionally plus a coarse direction grid.
 
     ``base`` [3]: the constant part, a logit; ``coefficients`` [K - 1, 3] (K = (degree + 1)^2):
-    the directional bands, starting at 0 (a uniform sky of ``initial_color``).
+    the directional bands, starting at 0 (a uniform sky of ``initial_color``). ``grid_rows`` > 0
+    adds ``grid`` [grid_rows, 2 grid_rows, 3], logits on an equirectangular map of the world
+    directions (elevation from the -z to the +z pole over the rows, azimuth over the columns,
+    wrapping), read bilinearly and added to the harmonics: a term with local support, so a
+    change in one part of the sky (a prior on directions no view saw, say) leaves the rest as
+    it is, where every harmonic band spans the whole sphere. It starts at 0.
     """
 
-    def __init__(self, degree: int = 3, initial_color: tuple[float, float, float] = (0.0, 0.0, 0.0)):
+    def __init__(self, degree: int = 3, initial_color: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                 grid_rows: int = 0):
         super().__init__()
         if not 0 <= degree <= 3:
             raise ValueError(f"sky degree must be in 0..3, got {degree}")
+        if grid_rows < 0 or grid_rows == 1:
+            raise ValueError(f"sky grid rows must be 0 (no grid) or at least 2, got {grid_rows}")
         self.degree = int(degree)
+        self.grid_rows = int(grid_rows)
         self.base = torch.nn.Parameter(torch.zeros(3))
         self.coefficients = torch.nn.Parameter(torch.zeros(num_sh_bases(degree) - 1, 3))
+        self.grid = torch.nn.Parameter(torch.zeros(self.grid_rows, 2 * self.grid_rows, 3)) if self.grid_rows else None
         # l (l + 1) of each directional coefficient's band (the Laplace-Beltrami eigenvalue);
         # not persistent: derived from the degree, so saved files and checkpoints do not change
         bands = [band * (band + 1) for band in range(1, self.degree + 1) for _ in range(2 * band + 1)]
@@ -98,14 +109,40 @@ class SkyModel(torch.nn.Module):
         with torch.no_grad():
             self.base.copy_(torch.log(color / (1 - color)).to(self.base))
             self.coefficients.zero_()
+            if self.grid is not None:
+                self.grid.zero_()
 
-    def logits(self, directions: torch.Tensor) -> torch.Tensor:
-        """[..., 3] unit directions -> [..., 3] the colours' logits ``b + sum_k c_k Y_k(d)``."""
-        logits = self.base.expand(directions[..., :1].numel(), 3)
+    def logits(self, directions: torch.Tensor, *, harmonics_grad: bool = True) -> torch.Tensor:
+        """[..., 3] unit directions -> [..., 3] the colours' logits ``b + sum_k c_k Y_k(d)`` (+ the grid's).
+
+        ``harmonics_grad=False``: the harmonic part is detached, so a loss on these logits moves the
+        grid alone (how :class:`UnseenSkyPrior` keeps its pull local when there is a grid).
+        """
+        flat = directions.reshape(-1, 3).to(self.base)
+        logits = self.base.expand(flat.shape[0], 3)
         if self.degree > 0:
-            basis = sh_basis(self.degree, directions.reshape(-1, 3).to(self.base))[:, 1:]  # [P, K - 1]
+            basis = sh_basis(self.degree, flat)[:, 1:]  # [P, K - 1]
             logits = logits + basis @ self.coefficients
+        if not harmonics_grad:
+            logits = logits.detach()
+        if self.grid is not None:
+            logits = logits + self.grid_logits(flat)
         return logits.reshape(*directions.shape[:-1], 3)
+
+    def grid_logits(self, directions: torch.Tensor) -> torch.Tensor:
+        """[P, 3] unit directions -> [P, 3] the grid's bilinear reading (0 without a grid)."""
+        if self.grid is None:
+            return directions.new_zeros(directions.shape[0], 3)
+        azimuth = torch.atan2(directions[:, 1], directions[:, 0])  # (-pi, pi]
+        elevation = torch.asin(directions[:, 2].clamp(-1.0, 1.0))  # [-pi/2, pi/2]
+        # the first column again after the last, so azimuth -pi and pi read the same cells
+        wrapped = torch.cat([self.grid, self.grid[:, :1]], dim=1).permute(2, 0, 1)[None]  # [1, 3, R, C + 1]
+        x = azimuth / math.pi  # -1 .. 1 over the C + 1 columns (align_corners: the ends are cell centres)
+        y = elevation / (0.5 * math.pi)
+        sample = torch.stack([x, y], dim=-1).view(1, -1, 1, 2).to(self.grid)
+        read = torch.nn.functional.grid_sample(wrapped, sample, mode="bilinear", padding_mode="border",
+                                               align_corners=True)  # [1, 3, P, 1]
+        return read[0, :, :, 0].T
 
     def forward(self, directions: torch.Tensor) -> torch.Tensor:
         """[..., 3] unit directions -> [..., 3] colours in (0, 1)."""
@@ -154,23 +191,32 @@ class SkyModel(torch.nn.Module):
         return torch.sigmoid(fine)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"format": SKY_FORMAT, "kind": "envmap", "degree": self.degree,
+        data = {"format": SKY_FORMAT, "kind": "envmap", "degree": self.degree,
                 "base": self.base.detach().cpu().tolist(), "coefficients": self.coefficients.detach().cpu().tolist()}
+        if self.grid is not None:
+            data.update(grid_rows=self.grid_rows, grid=self.grid.detach().cpu().tolist())
+        return data
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], *, source: Any = None) -> "SkyModel":
         if not isinstance(data, dict) or data.get("format") != SKY_FORMAT:
             raise CheckpointError("not a sky model (missing or unknown format tag)", path=source)
-        model = cls(int(data["degree"]))
+        model = cls(int(data["degree"]), grid_rows=int(data.get("grid_rows", 0)))  # files before the grid have none
         base = torch.tensor(data["base"], dtype=torch.float32)
         coefficients = torch.tensor(data["coefficients"], dtype=torch.float32).reshape(-1, 3)
         if base.shape != model.base.shape or coefficients.shape != model.coefficients.shape:
             raise CheckpointError(f"sky parameters have shapes {tuple(base.shape)} and {tuple(coefficients.shape)}, "
                                   f"expected {tuple(model.base.shape)} and {tuple(model.coefficients.shape)}",
                                   path=source)
+        grid = torch.tensor(data["grid"], dtype=torch.float32) if model.grid is not None else None
+        if grid is not None and grid.shape != model.grid.shape:
+            raise CheckpointError(f"sky grid has shape {tuple(grid.shape)}, expected {tuple(model.grid.shape)}",
+                                  path=source)
         with torch.no_grad():
             model.base.copy_(base)
             model.coefficients.copy_(coefficients)
+            if grid is not None:
+                model.grid.copy_(grid)
         return model
 
 
@@ -245,8 +291,13 @@ class UnseenSkyPrior:
         return UnseenSkyPrior(self.unseen.to(device), self.seen.to(device), self.neighbours.to(device), self.samples)
 
     def loss(self, sky: SkyModel) -> torch.Tensor:
-        """Mean over unseen directions and channels of (logit - mean logit of its sky-seen neighbours)^2."""
-        unseen = sky.logits(self.unseen)
+        """Mean over unseen directions and channels of (logit - mean logit of its sky-seen neighbours)^2.
+
+        With a grid in the sky model only the grid takes this gradient: the unseen directions are
+        filled in locally and the harmonics, which every view's sky (and the sky behind a
+        not-quite-opaque ground) reads, are left to the photometric loss.
+        """
+        unseen = sky.logits(self.unseen, harmonics_grad=sky.grid is None)
         with torch.no_grad():
             target = sky.logits(self.seen)[self.neighbours].mean(dim=1)
         return (unseen - target).square().mean()

@@ -351,7 +351,7 @@ class Trainer:
         config = self.config
         if config.sky != "envmap":
             return
-        self.sky = SkyModel(config.sky_degree).to(self.device)  # no random draw: same seed, same run
+        self.sky = SkyModel(config.sky_degree, grid_rows=config.sky_grid_rows).to(self.device)  # no random draw: same seed, same run
         marks_sky = _marks_sky(self.data.mask_source)
         if marks_sky:
             # start from the mean colour of the pixels the masks call sky (else black, 3DGS's background)

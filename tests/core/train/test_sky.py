@@ -516,3 +516,100 @@ def test_the_sky_image_from_a_coarse_grid_equals_every_pixels_sky(size):
     exact_grad = torch.autograd.grad((sky.image(viewmat, K, width, height, stride=1) * weights).sum(),
                                      sky.coefficients)[0]
     torch.testing.assert_close(coarse_grad, exact_grad, rtol=1e-3, atol=1e-3 * float(exact_grad.abs().max()))
+
+
+# --- the direction grid (sky_grid_rows) ------------------------------------------------------
+def _direction(azimuth_deg: float, elevation_deg: float) -> torch.Tensor:
+    a, e = np.radians(azimuth_deg), np.radians(elevation_deg)
+    return torch.tensor([[np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)]], dtype=torch.float32)
+
+
+def test_a_zero_grid_adds_nothing_and_a_cell_reads_its_value_at_its_centre_and_nothing_far_away():
+    plain = SkyModel(3, initial_color=(0.6, 0.4, 0.3))
+    gridded = SkyModel(3, initial_color=(0.6, 0.4, 0.3), grid_rows=10)  # 20 deg apart, 20 columns
+    with torch.no_grad():
+        plain.coefficients.copy_(torch.randn(plain.coefficients.shape, generator=torch.Generator().manual_seed(1)))
+        gridded.coefficients.copy_(plain.coefficients)
+    directions = torch.nn.functional.normalize(torch.randn(500, 3, generator=torch.Generator().manual_seed(2)), dim=1)
+    torch.testing.assert_close(gridded.logits(directions), plain.logits(directions))
+    # row r sits at elevation -90 + r * 180 / 9; column c at azimuth -180 + c * 360 / 20
+    with torch.no_grad():
+        gridded.grid[6, 3] = torch.tensor([1.0, -2.0, 0.5])
+    at_centre = gridded.grid_logits(_direction(-180 + 3 * 18, -90 + 6 * 20))
+    torch.testing.assert_close(at_centre, torch.tensor([[1.0, -2.0, 0.5]]))
+    halfway = gridded.grid_logits(_direction(-180 + 3.5 * 18, -90 + 6 * 20))  # bilinear: half of it
+    torch.testing.assert_close(halfway, torch.tensor([[0.5, -1.0, 0.25]]))
+    assert float(gridded.grid_logits(_direction(90.0, -60.0)).abs().max()) == 0.0  # local support
+    # the map wraps in azimuth: the last column blends into the first across +-180 degrees
+    with torch.no_grad():
+        gridded.grid.zero_()
+        gridded.grid[4, 0] = 1.0
+    elevation = -90 + 4 * 20
+    torch.testing.assert_close(gridded.grid_logits(_direction(-180.0, elevation)),
+                               gridded.grid_logits(_direction(180.0, elevation)))
+    torch.testing.assert_close(gridded.grid_logits(_direction(180.0 - 9.0, elevation)), torch.full((1, 3), 0.5))
+
+
+def test_the_grid_gradient_matches_finite_differences_and_the_file_round_trips(tmp_path):
+    sky = SkyModel(2, initial_color=(0.5, 0.5, 0.5), grid_rows=6).double()
+    with torch.no_grad():
+        sky.grid.copy_(torch.randn(sky.grid.shape, generator=torch.Generator().manual_seed(4), dtype=torch.float64))
+    directions = torch.nn.functional.normalize(torch.randn(40, 3, generator=torch.Generator().manual_seed(5),
+                                                           dtype=torch.float64), dim=1)
+    assert torch.autograd.gradcheck(lambda grid: torch.nn.functional.grid_sample(
+        torch.cat([grid, grid[:, :1]], dim=1).permute(2, 0, 1)[None],
+        torch.stack([torch.atan2(directions[:, 1], directions[:, 0]) / np.pi,
+                     torch.asin(directions[:, 2]) / (np.pi / 2)], -1).view(1, -1, 1, 2),
+        align_corners=True), (sky.grid.detach().clone().requires_grad_(),))
+    # the model's own gradient equals that of the same reading written out
+    sky.logits(directions).sum().backward()
+    assert sky.grid.grad is not None and float(sky.grid.grad.abs().sum()) > 0
+    sky = sky.float()
+    path = save_sky(tmp_path / "sky.json", sky)
+    back = load_sky(path)
+    assert back.grid_rows == 6
+    torch.testing.assert_close(back.grid, sky.grid)
+    torch.testing.assert_close(back(directions.float()), sky(directions.float()))
+    data = json.loads(path.read_text())
+    data["grid"] = data["grid"][:-1]
+    path.write_text(json.dumps(data))
+    with pytest.raises(CheckpointError, match="grid"):
+        load_sky(path)
+    # a file written before the grid existed has none
+    plain = SkyModel(3).to_dict()
+    assert "grid" not in plain and SkyModel.from_dict(plain).grid is None
+
+
+def test_with_a_grid_the_unseen_prior_moves_only_the_grid():
+    from esgs.core.train.sky import UnseenSkyPrior, fibonacci_sphere
+
+    rays = fibonacci_sphere(20_000)
+    seen = rays[rays[:, 2] > 0.3]
+    prior = UnseenSkyPrior.from_rays(seen, seen, samples=800, radius_deg=4.0)
+    sky = SkyModel(3, initial_color=(0.6, 0.4, 0.3), grid_rows=12)
+    with torch.no_grad():
+        sky.coefficients.copy_(torch.randn(sky.coefficients.shape, generator=torch.Generator().manual_seed(3)))
+    prior.loss(sky).backward()
+    assert sky.coefficients.grad is None and sky.base.grad is None  # the harmonics are left alone
+    moved = sky.grid.grad.abs().sum(dim=(1, 2))  # per row: only rows near unseen directions move
+    assert float(moved[-1]) == 0.0 and float(moved[0]) > 0.0  # +z pole seen, -z pole not
+    # descending it with the seen directions held by a data term (in a run: the photometric
+    # loss) fills the unseen side in and leaves the seen colours as they were
+    target = sky.logits(seen).detach()
+    optimizer = torch.optim.Adam([sky.grid], lr=0.05)
+    before = float(prior.loss(sky).detach())
+    for _ in range(300):
+        optimizer.zero_grad()
+        (prior.loss(sky) + 10.0 * (sky.logits(seen) - target).square().mean()).backward()
+        optimizer.step()
+    assert float(prior.loss(sky).detach()) < 0.2 * before
+    assert float((sky.logits(seen) - target).abs().mean().detach()) < 0.3
+
+
+def test_a_run_with_a_grid_sky_trains_it_and_saves_it(fast_config, sky_scene, tmp_path):
+    from esgs.core.train import train
+
+    train(_config(fast_config, sky_scene, tmp_path / "grid", iterations=4, sky_grid_rows=8))
+    saved = load_sky(tmp_path / "grid" / "sky.json")
+    assert saved.grid.shape == (8, 16, 3)
+    assert float(saved.grid.abs().max()) > 0  # the photometric loss reached it
