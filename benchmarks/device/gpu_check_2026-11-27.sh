@@ -2,15 +2,8 @@
 # 2026-11-27 device check: CUDA tests, step profile (cuda and cpu on one machine), scale curve on the GPU,
 # and cuda-vs-cpu training on one scene. Everything lands in $OUT (at most 8 files).
 set -u
-ROOT=$(pwd)
-T0=$(date +%s)
-stamp() { echo "=== [$(( $(date +%s) - T0 )) s] $*"; }
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .devcarry/*.whl || exit 1
-mkdir -p /tmp/pkg && ln -sfn "$ROOT" /tmp/pkg/esgs
-export PYTHONPATH=/tmp/site:/tmp/pkg TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 PYTHONUNBUFFERED=1
-tar xzf .devcarry/s2.tar.gz || exit 1
-mkdir -p ~/.cache/esgs && cp -r .devcarry/cache/lpips ~/.cache/esgs/
-S=.devcarry/scenes/mixed_s2
+# (as run, these lines were inline; moved to env.sh unchanged)
+source benchmarks/device/env.sh
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 python3 -c "import torch, gsplat; print('torch', torch.__version__, 'gsplat', gsplat.__version__, 'cpus', __import__('os').cpu_count())"
 stamp "compile (gsplat JIT on first call)"

@@ -2,15 +2,8 @@
 # 2026-11-27 device check 2: GPDFN's table on the GPU (torch.unique + searchsorted), the fused stack as one
 # block, one host copy of the loss values per step; CUDA tests, step profile (+ cProfile), ESGS training rerun.
 set -u
-ROOT=$(pwd)
-T0=$(date +%s)
-stamp() { echo "=== [$(( $(date +%s) - T0 )) s] $*"; }
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .devcarry/*.whl || exit 1
-mkdir -p /tmp/pkg && ln -sfn "$ROOT" /tmp/pkg/esgs
-export PYTHONPATH=/tmp/site:/tmp/pkg TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 PYTHONUNBUFFERED=1
-tar xzf .devcarry/s2.tar.gz || exit 1
-mkdir -p ~/.cache/esgs && cp -r .devcarry/cache/lpips ~/.cache/esgs/
-S=.devcarry/scenes/mixed_s2
+# (as run, these lines were inline; moved to env.sh unchanged)
+source benchmarks/device/env.sh
 stamp "compile"
 timeout 200 python3 -c "import gsplat.cuda._backend" 2>&1 | tail -1
 stamp "CUDA tests"
