@@ -64,6 +64,10 @@ class TrainConfig:
         "0 = harmonics only"))
     sky_lr: float = field(default=0.05, metadata=_help(
         "Adam learning rate of the sky model (its colour in logit units, its directional bands)"))
+    sky_lr_decay: float = field(default=0.2, metadata=_help(
+        "the sky model's learning rate at the last step as a share of --sky-lr, reached log-linearly (the positions' "
+        "schedule): each step sees one view's sky, so a constant rate leaves the sky jittering around its fit; 1 = "
+        "constant"))
     sky_alpha_weight: float = field(default=0.05, metadata=_help(
         "weight of mean(alpha) over sky pixels, where the mask source marks sky (gt, ndn): keeps Gaussians from "
         "painting the sky so the sky model does; 0 = off"))
@@ -205,6 +209,8 @@ class TrainConfig:
             raise ConfigError(f"sky_degree must be in 0..3, got {self.sky_degree}")
         if self.sky_grid_rows < 0 or self.sky_grid_rows == 1 or self.sky_grid_rows > 90:
             raise ConfigError(f"sky_grid_rows must be 0 (no grid) or 2..90, got {self.sky_grid_rows}")
+        if not 0.0 < self.sky_lr_decay <= 1.0:
+            raise ConfigError(f"sky_lr_decay must be in (0, 1], got {self.sky_lr_decay}")
         for name in ("sky_lr", "sky_alpha_weight", "sky_smooth_weight", "sky_unseen_weight", "surface_alpha_weight"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -244,7 +250,7 @@ class TrainConfig:
 #: A dotted name ("esgs.sky_weight") is a setting of a section of the legacy layout below.
 PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0, "sky": "none", "mask_photometric": True,
                           "surface_alpha_weight": 0.0, "grayscale": "off", "sky_smooth_weight": 0.0,
-                          "sky_unseen_weight": 0.0, "sky_grid_rows": 0}
+                          "sky_unseen_weight": 0.0, "sky_grid_rows": 0, "sky_lr_decay": 1.0}
 
 #: Legacy layout (runs saved before methods were registered): the method's settings were
 #: the sections "esgs" (ESGSConfig) and "baselines" (Mip-Splatting and DropoutGS switches

@@ -358,7 +358,8 @@ class Trainer:
             colour = _mean_sky_colour(self.data.train)
             if colour is not None:
                 self.sky.set_color(colour)
-        self.optimizer.add_group("sky", list(self.sky.parameters()), config.sky_lr, per_gaussian=False)
+        decay = ExponentialDecay(config.sky_lr, config.sky_lr * config.sky_lr_decay, max_steps=config.iterations)
+        self.optimizer.add_group("sky", list(self.sky.parameters()), config.sky_lr, schedule=decay, per_gaussian=False)
         if config.sky_alpha_weight > 0 and marks_sky:
             self.add_loss_term(LossTerm("sky_alpha", config.sky_alpha_weight, _sky_alpha_term))
         if config.sky_smooth_weight > 0:

@@ -613,3 +613,30 @@ def test_a_run_with_a_grid_sky_trains_it_and_saves_it(fast_config, sky_scene, tm
     saved = load_sky(tmp_path / "grid" / "sky.json")
     assert saved.grid.shape == (8, 16, 3)
     assert float(saved.grid.abs().max()) > 0  # the photometric loss reached it
+
+
+def test_the_sky_learning_rate_decays_to_its_share_by_the_last_step(fast_config, tmp_path):
+    from esgs.core.errors import ConfigError
+    from esgs.core.train.config import run_config_from_dict
+    from esgs.core.train.trainer import Trainer
+
+    trainer = Trainer(fast_config(out=tmp_path / "decay", iterations=100, sky_lr=0.04, sky_lr_decay=0.1))
+    trainer.setup()
+    rates = []
+    for step in (0, 50, 100, 200):
+        trainer.optimizer.update_learning_rates(step)
+        rates.append(trainer.optimizer.learning_rate("sky"))
+    assert rates == pytest.approx([0.04, 0.04 * 0.1 ** 0.5, 0.004, 0.004])
+    trainer = Trainer(fast_config(out=tmp_path / "constant", iterations=100, sky_lr=0.04, sky_lr_decay=1.0))
+    trainer.setup()
+    trainer.optimizer.update_learning_rates(100)
+    assert trainer.optimizer.learning_rate("sky") == pytest.approx(0.04)
+    for bad in (0.0, 1.5):
+        with pytest.raises(ConfigError, match="sky_lr_decay"):
+            fast_config(sky_lr_decay=bad).validate()
+    # runs saved before the decay trained the sky at a constant rate
+    from esgs.core.config import config_to_dict
+
+    data = json.loads(json.dumps(config_to_dict(fast_config())))
+    del data["sky_lr_decay"]
+    assert run_config_from_dict(data).sky_lr_decay == 1.0
