@@ -130,7 +130,7 @@ def build_config(args: argparse.Namespace):
                     if getattr(args, key, None) is not None and getattr(args, key) != value]
         # settings of the sky model that --vanilla turns off: giving them would do nothing
         clashing += [key for key in ("sky_alpha_weight", "sky_smooth_weight", "sky_unseen_weight", "surface_alpha_weight",
-                                    "sky_degree", "sky_lr")
+                                    "sky_degree", "sky_lr", "sky_lr_decay", "sky_grid_rows")
                      if getattr(args, key, None) is not None]
         if clashing:
             raise ConfigError(f"--vanilla sets {', '.join('--' + key.replace('_', '-') for key in clashing)} itself "

@@ -634,6 +634,17 @@ def test_the_sky_learning_rate_decays_to_its_share_by_the_last_step(fast_config,
     for bad in (0.0, 1.5):
         with pytest.raises(ConfigError, match="sky_lr_decay"):
             fast_config(sky_lr_decay=bad).validate()
+    import argparse
+
+    from esgs.core.commands import train as train_command
+
+    parser = argparse.ArgumentParser()
+    train_command.add_arguments(parser)
+    args = ["scene", "--out", str(tmp_path), "--sky-lr-decay", "0.5"]
+    assert train_command.build_config(parser.parse_args(args)).sky_lr_decay == 0.5
+    for flag in (["--sky-lr-decay", "0.5"], ["--sky-grid-rows", "8"]):  # --vanilla has no sky model to set
+        with pytest.raises(ConfigError, match=flag[0]):
+            train_command.build_config(parser.parse_args(["scene", "--out", str(tmp_path), "--vanilla", *flag]))
     # runs saved before the decay trained the sky at a constant rate
     from esgs.core.config import config_to_dict
 
