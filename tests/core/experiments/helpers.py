@@ -20,3 +20,14 @@ def make_experiment_scene(root: Path, views: int = 6) -> Path:
     (scene / "mesh").mkdir(exist_ok=True)
     trimesh.Trimesh(vertices, faces, process=False).export(scene / "mesh" / "ground_truth.ply")
     return scene
+
+
+def load_benchmark_script(name: str):
+    """The module of ``benchmarks/<name>.py`` (a script, not a package: loaded from its path)."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[3] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

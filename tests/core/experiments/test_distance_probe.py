@@ -1,22 +1,17 @@
 """benchmarks/distance_probe.py: the count of training views whose frustum holds a point."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 
 from esgs.core.colmap.io import read_model
 from tests.core.train.scene import make_scene
 
-SCRIPT = Path(__file__).resolve().parents[3] / "benchmarks" / "distance_probe.py"
+from tests.core.experiments.helpers import load_benchmark_script
 
 
 def load_probe():
-    spec = importlib.util.spec_from_file_location("distance_probe", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark_script("distance_probe")
 
 
 def test_views_seeing_counts_training_frusta_only(tmp_path):

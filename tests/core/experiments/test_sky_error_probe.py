@@ -1,21 +1,15 @@
 """benchmarks/sky_error_probe.py: the error regions of a view with sky, and the sky fits."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
 
-SCRIPT = Path(__file__).resolve().parents[3] / "benchmarks" / "sky_error_probe.py"
+from tests.core.experiments.helpers import load_benchmark_script
 
 
 def load_probe():
-    spec = importlib.util.spec_from_file_location("sky_error_probe", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark_script("sky_error_probe")
 
 
 def test_the_four_regions_split_the_image_at_the_band_around_the_horizon():
