@@ -1,7 +1,6 @@
 """benchmarks/distance_probe.py: the count of training views whose frustum holds a point."""
 from __future__ import annotations
 
-
 import numpy as np
 
 from esgs.core.colmap.io import read_model
