@@ -31,14 +31,13 @@ SKY_VIEW_FRACTION = 0.01
 
 
 def _regions(mask: np.ndarray, band_px: int) -> dict[str, np.ndarray]:
-    """Sky / ground pixels split at ``band_px`` pixels from the boundary (mask True = ground)."""
-    import cv2
+    """Sky / ground pixels split at ``band_px`` pixels from the boundary (mask True = ground):
+    :func:`~esgs.core.experiments.sky.horizon_band` from either side."""
+    from esgs.core.experiments.sky import horizon_band
 
-    kernel = np.ones((2 * band_px + 1, 2 * band_px + 1), np.uint8)
-    near_ground = cv2.dilate(mask.astype(np.uint8), kernel).astype(bool)
-    near_sky = cv2.dilate((~mask).astype(np.uint8), kernel).astype(bool)
-    return {"sky_interior": ~mask & ~near_ground, "sky_band": ~mask & near_ground,
-            "ground_band": mask & near_sky, "ground_interior": mask & ~near_sky}
+    ground_band, sky_band = horizon_band(mask, band_px), horizon_band(~mask, band_px)
+    return {"sky_interior": ~mask & ~sky_band, "sky_band": sky_band,
+            "ground_band": ground_band, "ground_interior": mask & ~ground_band}
 
 
 def _psnr(mse: float) -> float:

@@ -4,9 +4,8 @@ from __future__ import annotations
 import numpy as np
 
 from esgs.core.colmap.io import read_model
-from tests.core.train.scene import make_scene
-
 from tests.core.experiments.helpers import load_benchmark_script
+from tests.core.train.scene import make_scene
 
 
 def load_probe():

@@ -616,6 +616,10 @@ def test_a_run_with_a_grid_sky_trains_it_and_saves_it(fast_config, sky_scene, tm
 
 
 def test_the_sky_learning_rate_decays_to_its_share_by_the_last_step(fast_config, tmp_path):
+    import argparse
+
+    from esgs.core.commands import train as train_command
+    from esgs.core.config import config_to_dict
     from esgs.core.errors import ConfigError
     from esgs.core.train.config import run_config_from_dict
     from esgs.core.train.trainer import Trainer
@@ -634,10 +638,6 @@ def test_the_sky_learning_rate_decays_to_its_share_by_the_last_step(fast_config,
     for bad in (0.0, 1.5):
         with pytest.raises(ConfigError, match="sky_lr_decay"):
             fast_config(sky_lr_decay=bad).validate()
-    import argparse
-
-    from esgs.core.commands import train as train_command
-
     parser = argparse.ArgumentParser()
     train_command.add_arguments(parser)
     args = ["scene", "--out", str(tmp_path), "--sky-lr-decay", "0.5"]
@@ -646,8 +646,6 @@ def test_the_sky_learning_rate_decays_to_its_share_by_the_last_step(fast_config,
         with pytest.raises(ConfigError, match=flag[0]):
             train_command.build_config(parser.parse_args(["scene", "--out", str(tmp_path), "--vanilla", *flag]))
     # runs saved before the decay trained the sky at a constant rate
-    from esgs.core.config import config_to_dict
-
     data = json.loads(json.dumps(config_to_dict(fast_config())))
     del data["sky_lr_decay"]
     assert run_config_from_dict(data).sky_lr_decay == 1.0
