@@ -46,6 +46,7 @@ class _Plan:
     centres_y: np.ndarray
     constants: np.ndarray
     evaluations: int = 0
+    median_ids: np.ndarray | None = None  # [H, W] set by the forward pass (see _Composite)
 
     @property
     def pairs(self) -> int:
@@ -135,11 +136,15 @@ class _Composite(torch.autograd.Function):
         image = np.zeros((plan.height, plan.width, features_np.shape[1]), dtype=np_dtype)
         transmittance = np.empty((plan.height, plan.width), dtype=np_dtype)
         stop = np.empty((plan.height, plan.width), dtype=np.int64)
+        crossing = np.empty((plan.height, plan.width), dtype=np.int64)
         evaluations = np.zeros(plan.tiles_x * plan.tiles_y, dtype=np.int64)
         kernels.composite_forward(plan.tile_order, plan.tile_start, plan.tiles_x, plan.tile_size,
                                   plan.centres_x, plan.centres_y, plan.splats, plan.boxes, packed, plan.constants,
-                                  image, transmittance, stop, evaluations)
+                                  image, transmittance, stop, crossing, evaluations)
         plan.evaluations = int(evaluations.sum())
+        crossed = crossing >= 0
+        plan.median_ids = np.where(crossed, plan.pair_gaussian[np.where(crossed, crossing, 0)], -1) \
+            if plan.pairs else np.full_like(crossing, -1)
         ctx.plan = plan
         ctx.packed = packed
         ctx.transmittance = transmittance
@@ -269,7 +274,7 @@ def rasterize_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, 
                         far_plane=far_plane, antialiased=antialiased, eps2d=eps2d, need_normals=render_normals)
     means2d = projected["means2d"]
     cameras = viewmats.shape[0]
-    renders, alphas, radii, intersections, evaluations = [], [], [], [], []
+    renders, alphas, radii, intersections, evaluations, median_ids = [], [], [], [], [], []
     for cam in range(cameras):
         plan, exact_level = _make_plan(means2d[cam], projected["conics"][cam], projected["opacities"][cam],
                                        projected["depths"][cam], projected["valid"][cam],
@@ -305,10 +310,12 @@ def rasterize_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, 
         radii.append(torch.from_numpy(radius))
         intersections.append(plan.pairs)
         evaluations.append(plan.evaluations)
+        median_ids.append(torch.from_numpy(plan.median_ids))
     meta = {
         "means2d": means2d,
         "radii": torch.stack(radii),
         "depths": projected["depths"].detach(),
+        "median_ids": torch.stack(median_ids),
         "tile_size": tile_size,
         "tiles_x": -(-width // tile_size),
         "tiles_y": -(-height // tile_size),

@@ -215,13 +215,16 @@ def _splat(splats, g, one):
 @njit(cache=True, parallel=True)
 def composite_forward(tile_order, tile_start, tiles_x, tile_size, centres_x, centres_y,
                       splats, boxes, features, constants,
-                      out_features, out_transmittance, out_stop, tile_evaluations):
+                      out_features, out_transmittance, out_stop, out_crossing, tile_evaluations):
     """Front-to-back compositing of every tile.
 
     out_features [H, W, F] receives sum w f; out_transmittance [H, W] the final T;
     out_stop [H, W] the pair position at which the pixel stopped (its tile's end if it
-    never did); tile_evaluations [T] the Gaussian-pixel evaluations per tile. Each tile
-    works in small local buffers (one flat index per pixel) and writes back at the end.
+    never did); out_crossing [H, W] the pair position of the Gaussian that took the
+    transmittance from above one half to one half or below (the pixel's median surface;
+    -1 where T stays above a half); tile_evaluations [T] the Gaussian-pixel evaluations per
+    tile. Each tile works in small local buffers (one flat index per pixel) and writes back
+    at the end.
     """
     half = constants[C_HALF]
     one = constants[C_ONE]
@@ -239,6 +242,7 @@ def composite_forward(tile_order, tile_start, tiles_x, tile_size, centres_x, cen
         end = tile_start[tile + 1]
         transmittance = np.ones(tile_pixels, dtype=features.dtype)
         stop = np.full(tile_pixels, end, dtype=np.int64)
+        crossing = np.full(tile_pixels, -1, dtype=np.int64)
         accumulated = np.zeros((tile_pixels, channels), dtype=features.dtype)
         active = (x1 - x0) * (y1 - y0)
         evaluations = 0
@@ -276,6 +280,8 @@ def composite_forward(tile_order, tile_start, tiles_x, tile_size, centres_x, cen
                     for ch in range(channels):
                         accumulated[p, ch] += weight * features[g, ch]
                     transmittance[p] = after
+                    if after <= half < before:
+                        crossing[p] = k
             if active == 0:
                 break
         for y in range(y0, y1):
@@ -283,6 +289,7 @@ def composite_forward(tile_order, tile_start, tiles_x, tile_size, centres_x, cen
                 p = (y - y0) * tile_size + (x - x0)
                 out_transmittance[y, x] = transmittance[p]
                 out_stop[y, x] = stop[p]
+                out_crossing[y, x] = crossing[p]
                 for ch in range(channels):
                     out_features[y, x, ch] = accumulated[p, ch]
         tile_evaluations[tile] = evaluations

@@ -78,7 +78,9 @@ def _composite_chunk(pixel_xy, means2d, precision, opacity, features):
     """Composite depth-sorted Gaussians at pixels.
 
     pixel_xy: [P, 2]; means2d: [M, 2]; precision: [M, 2, 2]; opacity: [M]; features: [M, F]
-    returns features [P, F] and transmittance [P].
+    returns features [P, F], the weight sum [P], transmittance [P] and the position (in the
+    depth order) of the Gaussian that takes the transmittance to one half or below [P]
+    (-1 where it stays above).
     """
     offset = pixel_xy[:, None, :] - means2d[None, :, :]  # [P, M, 2]
     mahalanobis = torch.einsum("pmi,mij,pmj->pm", offset, precision, offset)
@@ -90,7 +92,10 @@ def _composite_chunk(pixel_xy, means2d, precision, opacity, features):
     survive_before = torch.cat([torch.ones_like(survive_inclusive[:, :1]), survive_inclusive[:, :-1]], dim=1)
     weights = torch.where(included, alpha * survive_before, torch.zeros_like(alpha))
     transmittance = torch.prod(torch.where(included, 1.0 - alpha, torch.ones_like(alpha)), dim=1)
-    return weights @ features, weights.sum(dim=1), transmittance
+    with torch.no_grad():
+        crosses = included & (survive_before > 0.5) & (survive_inclusive <= 0.5)
+        crossing = torch.where(crosses.any(dim=1), crosses.to(torch.int8).argmax(dim=1), -1)
+    return weights @ features, weights.sum(dim=1), transmittance, crossing
 
 
 def rasterize_reference(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *,
@@ -103,7 +108,7 @@ def rasterize_reference(means, quats, scales, opacities, colors, viewmats, Ks, w
     dtype = means.dtype
     ys, xs = torch.meshgrid(torch.arange(height, dtype=dtype), torch.arange(width, dtype=dtype), indexing="ij")
     pixel_xy = torch.stack([xs.reshape(-1) + 0.5, ys.reshape(-1) + 0.5], -1)
-    renders, alphas, all_radii = [], [], []
+    renders, alphas, all_radii, median_ids = [], [], [], []
     splats = [_camera_splats(means, quats, scales, opacities, viewmats[cam], Ks[cam], width, height,
                              near_plane, far_plane, antialiased, eps2d) for cam in range(cameras)]
     # One tensor for all cameras, used downstream, so that its .grad is the screen-space gradient.
@@ -135,13 +140,14 @@ def rasterize_reference(means, quats, scales, opacities, colors, viewmats, Ks, w
             pixels_per_chunk_now = int(max(64, min(pixels, 128 * 2**20 // per_pixel_bytes)))
         else:
             pixels_per_chunk_now = pixels_per_chunk
-        out_features, out_weight, out_transmittance = [], [], []
+        out_features, out_weight, out_transmittance, out_crossing = [], [], [], []
         for start in range(0, pixels, pixels_per_chunk_now):
             chunk = pixel_xy[start:start + pixels_per_chunk_now]
             if order.numel() == 0:
                 out_features.append(torch.zeros(chunk.shape[0], feature_count, dtype=dtype))
                 out_weight.append(torch.zeros(chunk.shape[0], dtype=dtype))
                 out_transmittance.append(torch.ones(chunk.shape[0], dtype=dtype))
+                out_crossing.append(torch.full((chunk.shape[0],), -1, dtype=torch.long))
                 continue
             if torch.is_grad_enabled():
                 result = checkpoint(_composite_chunk, chunk, *args, use_reentrant=False)
@@ -150,9 +156,13 @@ def rasterize_reference(means, quats, scales, opacities, colors, viewmats, Ks, w
             out_features.append(result[0])
             out_weight.append(result[1])
             out_transmittance.append(result[2])
+            out_crossing.append(result[3])
         composite = torch.cat(out_features).reshape(height, width, feature_count)
         weight_sum = torch.cat(out_weight).reshape(height, width, 1)
         alpha = 1.0 - torch.cat(out_transmittance).reshape(height, width, 1)
+        crossing = torch.cat(out_crossing).reshape(height, width)
+        median_ids.append(torch.where(crossing >= 0, order[crossing.clamp_min(0)] if order.numel() else crossing,
+                                      -1))
         color_dims = channels[0].shape[1]
         pieces = [composite[..., :color_dims]]
         if backgrounds is not None:
@@ -183,5 +193,6 @@ def rasterize_reference(means, quats, scales, opacities, colors, viewmats, Ks, w
         "means2d": means2d,
         "radii": torch.stack(all_radii),
         "depths": torch.stack([splat["depth"] for splat in splats]),
+        "median_ids": torch.stack(median_ids),
     }
     return torch.stack(renders), torch.stack(alphas), meta

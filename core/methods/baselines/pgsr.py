@@ -38,7 +38,7 @@ from typing import Any, Optional, Sequence
 import torch
 import torch.nn.functional as F
 
-from ...render.projection import quaternion_to_matrix
+from ...render.surface import gaussian_normals, pixel_rays
 from ...train.gaussians import RenderParams
 from ...train.hooks import RunView, StepContext, TrainHook
 from ...train.losses import LossContext, LossTerm
@@ -55,17 +55,6 @@ _MIN_COSINE = 1e-3
 
 
 # --- per-Gaussian planes ----------------------------------------------------------------------
-def gaussian_normals(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
-    """[N, 3] world-frame unit normals: each Gaussian's axis of smallest scale (sign arbitrary).
-
-    quats: [N, 4] (w, x, y, z), any length; scales: [N, 3] activated.
-    """
-    rotation = quaternion_to_matrix(quats)  # columns are the Gaussian's axes
-    shortest = torch.argmin(scales.detach(), dim=-1)
-    index = shortest[:, None, None].expand(-1, 3, 1)
-    return torch.gather(rotation, 2, index)[..., 0]
-
-
 def plane_features(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
                    viewmat: torch.Tensor) -> torch.Tensor:
     """[N, 4] per-Gaussian plane in one camera's frame: the normal (3, towards the camera) and
@@ -90,15 +79,6 @@ def flattening_loss(scales: torch.Tensor, extent: float = 1.0) -> torch.Tensor:
 
 
 # --- per-pixel geometry -----------------------------------------------------------------------
-def pixel_rays(K: torch.Tensor, width: int, height: int) -> torch.Tensor:
-    """[H, W, 3] ``K^-1 (u, v, 1)`` at pixel centres (u = j + 0.5, v = i + 0.5): rays of unit z."""
-    dtype, device = K.dtype, K.device
-    v, u = torch.meshgrid(torch.arange(height, dtype=dtype, device=device) + 0.5,
-                          torch.arange(width, dtype=dtype, device=device) + 0.5, indexing="ij")
-    pixels = torch.stack([u, v, torch.ones_like(u)], dim=-1)
-    return pixels @ torch.linalg.inv(K).T
-
-
 def unbiased_depth(normal_map: torch.Tensor, distance_map: torch.Tensor,
                    K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """PGSR's unbiased depth ``z = D / (-N . r)`` of the rendered planes.

@@ -7,6 +7,8 @@ from ...errors import ConfigError
 from .gpdfn_settings import GPDFNConfig
 
 DEPTH_MODES = ("log", "inverse")
+#: Which rendered depth the depth prior is compared with (docs/esgs.md, "Which depth the prior meets").
+DEPTH_RENDERS = ("expected", "plane", "centre")
 ALIGNMENTS = ("sfm", "render")
 
 
@@ -30,6 +32,12 @@ class ESGSConfig(GPDFNConfig):
     normal_weight: float = field(default=0.05, metadata={"help": "weight of the normal-prior loss"})
     consistency_weight: float = field(default=0.05, metadata={"help": "weight of the depth-normal consistency loss"})
     depth_mode: str = field(default="log", metadata={"help": "depth error space: log or inverse", "choices": DEPTH_MODES})
+    depth_render: str = field(default="expected", metadata={
+        "help": "the rendered depth the depth prior meets: expected = the weighted mean depth of every Gaussian "
+                "a ray passes through; plane = where the ray meets the plane of the one Gaussian at which the "
+                "pixel's transmittance crosses one half (its median surface); centre = that Gaussian's centre "
+                "depth. plane and centre need the cpu or reference backend",
+        "choices": DEPTH_RENDERS})
     relative_alignment: str = field(default="sfm", metadata={
         "help": "scale/shift of relative depth priors (NDN): sfm = fitted once to the SfM points each image "
                 "observes, so the prior holds the surface's distance too (falls back to render per view when "
@@ -55,6 +63,8 @@ class ESGSConfig(GPDFNConfig):
                               hint="pass --priors gt|labels|ndn|sfm (folders under SCENE/priors/)")
         if self.depth_mode not in DEPTH_MODES:
             raise ConfigError(f"depth_mode must be one of {DEPTH_MODES}, got {self.depth_mode!r}")
+        if self.depth_render not in DEPTH_RENDERS:
+            raise ConfigError(f"depth_render must be one of {DEPTH_RENDERS}, got {self.depth_render!r}")
         if self.relative_alignment not in ALIGNMENTS:
             raise ConfigError(f"relative_alignment must be one of {ALIGNMENTS}, got {self.relative_alignment!r}")
         for name in ("depth_weight", "normal_weight", "consistency_weight", "edge_strength", "max_prior_depth",

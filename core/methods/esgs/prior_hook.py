@@ -6,9 +6,11 @@ from typing import Any, Optional
 
 import torch
 
+from ...errors import ConfigError
 from ...priors import load_prior_maps
 from ...priors.align import align_depth_to_points
 from ...priors.losses import depth_loss, depth_normal_consistency_loss, edge_aware_weights, normal_loss, sky_loss
+from ...render.surface import median_surface_depth
 from ...train.hooks import RunView, TrainHook
 from ...train.losses import LossContext, LossTerm
 from .config import ESGSConfig
@@ -53,6 +55,10 @@ class PriorLossHook(TrainHook):
         config = self.config
         start = run.scaled_step(config.prior_start_step)
         wants_sky = config.sky_loss_on
+        if config.depth and config.depth_render != "expected" and run.device.type == "cuda":
+            raise ConfigError(f"depth_render {config.depth_render!r} needs the median surface of each pixel, which "
+                              "only the cpu and reference rasterizer backends return",
+                              hint="train with --backend cpu, or set --depth-render expected")
         if config.depth or config.normal or wants_sky:
             self._load(run)
         if config.depth:
@@ -141,9 +147,24 @@ class PriorLossHook(TrainHook):
         prior = self.priors.get(context.view.name)
         if prior is None or prior.depth is None or context.depth is None:
             return context.image.sum() * 0.0
-        return depth_loss(context.depth[..., 0], prior.depth, prior.mask, self._edge_weights(context),
-                          mode=self.config.depth_mode, relative=prior.relative, alpha=context.alpha[..., 0],
-                          confidence=prior.confidence)
+        if self.config.depth_render == "expected":
+            depth, mask, alpha = context.depth[..., 0], prior.mask, context.alpha[..., 0]
+        else:
+            depth, surface = self._median_depth(context)
+            mask, alpha = prior.mask & surface, None  # a median surface exists only where alpha > 0.5
+        return depth_loss(depth, prior.depth, mask, self._edge_weights(context), mode=self.config.depth_mode,
+                          relative=prior.relative, alpha=alpha, confidence=prior.confidence)
+
+    def _median_depth(self, context: LossContext) -> tuple[torch.Tensor, torch.Tensor]:
+        """The depth of each pixel's median surface (``depth_render`` plane or centre) and where it exists."""
+        ids = context.output.meta.get("median_ids") if context.output is not None else None
+        if ids is None:
+            raise ConfigError(f"depth_render {self.config.depth_render!r}: the rasterizer returned no median "
+                              "surface ids (only the cpu and reference backends do)",
+                              hint="train with --backend cpu, or set --depth-render expected")
+        params, view = context.params, context.view
+        return median_surface_depth(ids[0], params.means, params.quats, params.scales, view.viewmat, view.K,
+                                    kind=self.config.depth_render)
 
     def _normal_term(self, context: LossContext) -> torch.Tensor:
         prior = self.priors.get(context.view.name)

@@ -13,6 +13,7 @@ from esgs.core.methods.esgs.gpdfn_hook import GPDFNHook
 from esgs.core.methods.esgs.hooks import esgs_hooks
 from esgs.core.priors import write_prior_maps
 from esgs.core.render import rasterization
+from esgs.core.render.surface import median_surface_depth
 from esgs.core.train.config import TrainConfig
 from esgs.core.train.hooks import TrainHook
 from esgs.core.methods import make_trainer
@@ -106,6 +107,37 @@ def test_prior_terms_are_added_and_pull_depth_onto_the_prior(scene, tmp_path):
     with_prior, without_prior = _depth_error(trainer, priors), _depth_error(baseline, priors)
     assert with_prior < 0.8 * start_error, (start_error, with_prior)
     assert with_prior < 0.9 * without_prior, (with_prior, without_prior)
+
+
+def _median_depth_error(trainer, priors) -> float:
+    """Mean |log median-surface plane depth - log prior depth| over the valid prior pixels of every view."""
+    errors = []
+    with torch.no_grad():
+        params = trainer.gaussians.render_params(1)
+        for view in trainer.data.train:
+            output = trainer.render(params, view, render_depth=True)
+            depth, surface = median_surface_depth(output.meta["median_ids"][0], params.means, params.quats,
+                                                  params.scales, view.viewmat, view.K)
+            prior = priors[view.name]
+            valid = prior.mask & surface & (depth > 0)
+            errors.append((depth[valid].log() - prior.depth[valid].log()).abs().mean())
+    return float(torch.stack(errors).mean())
+
+
+def test_a_median_surface_depth_prior_pulls_that_surface_onto_the_prior(scene, tmp_path):
+    esgs = ESGSConfig(priors="gt", depth=True, prior_start_step=0, depth_weight=1.0, depth_render="plane")
+    trainer = _trainer(scene, tmp_path / "run", esgs)
+    baseline = _trainer(scene, tmp_path / "base", ESGSConfig())
+    priors = trainer.hooks[0].priors
+    start_error = _median_depth_error(trainer, priors)
+    for step in range(1, 41):
+        trainer.train_step(step)
+        baseline.train_step(step)
+    with_prior, without_prior = _median_depth_error(trainer, priors), _median_depth_error(baseline, priors)
+    assert with_prior < 0.8 * start_error, (start_error, with_prior)
+    assert with_prior < 0.9 * without_prior, (with_prior, without_prior)
+    with pytest.raises(ConfigError, match="depth_render"):
+        ESGSConfig(priors="gt", depth=True, depth_render="median").validate()
 
 
 def test_sky_pixels_never_reach_the_loss(scene, tmp_path):

@@ -1,0 +1,85 @@
+"""Depth of the surface a pixel sees: the Gaussian at which its transmittance crosses one half.
+
+The rasterizer's expected depth, sum(w z) / sum(w), mixes every Gaussian a ray passes through.
+Along a grazing ray (a rover view of the ground) that includes the upper parts of many
+Gaussians before the surface, so a loss asking the expected depth to equal a prior's depth
+pushes all of them down. The *median* surface of a pixel is instead the single Gaussian that
+takes its transmittance from above one half to one half or below (``meta["median_ids"]`` of
+the ``cpu`` and ``reference`` backends); only that Gaussian is asked to lie at the prior's depth.
+
+Its depth at the pixel is read here, in torch, so gradients reach its mean and rotation by
+autograd and no backend needs a backward of its own:
+
+- ``"plane"``: where the pixel's ray meets the Gaussian's plane (the plane through its centre
+  normal to its shortest axis), kept within ``extent`` of its largest standard deviations of
+  the centre's depth: the depth a flat Gaussian actually shows at that pixel.
+- ``"centre"``: the camera-z of its centre, the same at every pixel it covers.
+"""
+from __future__ import annotations
+
+import torch
+
+from ..errors import ConfigError
+from .projection import quaternion_to_matrix
+
+#: Plane depths are clamped to the centre's depth +- this many of the Gaussian's largest
+#: standard deviations: a plane seen edge-on meets a ray far from the Gaussian itself.
+PLANE_EXTENT_SIGMAS = 3.0
+
+SURFACE_DEPTH_KINDS = ("plane", "centre")
+
+
+def gaussian_normals(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    """[N, 3] world-frame unit normals: each Gaussian's axis of smallest scale (sign arbitrary).
+
+    quats: [N, 4] (w, x, y, z), any length; scales: [N, 3] activated. Which axis is shortest
+    is a choice, not a function: no gradient flows through it.
+    """
+    rotation = quaternion_to_matrix(quats)  # columns are the Gaussian's axes
+    shortest = torch.argmin(scales.detach(), dim=-1)
+    index = shortest[:, None, None].expand(-1, 3, 1)
+    return torch.gather(rotation, 2, index)[..., 0]
+
+
+def pixel_rays(K: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """[H, W, 3] ``K^-1 (u, v, 1)`` at pixel centres (u = j + 0.5, v = i + 0.5): rays of unit z."""
+    dtype, device = K.dtype, K.device
+    v, u = torch.meshgrid(torch.arange(height, dtype=dtype, device=device) + 0.5,
+                          torch.arange(width, dtype=dtype, device=device) + 0.5, indexing="ij")
+    pixels = torch.stack([u, v, torch.ones_like(u)], dim=-1)
+    return pixels @ torch.linalg.inv(K).T
+
+
+def median_surface_depth(median_ids: torch.Tensor, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                         viewmat: torch.Tensor, K: torch.Tensor, *, kind: str = "plane",
+                         extent: float = PLANE_EXTENT_SIGMAS) -> tuple[torch.Tensor, torch.Tensor]:
+    """Depth (camera z) of each pixel's median surface, differentiable w.r.t. the Gaussians.
+
+    median_ids: [H, W] int64, the rasterizer's ``meta["median_ids"][camera]`` (-1: no
+    surface); means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 3] (activated): the
+    Gaussians that were rendered; viewmat [4, 4] world-to-camera, K [3, 3]. Returns
+    (depth [H, W], valid [H, W] bool); depth is 0 where ``valid`` is False.
+    """
+    if kind not in SURFACE_DEPTH_KINDS:
+        raise ConfigError(f"surface depth kind must be one of {SURFACE_DEPTH_KINDS}, got {kind!r}")
+    height, width = median_ids.shape
+    valid = median_ids >= 0
+    depth = torch.zeros((height, width), dtype=means.dtype, device=means.device)
+    if not bool(valid.any()):
+        return depth, valid
+    ids = median_ids[valid].to(means.device)
+    rotation = viewmat[:3, :3].to(means)
+    centre = means[ids] @ rotation.T + viewmat[:3, 3].to(means)  # [M, 3] camera frame
+    if kind == "centre":
+        values = centre[:, 2]
+    else:
+        normal = gaussian_normals(quats[ids], scales[ids]) @ rotation.T
+        ray = pixel_rays(K.to(means), width, height)[valid]  # z = 1: the ray's parameter is depth
+        facing = (normal * ray).sum(-1)
+        reach = extent * scales[ids].max(dim=-1).values
+        edge_on = facing.abs() < 1e-6
+        plane = (normal * centre).sum(-1) / torch.where(edge_on, torch.ones_like(facing), facing)
+        plane = torch.where(edge_on, centre[:, 2], plane)
+        values = torch.minimum(torch.maximum(plane, centre[:, 2] - reach), centre[:, 2] + reach)
+    depth = depth.index_put((valid,), values)
+    return depth, valid
