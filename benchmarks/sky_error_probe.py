@@ -46,48 +46,39 @@ def _psnr(mse: float) -> float:
 
 def view_rows(run_dir: Path, scene: Path, band_px: int) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Per-view error split of the views with sky, and the sky pixels' directions and colours."""
-    from esgs.core.methods import render_options
+    from esgs.core.methods import run_renderer
     from esgs.core.priors.io import load_prior_maps
-    from esgs.core.train.evaluate import load_run, load_run_sky
-    from esgs.core.train.rendering import render_view
     from esgs.core.train.sky import ray_directions
 
-    config, data, model, backend, device = load_run(run_dir)
-    render = render_options(config)
-    sky = load_run_sky(run_dir, device)
-    background = torch.tensor(config.background, dtype=torch.float32, device=device)
+    renderer = run_renderer(run_dir)
     rows, rays = [], {"train": ([], []), "test": ([], [])}
-    with torch.no_grad():
-        params = model.render_params(model.max_sh_degree)
-        for split, views in (("train", data.train), ("test", data.test)):
-            for view in views:
-                mask = load_prior_maps(scene, "gt", view.name, size=(view.width, view.height)).mask.astype(bool)
-                if (~mask).mean() <= SKY_VIEW_FRACTION:
-                    continue
-                target = view.image_float(device)
-                directions = ray_directions(view.viewmat, view.K, view.width, view.height)
-                sky_pixels = torch.from_numpy(~mask)
-                rays[split][0].append(directions[sky_pixels])
-                rays[split][1].append(target.cpu()[sky_pixels])
-                out = render_view(params, view.viewmat.to(device), view.K.to(device), view.width, view.height,
-                                  background=background, backend=backend, num_threads=config.threads or None,
-                                  antialiased=render.antialiased, eps2d=render.eps2d, sky=sky)
-                error = ((out.image.clamp(0, 1) - target) ** 2).mean(dim=-1).cpu().numpy()
-                total = float(error.sum())
-                row = {"split": split, "view": view.name, "sky_fraction": float((~mask).mean()),
-                       "psnr": _psnr(float(error.mean())),
-                       "psnr_with_perfect_sky": _psnr(float(np.where(mask, error, 0.0).mean())),
-                       "error_share": {name: float(error[region].sum() / total) if total else 0.0
-                                       for name, region in _regions(mask, band_px).items()}}
-                rows.append(row)
+    for split in ("train", "test"):
+        for view in renderer.views(split):
+            mask = load_prior_maps(scene, "gt", view.name, size=(view.width, view.height)).mask.astype(bool)
+            if (~mask).mean() <= SKY_VIEW_FRACTION:
+                continue
+            target = view.image_float(renderer.device)
+            directions = ray_directions(view.viewmat, view.K, view.width, view.height)
+            sky_pixels = torch.from_numpy(~mask)
+            rays[split][0].append(directions[sky_pixels])
+            rays[split][1].append(target.cpu()[sky_pixels])
+            out = renderer.render(view)
+            error = ((out.image.clamp(0, 1) - target) ** 2).mean(dim=-1).cpu().numpy()
+            total = float(error.sum())
+            row = {"split": split, "view": view.name, "sky_fraction": float((~mask).mean()),
+                   "psnr": _psnr(float(error.mean())),
+                   "psnr_with_perfect_sky": _psnr(float(np.where(mask, error, 0.0).mean())),
+                   "error_share": {name: float(error[region].sum() / total) if total else 0.0
+                                   for name, region in _regions(mask, band_px).items()}}
+            rows.append(row)
     gathered = {split: (torch.cat(d) if d else torch.zeros(0, 3), torch.cat(c) if c else torch.zeros(0, 3))
                 for split, (d, c) in rays.items()}
-    return rows, {"sky": sky, "rays": gathered, "sky_lr": config.sky_lr}
+    return rows, {"sky": renderer.sky, "rays": gathered, "sky_lr": renderer.config.sky_lr}
 
 
 def sky_fit(sky: Any, rays: dict[str, tuple[torch.Tensor, torch.Tensor]], sky_lr: float, steps: int) -> dict[str, Any]:
     """The run's sky against the training sky pixels, and direct fits of the same model family."""
-    from esgs.core.train.sky import SkyModel, _max_cosine
+    from esgs.core.train.sky import SkyModel, max_cosine
 
     directions, colours = rays["train"]
     test_directions = rays["test"][0]
@@ -97,7 +88,7 @@ def sky_fit(sky: Any, rays: dict[str, tuple[torch.Tensor, torch.Tensor]], sky_lr
     with torch.no_grad():
         result["run_sky_mae_on_training_sky"] = float((sky(directions) - colours).abs().mean())
         if len(test_directions):
-            cosine = torch.cat([_max_cosine(chunk, directions) for chunk in test_directions.split(4096)])
+            cosine = torch.cat([max_cosine(chunk, directions) for chunk in test_directions.split(4096)])
             result["held_out_sky_within_1deg_of_training_sky"] = float(
                 (cosine >= math.cos(math.radians(1.0))).float().mean())
     fits = {}

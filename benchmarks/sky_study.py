@@ -40,28 +40,22 @@ from esgs.core.io_utils import atomic_write_json
 def sky_error(run_dir: Path, scene: Path) -> dict[str, Any]:
     """Mean absolute colour error (0..1) of the held-out views on their sky and surface pixels
     (gt masks: 0 = sky), and PSNR per view."""
+    from esgs.core.methods import run_renderer
     from esgs.core.priors.io import load_prior_maps
-    from esgs.core.train.evaluate import load_run, load_run_sky
-    from esgs.core.train.rendering import render_view
 
-    config, data, model, backend, device = load_run(run_dir)
-    sky_model = load_run_sky(run_dir, device)
-    background = torch.tensor(config.background, dtype=torch.float32, device=device)
+    renderer = run_renderer(run_dir)
     sky_abs, sky_count, surface_abs, surface_count, views = 0.0, 0, 0.0, 0, []
-    with torch.no_grad():
-        params = model.render_params(model.max_sh_degree)
-        for view in data.test:
-            image = render_view(params, view.viewmat.to(device), view.K.to(device), view.width, view.height,
-                                background=background, backend=backend, sky=sky_model).image.clamp(0, 1)
-            error = (image - view.image_float(device)).abs().mean(dim=-1)
-            sky = ~torch.from_numpy(load_prior_maps(scene, "gt", view.name,
-                                                    size=(view.width, view.height)).mask.astype(bool))
-            sky_abs += float(error[sky].sum())
-            sky_count += int(sky.sum())
-            surface_abs += float(error[~sky].sum())
-            surface_count += int((~sky).sum())
-            mse = float(((image - view.image_float(device)) ** 2).mean())
-            views.append({"name": view.name, "psnr": -10 * np.log10(max(mse, 1e-12)), "sky_fraction": float(sky.float().mean())})
+    for view in renderer.views("test"):
+        image = renderer.render(view).image.clamp(0, 1)
+        target = view.image_float(renderer.device)
+        error = (image - target).abs().mean(dim=-1)
+        sky = ~torch.from_numpy(load_prior_maps(scene, "gt", view.name, size=(view.width, view.height)).mask.astype(bool))
+        sky_abs += float(error[sky].sum())
+        sky_count += int(sky.sum())
+        surface_abs += float(error[~sky].sum())
+        surface_count += int((~sky).sum())
+        mse = float(((image - target) ** 2).mean())
+        views.append({"name": view.name, "psnr": -10 * np.log10(max(mse, 1e-12)), "sky_fraction": float(sky.float().mean())})
     return {"sky_mae": sky_abs / sky_count if sky_count else None,
             "surface_mae": surface_abs / surface_count if surface_count else None, "views": views}
 

@@ -70,41 +70,30 @@ def sky_figures(run_dir: str | Path, scene: str | Path, *, band_px: int = 4) -> 
     Returns {"psnr_sky", "psnr_surface", "alpha_sky", "horizon_depth_error", "views"}; the
     gt mask and depth are read from ``scene/priors/gt`` at the run's resolution.
     """
-    import torch
-
-    from ..methods import render_options
+    from ..methods import run_renderer
     from ..priors.io import load_prior_maps
-    from ..train.evaluate import load_run, load_run_sky
-    from ..train.rendering import render_view
 
-    config, data, model, backend, device = load_run(run_dir)
-    render = render_options(config)
-    sky = load_run_sky(run_dir, device)
-    views = data.test or data.train
-    background = torch.tensor(config.background, dtype=torch.float32, device=device)
+    renderer = run_renderer(run_dir)
+    views = renderer.views("test") or renderer.views("train")
     sky_sq, sky_n, surface_sq, surface_n, alpha_sum, band_errors = 0.0, 0, 0.0, 0, 0.0, []
-    with torch.no_grad():
-        params = model.render_params(model.max_sh_degree)
-        for view in views:
-            out = render_view(params, view.viewmat.to(device), view.K.to(device), view.width, view.height,
-                              background=background, render_depth=True, backend=backend,
-                              num_threads=config.threads or None, antialiased=render.antialiased,
-                              eps2d=render.eps2d, sky=sky)
-            maps = load_prior_maps(Path(scene), "gt", view.name, size=(view.width, view.height))
-            mask = maps.mask.astype(bool)
-            image = out.image.clamp(0, 1).cpu().numpy()
-            target = view.image_float(device).cpu().numpy()  # [H, W, 3] in [0, 1]
-            error = ((image - target) ** 2).mean(axis=-1)
-            sky_sq += float(error[~mask].sum())
-            sky_n += int((~mask).sum())
-            surface_sq += float(error[mask].sum())
-            surface_n += int(mask.sum())
-            alpha_sum += float(out.alpha[..., 0].cpu().numpy()[~mask].sum())
-            band = horizon_band(mask, band_px)
-            if band.any():
-                rendered = out.depth[..., 0].cpu().numpy()
-                truth = maps.depth
-                band_errors.append(np.abs(rendered[band] - truth[band]) / truth[band])
+    for view in views:
+        out = renderer.render(view, depth=True)
+        maps = load_prior_maps(Path(scene), "gt", view.name, size=(view.width, view.height))
+        mask = maps.mask.astype(bool)
+        image = out.image.clamp(0, 1).cpu().numpy()
+        target = view.image_float(renderer.device).cpu().numpy()  # [H, W, 3] in [0, 1]
+        error = ((image - target) ** 2).mean(axis=-1)
+        sky_sq += float(error[~mask].sum())
+        sky_n += int((~mask).sum())
+        surface_sq += float(error[mask].sum())
+        surface_n += int(mask.sum())
+        alpha_sum += float(out.alpha[..., 0].cpu().numpy()[~mask].sum())
+        band = horizon_band(mask, band_px)
+        if band.any():
+            rendered = out.depth[..., 0].cpu().numpy()
+            truth = maps.depth
+            band_errors.append(np.abs(rendered[band] - truth[band]) / truth[band])
+
     def psnr(total: float, count: int) -> float | None:
         return None if count == 0 else 10.0 * math.log10(1.0 / max(total / count, 1e-12))
     errors = np.concatenate(band_errors) if band_errors else np.zeros(0)

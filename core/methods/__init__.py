@@ -28,12 +28,13 @@ from .registry import get_method, method_names, register_method, unregister_meth
 if TYPE_CHECKING:
     from ..progress import ProgressCallback
     from ..train.hooks import TrainHook
+    from ..train.render_views import RunRenderer
     from ..train.trainer import Trainer, TrainResult
 
 __all__ = [
     "DropoutGSConfig", "ESGSConfig", "Method", "MethodParts", "MipSplattingConfig", "PGSRConfig", "RenderOptions", "ScaffoldGSConfig",
     "AUTO_DEPTH_WEIGHT", "esgs_config", "evaluate_run", "full_esgs", "get_method", "load_run_config", "make_trainer",
-    "method_names", "prepare_priors", "register_method", "render_options", "render_run", "resolve", "train",
+    "method_names", "prepare_priors", "register_method", "render_options", "render_run", "resolve", "run_renderer", "train",
     "train_config_from_dict",
     "unregister_method",
 ]
@@ -200,6 +201,14 @@ def render_run(run_dir: str | Path, **options: Any) -> list[Path]:
     from ..train.render_views import render_run as render
 
     return render(run_dir, render=_run_render_options(run_dir), **options)
+
+
+def run_renderer(run_dir: str | Path, **options: Any) -> "RunRenderer":
+    """A :class:`~esgs.core.train.render_views.RunRenderer` of a run that renders the way its
+    method renders (options: its ``backend``)."""
+    from ..train.render_views import RunRenderer
+
+    return RunRenderer(run_dir, render=_run_render_options(run_dir), **options)
 
 
 def _run_render_options(run_dir: str | Path) -> Optional[RenderOptions]:

@@ -259,8 +259,8 @@ class UnseenSkyPrior:
         among them; None when no direction is unseen or none was seen as sky."""
         points = fibonacci_sphere(samples).to(all_rays)
         threshold = math.cos(math.radians(radius_deg))
-        covered = _max_cosine(points, all_rays) >= threshold
-        sky_seen = _max_cosine(points, sky_rays) >= threshold if len(sky_rays) else torch.zeros_like(covered)
+        covered = max_cosine(points, all_rays) >= threshold
+        sky_seen = max_cosine(points, sky_rays) >= threshold if len(sky_rays) else torch.zeros_like(covered)
         unseen, seen = points[~covered], points[sky_seen]
         if len(unseen) == 0 or len(seen) == 0:
             return None
@@ -308,7 +308,7 @@ class UnseenSkyPrior:
         return len(self.unseen) / self.samples
 
 
-def _max_cosine(points: torch.Tensor, rays: torch.Tensor, chunk: int = 65_536) -> torch.Tensor:
+def max_cosine(points: torch.Tensor, rays: torch.Tensor, chunk: int = 65_536) -> torch.Tensor:
     """[P] the largest cosine between each point and any ray (-1 when there are none)."""
     best = torch.full((len(points),), -1.0, dtype=points.dtype, device=points.device)
     for start in range(0, len(rays), chunk):
