@@ -42,15 +42,17 @@ class RunRenderer:
             return sorted(self.data.train + self.data.test, key=lambda view: view.index)
         raise ValueError(f"split must be train, test or all, got {split!r}")
 
-    def render(self, view, *, depth: bool = False) -> "RenderOutput":
-        """One view, without gradients (colour with the run's sky; expected depth with ``depth``)."""
+    def render(self, view, *, depth: bool = False, normals: bool = False) -> "RenderOutput":
+        """One view, without gradients (colour with the run's sky; expected depth with ``depth``,
+        composited camera-frame normals with ``normals``)."""
         from .rendering import render_view
 
         with torch.no_grad():
             if self._params is None:
                 self._params = self.model.render_params(self.model.max_sh_degree)
             return render_view(self._params, view.viewmat.to(self.device), view.K.to(self.device), view.width,
-                               view.height, background=self._background, render_depth=depth, backend=self.backend,
+                               view.height, background=self._background, render_depth=depth,
+                               render_normals=normals, backend=self.backend,
                                num_threads=self.config.threads or None, antialiased=self.render_options.antialiased,
                                eps2d=self.render_options.eps2d, sky=self.sky)
 
