@@ -129,7 +129,9 @@ def rasterization(
     if ``render_normals``, extra E), ``alpha [C, H, W, 1]`` and ``meta`` with
     ``means2d [C, N, 2]`` (``retain_grad()`` is called when it needs grad),
     ``radii [C, N]`` int32 (0 = culled), ``depths [C, N]`` (camera z), ``channels``
-    (slices) and backend statistics.
+    (slices), backend statistics and, from the ``cpu`` and ``reference`` backends,
+    ``median_ids [C, H, W]`` int64: the Gaussian at which each pixel's transmittance first
+    falls to one half or below, -1 where it stays above (its depth: :mod:`.surface`).
 
     Expected depth is sum(w z) / sum(w) (0 where nothing is hit); normals are each Gaussian's
     shortest axis in the camera frame, flipped towards the camera, composited as sum(w n).
