@@ -85,7 +85,8 @@ def fit_scale_shift(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor
 
 def depth_loss(rendered_depth: torch.Tensor, prior_depth: torch.Tensor, mask: torch.Tensor,
                weights: torch.Tensor | None = None, *, mode: str = "log", relative: bool = False,
-               alpha: torch.Tensor | None = None, confidence: torch.Tensor | None = None) -> torch.Tensor:
+               alpha: torch.Tensor | None = None, confidence: torch.Tensor | None = None,
+               robust: float = 0.0) -> torch.Tensor:
     """Edge-aware depth loss of one view.
 
     ``mode`` "log": L1 of log depth (scale-free errors: a 10 cm miss at 2 m counts like 1 m at
@@ -97,6 +98,9 @@ def depth_loss(rendered_depth: torch.Tensor, prior_depth: torch.Tensor, mask: to
     loss to pixels the Gaussians actually cover (alpha > 0.5). ``confidence`` [H,W] in [0, 1]
     scales each pixel's error without renormalising: a view trusted half as much pulls half as
     hard (the edge weights, in contrast, only redistribute the pull within the view).
+    ``robust`` > 0: each pixel's error e counts as ``robust * log(1 + e / robust)``, so a pixel
+    pulls with 1 / (1 + e / robust) of the L1 pull: a prior pixel far from the render (likely
+    a wrong prior) pulls little, close ones as before (0 = plain L1).
     """
     valid = mask & (prior_depth > 0) & (rendered_depth > 0)
     if alpha is not None:
@@ -120,6 +124,8 @@ def depth_loss(rendered_depth: torch.Tensor, prior_depth: torch.Tensor, mask: to
         error = (inverse_rendered - inverse_prior).abs()
     else:
         raise ValueError(f"unknown depth loss mode {mode!r} (use 'log' or 'inverse')")
+    if robust > 0:
+        error = robust * torch.log1p(error / robust)
     error = torch.where(valid, error, torch.zeros_like(error))
     if confidence is not None:
         error = error * confidence

@@ -32,6 +32,9 @@ class ESGSConfig(GPDFNConfig):
     normal_weight: float = field(default=0.05, metadata={"help": "weight of the normal-prior loss"})
     consistency_weight: float = field(default=0.05, metadata={"help": "weight of the depth-normal consistency loss"})
     depth_mode: str = field(default="log", metadata={"help": "depth error space: log or inverse", "choices": DEPTH_MODES})
+    depth_robust: float = field(default=0.0, metadata={
+        "help": "scale s of a robust depth error: a pixel's error e counts as s log(1 + e/s), so prior pixels "
+                "that disagree with the render by much more than s pull less; 0 = plain L1"})
     depth_render: str = field(default="expected", metadata={
         "help": "the rendered depth the depth prior meets: expected = the weighted mean depth of every Gaussian "
                 "a ray passes through; plane = where the ray meets the plane of the one Gaussian at which the "
@@ -68,7 +71,7 @@ class ESGSConfig(GPDFNConfig):
         if self.relative_alignment not in ALIGNMENTS:
             raise ConfigError(f"relative_alignment must be one of {ALIGNMENTS}, got {self.relative_alignment!r}")
         for name in ("depth_weight", "normal_weight", "consistency_weight", "edge_strength", "max_prior_depth",
-                     "max_alignment_error", "sky_weight"):
+                     "max_alignment_error", "sky_weight", "depth_robust"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
         super().validate()

@@ -153,7 +153,8 @@ class PriorLossHook(TrainHook):
             depth, surface = self._median_depth(context)
             mask, alpha = prior.mask & surface, None  # a median surface exists only where alpha > 0.5
         return depth_loss(depth, prior.depth, mask, self._edge_weights(context), mode=self.config.depth_mode,
-                          relative=prior.relative, alpha=alpha, confidence=prior.confidence)
+                          relative=prior.relative, alpha=alpha, confidence=prior.confidence,
+                          robust=self.config.depth_robust)
 
     def _median_depth(self, context: LossContext) -> tuple[torch.Tensor, torch.Tensor]:
         """The depth of each pixel's median surface (``depth_render`` plane or centre) and where it exists."""

@@ -64,6 +64,23 @@ def test_depth_loss_gradient_matches_finite_differences(mode):
     assert torch.autograd.gradcheck(func, (rendered,), eps=1e-6, atol=1e-6)
 
 
+def test_the_robust_depth_error_pulls_far_pixels_less_and_matches_its_closed_form():
+    rendered = torch.tensor([[2.0, 2.0, 2.0]], dtype=torch.float64, requires_grad=True)
+    prior = torch.tensor([[2.0 * math.exp(0.01), 2.0 * math.exp(0.5), 2.0 * math.exp(2.0)]], dtype=torch.float64)
+    mask = torch.ones(1, 3, dtype=torch.bool)
+    plain = losses.depth_loss(rendered, prior, mask)
+    robust = losses.depth_loss(rendered, prior, mask, robust=0.1)
+    errors = torch.tensor([0.01, 0.5, 2.0], dtype=torch.float64)
+    assert float(plain) == pytest.approx(float(errors.mean()))
+    assert float(robust) == pytest.approx(float((0.1 * torch.log1p(errors / 0.1)).mean()))
+    robust.backward()
+    # the pull on each pixel is the L1 pull (1/3 per pixel of d log r / dr = 1/2) times 1 / (1 + e / s)
+    expected = -(1.0 / 3.0) * 0.5 / (1.0 + errors / 0.1)
+    assert torch.allclose(rendered.grad[0], expected)
+    func = lambda r: losses.depth_loss(r, prior, mask, robust=0.3, mode="inverse")  # noqa: E731
+    assert torch.autograd.gradcheck(func, (rendered.detach().clone().requires_grad_(),), eps=1e-6, atol=1e-6)
+
+
 def test_normal_loss_gradient_and_zero_at_match():
     generator = torch.Generator().manual_seed(2)
     rendered = torch.randn(5, 6, 3, generator=generator, dtype=torch.float64).requires_grad_()
