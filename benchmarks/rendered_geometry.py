@@ -11,7 +11,9 @@ the pixels the run covers (alpha > 0.5) that the truth marks as surface.
     python benchmarks/rendered_geometry.py OUT [OUT ...] --json RESULT.json
 
 OUT: folders written by ``benchmarks/device_study.py run`` (their ``rows.json`` names each
-run ``work/runNNN``). The JSON holds one row per run and the mean and spread per group and arm.
+run ``work/runNNN``), or ``GROUP/ARM=FOLDER`` for a folder of run folders named by seed
+(``sky_study.py``'s ``OUT/SCENE/ARM/seedS``) or a single run. The JSON holds one row per run
+and the mean and spread per group and arm.
 """
 from __future__ import annotations
 
@@ -52,15 +54,32 @@ def run_scores(run_dir: Path, scene: Path) -> dict[str, float]:
     return {key: totals[key] / pixels for key in KEYS} | {"pixels": pixels} if pixels else {"pixels": 0}
 
 
-def measure(outs: list[Path]) -> dict[str, Any]:
+def _runs(out: str) -> list[tuple[dict[str, Any], Path]]:
+    """(row identity, run folder) of every run an OUT argument names (module docstring)."""
+    if "=" in out:
+        label, folder = out.split("=", 1)
+        group, arm = label.rsplit("/", 1)
+        folder = Path(folder)
+        if (folder / "config.json").is_file():
+            return [({"name": label, "group": group, "arm": arm, "seed": None}, folder)]
+        runs = []
+        for run_dir in sorted(path for path in folder.iterdir() if (path / "config.json").is_file()):
+            seed = json.loads((run_dir / "config.json").read_text()).get("seed")
+            runs.append(({"name": f"{label}/seed{seed}", "group": group, "arm": arm, "seed": seed}, run_dir))
+        return runs
+    rows = json.loads((Path(out) / "rows.json").read_text())["rows"]
+    return [({key: row.get(key) for key in ("name", "group", "arm", "seed")},
+             Path(out) / "work" / f"run{row['index']:03d}") for row in rows]
+
+
+def measure(outs: list[str]) -> dict[str, Any]:
     rows = []
     for out in outs:
-        for row in json.loads((out / "rows.json").read_text())["rows"]:
-            run_dir = out / "work" / f"run{row['index']:03d}"
+        for identity, run_dir in _runs(out):
             config = json.loads((run_dir / "config.json").read_text())
             scores = run_scores(run_dir, Path(config["scene"]))
-            rows.append({key: row.get(key) for key in ("name", "group", "arm", "seed")} | scores)
-            print(f"{row['name']}: " + ", ".join(f"{k} {scores[k]:.4g}" for k in KEYS if k in scores), flush=True)
+            rows.append(identity | scores)
+            print(f"{identity['name']}: " + ", ".join(f"{k} {scores[k]:.4g}" for k in KEYS if k in scores), flush=True)
     summary: dict[str, Any] = {}
     for row in rows:
         summary.setdefault(f"{row['group']}/{row['arm']}", []).append(row)
@@ -73,7 +92,7 @@ def measure(outs: list[Path]) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("outs", nargs="+", type=Path)
+    parser.add_argument("outs", nargs="+", help="device_study OUT folders, or GROUP/ARM=FOLDER")
     parser.add_argument("--json", type=Path, required=True)
     args = parser.parse_args(argv)
     from esgs.core.io_utils import atomic_write_json

@@ -49,3 +49,25 @@ def test_the_true_gaussians_score_no_error_and_tilted_ones_score_their_tilt(tmp_
     off = script.run_scores(run, scene)
     assert off["normal_mean_deg"] == pytest.approx(20.0, abs=2.0)
     assert off["normal_within_11_25"] < 0.05
+
+
+def test_runs_are_named_from_a_study_folder_a_folder_of_seeds_or_one_run(tmp_path):
+    import json
+
+    script = load_benchmark_script("rendered_geometry")
+    study = tmp_path / "study"
+    (study / "work" / "run001").mkdir(parents=True)
+    (study / "rows.json").write_text(json.dumps({"rows": [
+        {"index": 1, "name": "scene/arm/cpu/seed4", "group": "scene", "arm": "arm", "seed": 4}]}))
+    seeds = tmp_path / "seeds"
+    for seed in (2, 0):
+        (seeds / f"seed{seed}").mkdir(parents=True)
+        (seeds / f"seed{seed}" / "config.json").write_text(json.dumps({"seed": seed}))
+    (seeds / "notes").mkdir()  # not a run: skipped
+    assert script._runs(str(study)) == [({"name": "scene/arm/cpu/seed4", "group": "scene", "arm": "arm", "seed": 4},
+                                         study / "work" / "run001")]
+    assert script._runs(f"mixed/3dgs={seeds}") == [
+        ({"name": "mixed/3dgs/seed0", "group": "mixed", "arm": "3dgs", "seed": 0}, seeds / "seed0"),
+        ({"name": "mixed/3dgs/seed2", "group": "mixed", "arm": "3dgs", "seed": 2}, seeds / "seed2")]
+    assert script._runs(f"mixed/one={seeds / 'seed2'}") == [
+        ({"name": "mixed/one", "group": "mixed", "arm": "one", "seed": None}, seeds / "seed2")]
