@@ -77,16 +77,22 @@ def test_config_errors_are_clear():
     assert esgs_hooks(ESGSConfig()) == []
 
 
-def _depth_error(trainer, priors) -> float:
-    """Mean |log rendered depth - log prior depth| over the valid prior pixels of every training view."""
+def _depth_error(trainer, priors, depth_render: str = "expected") -> float:
+    """Mean |log rendered depth - log prior depth| over the valid prior pixels of every training
+    view; ``depth_render`` "plane": the depth of each pixel's median surface instead."""
     errors = []
     with torch.no_grad():
         params = trainer.gaussians.render_params(1)
         for view in trainer.data.train:
             output = trainer.render(params, view, render_depth=True)
+            if depth_render == "expected":
+                depth, covered = output.depth[..., 0], output.alpha[..., 0] > 0.5
+            else:
+                depth, covered = median_surface_depth(output.meta["median_ids"][0], params.means, params.quats,
+                                                      params.scales, view.viewmat, view.K, kind=depth_render)
             prior = priors[view.name]
-            valid = prior.mask & (output.depth[..., 0] > 0) & (output.alpha[..., 0] > 0.5)
-            errors.append((output.depth[..., 0][valid].log() - prior.depth[valid].log()).abs().mean())
+            valid = prior.mask & (depth > 0) & covered
+            errors.append((depth[valid].log() - prior.depth[valid].log()).abs().mean())
     return float(torch.stack(errors).mean())
 
 
@@ -109,31 +115,16 @@ def test_prior_terms_are_added_and_pull_depth_onto_the_prior(scene, tmp_path):
     assert with_prior < 0.9 * without_prior, (with_prior, without_prior)
 
 
-def _median_depth_error(trainer, priors) -> float:
-    """Mean |log median-surface plane depth - log prior depth| over the valid prior pixels of every view."""
-    errors = []
-    with torch.no_grad():
-        params = trainer.gaussians.render_params(1)
-        for view in trainer.data.train:
-            output = trainer.render(params, view, render_depth=True)
-            depth, surface = median_surface_depth(output.meta["median_ids"][0], params.means, params.quats,
-                                                  params.scales, view.viewmat, view.K)
-            prior = priors[view.name]
-            valid = prior.mask & surface & (depth > 0)
-            errors.append((depth[valid].log() - prior.depth[valid].log()).abs().mean())
-    return float(torch.stack(errors).mean())
-
-
 def test_a_median_surface_depth_prior_pulls_that_surface_onto_the_prior(scene, tmp_path):
     esgs = ESGSConfig(priors="gt", depth=True, prior_start_step=0, depth_weight=1.0, depth_render="plane")
     trainer = _trainer(scene, tmp_path / "run", esgs)
     baseline = _trainer(scene, tmp_path / "base", ESGSConfig())
     priors = trainer.hooks[0].priors
-    start_error = _median_depth_error(trainer, priors)
+    start_error = _depth_error(trainer, priors, "plane")
     for step in range(1, 41):
         trainer.train_step(step)
         baseline.train_step(step)
-    with_prior, without_prior = _median_depth_error(trainer, priors), _median_depth_error(baseline, priors)
+    with_prior, without_prior = _depth_error(trainer, priors, "plane"), _depth_error(baseline, priors, "plane")
     assert with_prior < 0.8 * start_error, (start_error, with_prior)
     assert with_prior < 0.9 * without_prior, (with_prior, without_prior)
     with pytest.raises(ConfigError, match="depth_render"):
