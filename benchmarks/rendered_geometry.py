@@ -54,17 +54,25 @@ def run_scores(run_dir: Path, scene: Path) -> dict[str, float]:
     return {key: totals[key] / pixels for key in KEYS} | {"pixels": pixels} if pixels else {"pixels": 0}
 
 
+def _config(run_dir: Path) -> dict[str, Any]:
+    """A run folder's saved settings as a dict ({} when it is not a run)."""
+    from esgs.core.formats.run_dir import RunDir
+
+    path = RunDir(run_dir).config
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
 def _runs(out: str) -> list[tuple[dict[str, Any], Path]]:
     """(row identity, run folder) of every run an OUT argument names (module docstring)."""
     if "=" in out:
         label, folder = out.split("=", 1)
         group, arm = label.rsplit("/", 1)
         folder = Path(folder)
-        if (folder / "config.json").is_file():
+        if _config(folder):
             return [({"name": label, "group": group, "arm": arm, "seed": None}, folder)]
         runs = []
-        for run_dir in sorted(path for path in folder.iterdir() if (path / "config.json").is_file()):
-            seed = json.loads((run_dir / "config.json").read_text()).get("seed")
+        for run_dir in sorted(path for path in folder.iterdir() if path.is_dir() and _config(path)):
+            seed = _config(run_dir).get("seed")
             runs.append(({"name": f"{label}/seed{seed}", "group": group, "arm": arm, "seed": seed}, run_dir))
         return runs
     rows = json.loads((Path(out) / "rows.json").read_text())["rows"]
@@ -76,8 +84,7 @@ def measure(outs: list[str]) -> dict[str, Any]:
     rows = []
     for out in outs:
         for identity, run_dir in _runs(out):
-            config = json.loads((run_dir / "config.json").read_text())
-            scores = run_scores(run_dir, Path(config["scene"]))
+            scores = run_scores(run_dir, Path(_config(run_dir)["scene"]))
             rows.append(identity | scores)
             print(f"{identity['name']}: " + ", ".join(f"{k} {scores[k]:.4g}" for k in KEYS if k in scores), flush=True)
     summary: dict[str, Any] = {}
