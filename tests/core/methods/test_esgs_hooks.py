@@ -131,6 +131,29 @@ def test_a_median_surface_depth_prior_pulls_that_surface_onto_the_prior(scene, t
         ESGSConfig(priors="gt", depth=True, depth_render="median").validate()
 
 
+def test_a_median_surface_depth_is_refused_where_the_rasterizer_has_no_median_ids(scene, tmp_path):
+    from types import SimpleNamespace
+
+    from esgs.core.methods.esgs.prior_hook import PriorLossHook
+
+    esgs = ESGSConfig(priors="gt", depth=True, prior_start_step=0, depth_render="plane")
+    # a run on the cuda backend: refused at setup, before any prior is loaded
+    cuda_run = SimpleNamespace(device=torch.device("cuda"), scaled_step=lambda step, minimum=0: step)
+    with pytest.raises(ConfigError, match="cpu and reference"):
+        PriorLossHook(esgs).setup(cuda_run)
+    # a render without the ids (what gsplat returns): the loss term says why
+    trainer = _trainer(scene, tmp_path / "run", esgs)
+    hook = trainer.hooks[0]
+    view = trainer.data.train[0]
+    params = trainer.gaussians.render_params(1)
+    output = trainer.render(params, view, render_depth=True)
+    output.meta.pop("median_ids")
+    context = SimpleNamespace(view=view, output=output, params=params, depth=output.depth, alpha=output.alpha,
+                              image=output.image, target=None)
+    with pytest.raises(ConfigError, match="no median"):
+        hook._depth_term(context)
+
+
 def test_sky_pixels_never_reach_the_loss(scene, tmp_path):
     esgs = ESGSConfig(priors="gt", depth=True, prior_start_step=0)
     trainer = _trainer(scene, tmp_path / "run", esgs)
