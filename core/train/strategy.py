@@ -49,6 +49,10 @@ class StrategyContext:
     device: torch.device
     generator: torch.Generator
     message: Callable[[str], None]
+    #: [N] each Gaussian's largest summed blending weight (pixels) over the training views, as
+    #: the method renders them (:func:`~.contribution.blend_weight_peaks`); None where the
+    #: caller cannot render (then nothing is pruned by contribution)
+    blend_weights: Optional[Callable[[], torch.Tensor]] = None
 
 
 class Strategy:
@@ -99,6 +103,9 @@ class DefaultStrategySettings:
     max_gaussians: int
     opacity_reset_value: float
     spatial_order: bool
+    #: at the end of densification, prune the Gaussians that add less than this many pixels
+    #: of blending weight to every training view (0 = never; see :mod:`.contribution`)
+    prune_unseen_px: float = 0.0
 
 
 class DefaultStrategy(Strategy):
@@ -125,7 +132,8 @@ class DefaultStrategy(Strategy):
             grad_threshold=config.densify_grad_threshold, percent_dense=config.percent_dense,
             prune_opacity=config.prune_opacity, max_screen_size_px=config.prune_screen_size_px,
             max_world_size=config.prune_world_size, max_gaussians=config.max_gaussians,
-            opacity_reset_value=config.opacity_reset_value, spatial_order=config.spatial_order)
+            opacity_reset_value=config.opacity_reset_value, spatial_order=config.spatial_order,
+            prune_unseen_px=config.prune_unseen_px)
         return cls(settings, config.schedule())
 
     def prepare_initial(self, gaussians: GaussianModel) -> None:
@@ -160,7 +168,35 @@ class DefaultStrategy(Strategy):
             reports.append(DensifyReport(step=step, count_before=len(gaussians), count_after=len(gaussians),
                                          reset_opacity=True,
                                          source_index=torch.arange(len(gaussians), device=self.context.device)))
+        if self.prunes_unseen(step):
+            reports.append(self._prune_unseen(step))
         return reports
+
+    def prunes_unseen(self, step: int) -> bool:
+        """Whether ``step`` prunes by contribution: the first step without densification, when
+        the set is final but the remaining steps can still mend what the pruning changed."""
+        schedule = self.schedule
+        return (self.settings.prune_unseen_px > 0 and self.context.blend_weights is not None
+                and 0 < schedule.densify_until == step < schedule.iterations)
+
+    def _prune_unseen(self, step: int) -> DensifyReport:
+        context, threshold = self.context, self.settings.prune_unseen_px
+        gaussians = context.gaussians
+        count = len(gaussians)
+        keep = context.blend_weights().to(context.device) >= threshold
+        kept = int(keep.sum())
+        if kept == 0 or kept == count:
+            if kept == 0:
+                context.message(f"warning: no Gaussian adds {threshold:g} px to any training view; none pruned")
+            return DensifyReport(step=step, count_before=count, count_after=count,
+                                 source_index=torch.arange(count, device=context.device))
+        with torch.no_grad():
+            gaussians.set_params(context.optimizer.select(keep))
+        self.state.select(keep)
+        context.message(f"pruned {count - kept} of {count} Gaussians that add less than {threshold:g} px "
+                        "to every training view")
+        return DensifyReport(step=step, count_before=count, count_after=kept, pruned=count - kept,
+                             source_index=keep.nonzero().squeeze(1))
 
     def _densify(self, step: int) -> DensifyReport:
         settings, context = self.settings, self.context

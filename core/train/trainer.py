@@ -257,6 +257,24 @@ class Trainer:
             params = self._view_params(view, params)
             return self.render(params, view, render_depth=render_depth, render_normals=render_normals)
 
+    def blend_weight_peaks(self) -> torch.Tensor:
+        """[N] each Gaussian's largest summed blending weight (pixels) over the training views,
+        as the method renders them (hooks' ``model_params`` applied; per-view randomness such
+        as dropout left out), on this run's backend: see :mod:`.contribution`."""
+        from .contribution import blend_weight_peaks
+
+        with torch.no_grad():
+            params = self.gaussians.render_params(0)
+            for hook in self.hooks:
+                params = hook.model_params(self, params)
+
+        def render(features: RenderParams, view: View) -> torch.Tensor:
+            return render_view(features, view.viewmat.to(self.device), view.K.to(self.device), view.width,
+                               view.height, backend=self.backend, num_threads=self.num_threads,
+                               antialiased=self.parts.render.antialiased, eps2d=self.parts.render.eps2d).image
+
+        return blend_weight_peaks(params, self.data.train, render)
+
     def _view_params(self, view: View, params: RenderParams) -> RenderParams:
         """``params`` passed through every hook's ``view_params`` for ``view``."""
         for hook in self.hooks:
@@ -326,7 +344,8 @@ class Trainer:
         if self.grayscale:
             self._make_grey()
         self.strategy.setup(StrategyContext(gaussians=self.gaussians, optimizer=self.optimizer, extent=self.data.extent,
-                                            device=self.device, generator=self.generator, message=self.message))
+                                            device=self.device, generator=self.generator, message=self.message,
+                                            blend_weights=self.blend_weight_peaks))
         self.sampler = ViewSampler(len(self.data.train), config.seed)
         for hook in self.hooks:
             hook.setup(self)
