@@ -6,7 +6,7 @@ from typing import Callable
 import torch
 
 from ..errors import ConfigError
-from .constants import NEAR_PLANE
+from .constants import FAR_PLANE, NEAR_PLANE
 from .sh import evaluate_sh_colors, num_sh_bases
 
 BACKENDS = ("cpu", "reference", "cuda")
@@ -102,7 +102,7 @@ def rasterization(
     height: int,
     *,
     near_plane: float = NEAR_PLANE,
-    far_plane: float = 1e10,
+    far_plane: float = FAR_PLANE,
     sh_degree: int | None = None,
     backgrounds: torch.Tensor | None = None,
     render_depth: bool = False,

@@ -23,3 +23,5 @@ JACOBIAN_MARGIN = 0.15
 LOG_INV_ALPHA_MIN = math.log(255.0)
 #: Default near plane of :func:`~.api.rasterization`: centres nearer the camera than this are not drawn.
 NEAR_PLANE = 0.01
+#: Default far plane of :func:`~.api.rasterization`: in effect none.
+FAR_PLANE = 1e10

@@ -28,7 +28,7 @@ DENSIFY_GRADIENTS = ("photometric", "all")
 #: baseline rows): the constant background instead of the sky model, no sky masks (so no
 #: sky-alpha term and no prior masks), no pruning by contribution. Every other default is 3DGS's own schedule; the Morton
 #: order of the Gaussians (``spatial_order``) changes the memory layout, not the maths.
-VANILLA_3DGS: dict = {"sky": "none", "mask_source": "none", "prune_unseen_px": 0.0}
+VANILLA_3DGS: dict = {"sky": "none", "mask_source": "none", "prune_hidden": 0.0}
 
 
 def _help(text: str, **extra) -> dict:
@@ -146,10 +146,10 @@ class TrainConfig:
     prune_opacity: float = field(default=0.005, metadata=_help("prune Gaussians whose opacity is below this"))
     prune_screen_size_px: float = field(default=20.0, metadata=_help("after the first opacity reset, prune Gaussians whose screen radius exceeds this"))
     prune_world_size: float = field(default=0.1, metadata=_help("after the first opacity reset, prune Gaussians larger than this fraction of the extent"))
-    prune_unseen_px: float = field(default=0.0, metadata=_help(
-        "at the end of densification, prune the Gaussians that add less than this many pixels of blending "
-        "weight to every training view: hidden or negligible Gaussians that the images do not constrain "
-        "(0 = never; docs/training.md)"))
+    prune_hidden: float = field(default=0.0, metadata=_help(
+        "at the end of densification, prune the Gaussians hidden in every training view: less than this share "
+        "of the light reaches them (their summed blending weight over their unoccluded footprint), so the "
+        "images cannot place them (0 = never; docs/training.md)"))
     opacity_reset_every: int = field(default=3000, metadata=_help("steps between opacity resets (scaled; 0 = never)"))
     opacity_reset_value: float = field(default=0.01, metadata=_help("opacities are clamped to at most this at a reset"))
     min_densify_interval: int = field(default=20, metadata=_help(
@@ -190,7 +190,7 @@ class TrainConfig:
         for name in ("width", "test_every", "max_minutes", "threads", "checkpoint_every", "eval_every",
                      "opacity_reset_every",
                      "densify_from", "densify_until", "position_lr_delay_steps", "sh_degree", "lambda_dssim",
-                     "prune_opacity", "densify_grad_threshold", "prune_unseen_px"):
+                     "prune_opacity", "densify_grad_threshold", "prune_hidden"):
             positive(name, allow_zero=True)
         if self.backend not in BACKENDS:
             raise ConfigError(f"backend must be one of {', '.join(BACKENDS)}, got {self.backend!r}")
@@ -255,7 +255,7 @@ class TrainConfig:
 PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0, "sky": "none", "mask_photometric": True,
                           "surface_alpha_weight": 0.0, "grayscale": "off", "sky_smooth_weight": 0.0,
                           "sky_unseen_weight": 0.0, "sky_grid_rows": 0, "sky_lr_decay": 1.0,
-                          "prune_unseen_px": 0.0}
+                          "prune_hidden": 0.0}
 
 #: Legacy layout (runs saved before methods were registered): the method's settings were
 #: the sections "esgs" (ESGSConfig) and "baselines" (Mip-Splatting and DropoutGS switches

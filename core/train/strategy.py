@@ -28,6 +28,7 @@ from typing import Any, Callable, Optional
 
 import torch
 
+from .contribution import Visibility
 from .densify import DensifyReport, DensifySettings, DensifyState, densify_and_prune, reset_opacity
 from .gaussians import GaussianModel
 from .optim import TrainOptimizer
@@ -49,10 +50,9 @@ class StrategyContext:
     device: torch.device
     generator: torch.Generator
     message: Callable[[str], None]
-    #: [N] each Gaussian's largest summed blending weight (pixels) over the training views, as
-    #: the method renders them (:func:`~.contribution.blend_weight_peaks`); None where the
-    #: caller cannot render (then nothing is pruned by contribution)
-    blend_weights: Optional[Callable[[], torch.Tensor]] = None
+    #: the Gaussians' :class:`~.contribution.Visibility` over the training views, as the
+    #: method renders them; None where the caller cannot render (then nothing is pruned as hidden)
+    visibility: Optional[Callable[[], Visibility]] = None
 
 
 class Strategy:
@@ -103,9 +103,9 @@ class DefaultStrategySettings:
     max_gaussians: int
     opacity_reset_value: float
     spatial_order: bool
-    #: at the end of densification, prune the Gaussians that add less than this many pixels
-    #: of blending weight to every training view (0 = never; see :mod:`.contribution`)
-    prune_unseen_px: float = 0.0
+    #: at the end of densification, prune the Gaussians that less than this share of light
+    #: reaches in every training view (0 = never; see :mod:`.contribution`)
+    prune_hidden: float = 0.0
 
 
 class DefaultStrategy(Strategy):
@@ -133,7 +133,7 @@ class DefaultStrategy(Strategy):
             prune_opacity=config.prune_opacity, max_screen_size_px=config.prune_screen_size_px,
             max_world_size=config.prune_world_size, max_gaussians=config.max_gaussians,
             opacity_reset_value=config.opacity_reset_value, spatial_order=config.spatial_order,
-            prune_unseen_px=config.prune_unseen_px)
+            prune_hidden=config.prune_hidden)
         return cls(settings, config.schedule())
 
     def prepare_initial(self, gaussians: GaussianModel) -> None:
@@ -168,33 +168,37 @@ class DefaultStrategy(Strategy):
             reports.append(DensifyReport(step=step, count_before=len(gaussians), count_after=len(gaussians),
                                          reset_opacity=True,
                                          source_index=torch.arange(len(gaussians), device=self.context.device)))
-        if self.prunes_unseen(step):
-            reports.append(self._prune_unseen(step))
+        if self.prunes_hidden(step):
+            reports.append(self._prune_hidden(step))
         return reports
 
-    def prunes_unseen(self, step: int) -> bool:
-        """Whether ``step`` prunes by contribution: the first step without densification, when
+    def prunes_hidden(self, step: int) -> bool:
+        """Whether ``step`` prunes hidden Gaussians: the first step without densification, when
         the set is final but the remaining steps can still mend what the pruning changed."""
         schedule = self.schedule
-        return (self.settings.prune_unseen_px > 0 and self.context.blend_weights is not None
+        return (self.settings.prune_hidden > 0 and self.context.visibility is not None
                 and 0 < schedule.densify_until == step < schedule.iterations)
 
-    def _prune_unseen(self, step: int) -> DensifyReport:
-        context, threshold = self.context, self.settings.prune_unseen_px
+    def _prune_hidden(self, step: int) -> DensifyReport:
+        context, threshold = self.context, self.settings.prune_hidden
         gaussians = context.gaussians
         count = len(gaussians)
-        keep = context.blend_weights().to(context.device) >= threshold
-        kept = int(keep.sum())
-        if kept == 0 or kept == count:
-            if kept == 0:
-                context.message(f"warning: no Gaussian adds {threshold:g} px to any training view; none pruned")
+        visibility = context.visibility()
+        hidden = visibility.hidden(threshold).to(context.device)
+        everything_seen = int(hidden.sum()) == int(visibility.seen.sum())
+        if not hidden.any() or everything_seen:
+            if hidden.any():
+                context.message(f"warning: every Gaussian in view is hidden (less than {threshold:g} of the light in "
+                                "every training view); none pruned")
             return DensifyReport(step=step, count_before=count, count_after=count,
                                  source_index=torch.arange(count, device=context.device))
+        keep = ~hidden
+        kept = int(keep.sum())
         with torch.no_grad():
             gaussians.set_params(context.optimizer.select(keep))
         self.state.select(keep)
-        context.message(f"pruned {count - kept} of {count} Gaussians that add less than {threshold:g} px "
-                        "to every training view")
+        context.message(f"pruned {count - kept} of {count} Gaussians hidden in every training view (less than "
+                        f"{threshold:g} of the light reaches them)")
         return DensifyReport(step=step, count_before=count, count_after=kept, pruned=count - kept,
                              source_index=keep.nonzero().squeeze(1))
 

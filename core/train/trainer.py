@@ -49,6 +49,7 @@ from .rendering import RenderOutput, backend_device, render_view, resolve_backen
 from ..formats.run_dir import RunDir
 from ..formats.scene_dir import PriorSource
 from .sky import SkyModel, UnseenSkyPrior, save_sky
+from .contribution import Visibility, training_visibility
 from .strategy import DefaultStrategy, Strategy, StrategyContext
 from .tensorboard import TensorBoardScalars, summary_writer_class
 
@@ -257,23 +258,26 @@ class Trainer:
             params = self._view_params(view, params)
             return self.render(params, view, render_depth=render_depth, render_normals=render_normals)
 
-    def blend_weight_peaks(self) -> torch.Tensor:
-        """[N] each Gaussian's largest summed blending weight (pixels) over the training views,
-        as the method renders them (hooks' ``model_params`` applied; per-view randomness such
-        as dropout left out), on this run's backend: see :mod:`.contribution`."""
-        from .contribution import blend_weight_peaks
-
+    def training_visibility(self) -> Visibility:
+        """The Gaussians' :class:`~.contribution.Visibility` over the training views, as the
+        method renders them (hooks' ``model_params`` applied; per-view randomness such as
+        dropout left out), on this run's backend."""
         with torch.no_grad():
             params = self.gaussians.render_params(0)
             for hook in self.hooks:
                 params = hook.model_params(self, params)
+        options = self.parts.render
 
         def render(features: RenderParams, view: View) -> torch.Tensor:
             return render_view(features, view.viewmat.to(self.device), view.K.to(self.device), view.width,
                                view.height, backend=self.backend, num_threads=self.num_threads,
-                               antialiased=self.parts.render.antialiased, eps2d=self.parts.render.eps2d).image
+                               antialiased=options.antialiased, eps2d=options.eps2d).image
 
-        return blend_weight_peaks(params, self.data.train, render)
+        def camera(view: View):
+            return view.viewmat.to(self.device), view.K.to(self.device), view.width, view.height
+
+        return training_visibility(params, self.data.train, render, camera, antialiased=options.antialiased,
+                                   eps2d=options.eps2d)
 
     def _view_params(self, view: View, params: RenderParams) -> RenderParams:
         """``params`` passed through every hook's ``view_params`` for ``view``."""
@@ -345,7 +349,7 @@ class Trainer:
             self._make_grey()
         self.strategy.setup(StrategyContext(gaussians=self.gaussians, optimizer=self.optimizer, extent=self.data.extent,
                                             device=self.device, generator=self.generator, message=self.message,
-                                            blend_weights=self.blend_weight_peaks))
+                                            visibility=self.training_visibility))
         self.sampler = ViewSampler(len(self.data.train), config.seed)
         for hook in self.hooks:
             hook.setup(self)
