@@ -100,14 +100,6 @@ def esgs_settings(priors: str = DEFAULT_PRIORS, gpdfn: bool = True) -> dict:
     return config_to_dict(full_esgs(priors, gpdfn=gpdfn))
 
 
-def _default_esgs() -> dict:
-    """What each ESGS setting means when a saved run config lacks it: ESGSConfig's default."""
-    from ..config import config_to_dict
-    from ..methods import ESGSConfig
-
-    return config_to_dict(ESGSConfig())
-
-
 def _esgs_settings_of(switches: dict) -> Any:
     """The ESGSConfig of the demo's switches (None for the 3DGS run, which has none)."""
     from ..config import config_from_dict
@@ -287,18 +279,16 @@ def train_method(config: DemoConfig, scene: Path, name: str, esgs: dict, progres
     from ..train import TrainConfig
 
     run = config.out / "runs" / name
-    # the sky model too: a run from before it would resume without one, or be reused beside one with it
-    _check_same_settings(run, esgs, {"iterations": config.iterations, "max_gaussians": config.max_gaussians,
-                                     "sky": TrainConfig.sky})
+    train_config = TrainConfig(scene=scene, out=run, iterations=config.iterations, max_gaussians=config.max_gaussians,
+                               threads=config.threads, resume=RunDir(run).has_checkpoints(),
+                               method="esgs" if esgs else "3dgs", method_config=_esgs_settings_of(esgs),
+                               progress_every=20)
+    _check_same_settings(run, train_config)
     result_path = RunDir(run).result
     if result_path.is_file() and json.loads(result_path.read_text()).get("status") in ("completed", "time_limit") \
             and RunDir(run).metrics.is_file():
         progress(ProgressEvent(0, 1, name, kind="message", message=f"{name}: reusing finished run {run}"))
         return _run_summary(run)
-    train_config = TrainConfig(scene=scene, out=run, iterations=config.iterations, max_gaussians=config.max_gaussians,
-                               threads=config.threads, resume=RunDir(run).has_checkpoints(),
-                               method="esgs" if esgs else "3dgs", method_config=_esgs_settings_of(esgs),
-                               progress_every=20)
     hooks = []
     if snapshots and config.snapshots > 0:
         steps = sorted({max(1, round(config.iterations * (i + 1) / config.snapshots)) for i in range(config.snapshots)})
@@ -312,12 +302,19 @@ def train_method(config: DemoConfig, scene: Path, name: str, esgs: dict, progres
     return _run_summary(run)
 
 
-def _check_same_settings(run: Path, esgs: dict, train: dict) -> None:
-    """Refuse to reuse or resume ``run`` when it was started with other settings.
+def _check_same_settings(run: Path, train_config: Any) -> None:
+    """Refuse to reuse or resume ``run`` when it was started with other settings than
+    ``train_config`` (every setting that changes the result, today's defaults included).
 
     A finished run is reused and an unfinished one resumed; either would silently report
-    (or mix) the old settings, e.g. after changing ``--priors`` in the same output folder.
+    (or mix) the old settings, e.g. after changing ``--priors`` in the same output folder, or
+    after an update changed a default.
     """
+    from dataclasses import replace
+
+    from ..methods import get_method
+    from ..train.trainer import changed_settings, describe_changes
+
     saved_path = RunDir(run).config
     if not saved_path.is_file():
         return
@@ -325,16 +322,11 @@ def _check_same_settings(run: Path, esgs: dict, train: dict) -> None:
         saved = json.loads(saved_path.read_text())
     except (OSError, json.JSONDecodeError):
         return  # a damaged config: the trainer's own resume check reports it
-    from ..train.config import with_predating_values
-
-    saved = with_predating_values(saved)  # runs saved before methods were registered, too
-    saved_esgs = (saved.get("method_config") or {}) if saved.get("method") == "esgs" else {}
-    defaults = _default_esgs()
-    differences = [f"{key} {saved_esgs.get(key, defaults.get(key))!r} -> {value!r}" for key, value in esgs.items()
-                   if saved_esgs.get(key, defaults.get(key)) != value]
-    differences += [f"{key} {saved.get(key)!r} -> {value!r}" for key, value in train.items() if saved.get(key) != value]
-    if differences:
-        raise ConfigError(f"{run} holds a run started with other settings ({'; '.join(differences)})", path=run,
+    method = get_method(train_config.method)
+    wanted = replace(train_config, method_config=method.settings_of(train_config))
+    changed = changed_settings(wanted, saved, method)
+    if changed:
+        raise ConfigError(f"this folder holds a run started with other settings ({describe_changes(changed)})", path=run,
                           hint="choose another --out, or delete that run folder to train it again")
 
 

@@ -146,10 +146,10 @@ class TrainConfig:
     prune_opacity: float = field(default=0.005, metadata=_help("prune Gaussians whose opacity is below this"))
     prune_screen_size_px: float = field(default=20.0, metadata=_help("after the first opacity reset, prune Gaussians whose screen radius exceeds this"))
     prune_world_size: float = field(default=0.1, metadata=_help("after the first opacity reset, prune Gaussians larger than this fraction of the extent"))
-    prune_hidden: float = field(default=0.0, metadata=_help(
+    prune_hidden: float = field(default=0.1, metadata=_help(
         "at the end of densification, prune the Gaussians hidden in every training view: less than this share "
         "of the light reaches them (their summed blending weight over their unoccluded footprint), so the "
-        "images cannot place them (0 = never; docs/training.md)"))
+        "images cannot place them (0 = never, as 3DGS; docs/training.md)"))
     opacity_reset_every: int = field(default=3000, metadata=_help("steps between opacity resets (scaled; 0 = never)"))
     opacity_reset_value: float = field(default=0.01, metadata=_help("opacities are clamped to at most this at a reset"))
     min_densify_interval: int = field(default=20, metadata=_help(

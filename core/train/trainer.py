@@ -807,17 +807,39 @@ def _resume_state(run: RunDir, config: TrainConfig, method: Method) -> Optional[
         if errors:
             raise CheckpointError("no readable checkpoint: " + "; ".join(errors), path=run.checkpoints)
         return None
-    stored = run_config_from_dict(state["config"])
+    changed = changed_settings(config, state["config"], method)
+    if changed:
+        raise ConfigError(f"cannot resume with different settings ({describe_changes(changed)})", path=run.config,
+                          hint="resume with the run's own settings (esgs train reads them from config.json)")
+    return state
+
+
+def changed_settings(config: TrainConfig, saved: dict, method: Method) -> dict[str, tuple[Any, Any]]:
+    """The settings that would make ``config`` train differently from a run saved with ``saved``
+    (its config.json or a checkpoint's ``config``; settings it predates count with the value
+    such runs had): ``{name: (saved value, value in config)}``, :data:`RESUMABLE_SETTINGS`
+    left out. ``config.method_config`` must be complete (``method.settings_of``), as the
+    trainer holds it; the saved one is completed here."""
+    stored = run_config_from_dict(saved)
     if stored.method == method.name:
         stored.method_config = method.settings_of(stored)  # its defaults filled in, as the current config's
     current = config_to_dict(config)
     previous = config_to_dict(stored)
-    changed = sorted(name for name in current if name not in RESUMABLE_SETTINGS and current[name] != previous.get(name))
-    if changed:
-        details = ", ".join(f"{name}: {previous.get(name)!r} -> {current[name]!r}" for name in changed)
-        raise ConfigError(f"cannot resume with different settings ({details})", path=run.config,
-                          hint="resume with the run's own settings (esgs train reads them from config.json)")
-    return state
+    return {name: (previous.get(name), current[name]) for name in sorted(current)
+            if name not in RESUMABLE_SETTINGS and current[name] != previous.get(name)}
+
+
+def describe_changes(changed: dict[str, tuple[Any, Any]]) -> str:
+    """``changed_settings``'s result in words, "name before -> after; ...", a method's own
+    settings compared key by key."""
+    parts = []
+    for name, (before, after) in changed.items():
+        if isinstance(before, dict) and isinstance(after, dict):
+            parts += [f"{key} {before.get(key)!r} -> {after.get(key)!r}" for key in sorted(set(before) | set(after))
+                      if before.get(key) != after.get(key)]
+        else:
+            parts.append(f"{name} {before!r} -> {after!r}")
+    return "; ".join(parts)
 
 
 def train(config: TrainConfig, progress: Optional[ProgressCallback] = None,

@@ -91,34 +91,46 @@ def test_the_command_line_offers_exactly_the_demo_prior_sources():
     assert "ndn, sfm, auto, gt" in result.stderr or "'ndn', 'sfm', 'auto', 'gt'" in result.stderr
 
 
+def _saved_config(config: DemoConfig, priors: str, **changes) -> dict:
+    """The config.json the demo's ESGS run with ``priors`` writes today, with ``changes``."""
+    from esgs.core.train import TrainConfig
+
+    train = TrainConfig(iterations=config.iterations, max_gaussians=config.max_gaussians, method="esgs",
+                        method_config=demo._esgs_settings_of(esgs_settings(priors)))
+    return {**config_to_dict(train), **changes}
+
+
 def test_a_run_folder_from_other_settings_is_neither_reused_nor_resumed(tmp_path):
     config = DemoConfig(out=tmp_path, priors="ndn", iterations=1500)
     run = tmp_path / "runs" / "esgs"
     run.mkdir(parents=True)
-    saved = {"iterations": 1500, "max_gaussians": config.max_gaussians, "esgs": esgs_settings("sfm")}
-    (run / "config.json").write_text(json.dumps(saved))
     (run / "train_result.json").write_text(json.dumps({"status": "completed"}))
     (run / "metrics.json").write_text("{}")
+
+    def attempt(saved: dict, demo_config: DemoConfig = config, events=None):
+        (run / "config.json").write_text(json.dumps(saved))
+        return demo.train_method(demo_config, tmp_path / "scene", "esgs", esgs_settings("ndn"),
+                                 (events.append if events is not None else lambda event: None), snapshots=False)
+
+    # other priors: the method's settings compared key by key
     with pytest.raises(ConfigError, match=r"normal False -> True") as error:
-        demo.train_method(config, tmp_path / "scene", "esgs", esgs_settings("ndn"), lambda event: None,
-                          snapshots=False)
+        attempt(_saved_config(config, "sfm"))
     assert "'sfm' -> 'ndn'" in str(error.value) and "another --out" in str(error.value)
-    # a run from before the sky model (no "sky" setting: it trained without one) is not reused
-    saved["esgs"] = esgs_settings("ndn")
-    (run / "config.json").write_text(json.dumps(saved))
+    # a run from before the sky model, in the layout of its time (it trained without one)
+    legacy = {"iterations": 1500, "max_gaussians": config.max_gaussians, "esgs": esgs_settings("ndn")}
     with pytest.raises(ConfigError, match="sky 'none' -> 'envmap'"):
-        demo.train_method(config, tmp_path / "scene", "esgs", esgs_settings("ndn"), lambda event: None,
-                          snapshots=False)
-    # the same settings are reused as before (no training: the scene does not even exist)
-    saved["sky"] = "envmap"
-    (run / "config.json").write_text(json.dumps(saved))
+        attempt(legacy)
+    # a run from before a default changed: hidden Gaussians were not pruned then
+    predating = _saved_config(config, "ndn")
+    del predating["prune_hidden"]
+    with pytest.raises(ConfigError, match=r"prune_hidden 0.0 -> 0.1"):
+        attempt(predating)
+    # the same settings are reused (no training: the scene does not even exist)
     events = []
-    summary = demo.train_method(config, tmp_path / "scene", "esgs", esgs_settings("ndn"), events.append,
-                                snapshots=False)
+    summary = attempt(_saved_config(config, "ndn"), events=events)
     assert summary["status"] == "completed" and "reusing finished run" in events[0].message
     with pytest.raises(ConfigError, match="iterations 1500 -> 300"):
-        demo.train_method(DemoConfig(out=tmp_path, iterations=300), tmp_path / "scene", "esgs",
-                          esgs_settings("ndn"), lambda event: None, snapshots=False)
+        attempt(_saved_config(config, "ndn"), DemoConfig(out=tmp_path, iterations=300))
 
 
 # --- the report's geometry pictures and scores -----------------------------------------
