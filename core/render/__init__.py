@@ -2,6 +2,6 @@
 
 Public entry point: :func:`rasterization`. See docs/rasterizer.md.
 """
-from .api import BACKENDS, rasterization
+from .api import BACKENDS, MEDIAN_SURFACE_BACKENDS, rasterization
 
-__all__ = ["BACKENDS", "rasterization"]
+__all__ = ["BACKENDS", "MEDIAN_SURFACE_BACKENDS", "rasterization"]

@@ -10,6 +10,9 @@ from .constants import FAR_PLANE, NEAR_PLANE
 from .sh import evaluate_sh_colors, num_sh_bases
 
 BACKENDS = ("cpu", "reference", "cuda")
+#: The backends whose ``meta`` names each pixel's median-surface Gaussian (``median_ids``;
+#: gsplat, behind ``cuda``, has no such output).
+MEDIAN_SURFACE_BACKENDS = frozenset({"cpu", "reference"})
 
 
 def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,

@@ -16,6 +16,7 @@ from typing import Optional
 
 import torch
 
+from ..render.projection import quaternion_to_matrix
 from .gaussians import GaussianModel
 from .optim import TrainOptimizer
 
@@ -99,16 +100,6 @@ class DensifyReport:
     source_index: Optional[torch.Tensor] = field(default=None, repr=False)
 
 
-def quaternion_to_rotation(quats: torch.Tensor) -> torch.Tensor:
-    """[N, 4] wxyz (any norm) -> [N, 3, 3] rotation matrices."""
-    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(-1, 3, 3)
-
-
 @dataclass(frozen=True)
 class DensifySettings:
     """Thresholds of one densification (see :class:`~esgs.core.train.config.TrainConfig`)."""
@@ -168,7 +159,7 @@ def densify_and_prune(model: GaussianModel, optimizer: TrainOptimizer, state: De
         if split_index.numel():
             parent_scales = model.scales()[split_index].repeat(children, 1)  # [S*c, 3]
             offsets = torch.normal(torch.zeros_like(parent_scales), parent_scales, generator=generator)
-            rotations = quaternion_to_rotation(params["quats"].detach()[split_index]).repeat(children, 1, 1)
+            rotations = quaternion_to_matrix(params["quats"].detach()[split_index]).repeat(children, 1, 1)
             child_means = torch.bmm(rotations, offsets[:, :, None])[:, :, 0] + params["means"].detach()[split_index].repeat(children, 1)
             split_rows = {name: params[name].detach()[split_index].repeat(
                 (children,) + (1,) * (params[name].dim() - 1)) for name in params}

@@ -71,7 +71,8 @@ class RunView(Protocol):
     """What a hook sees of a training run: read-only facts and four actions.
 
     Facts: ``seed`` (the run's seed), ``scene`` (the folder the scene's files, priors
-    included, are read from), ``device``, ``train_views`` / ``test_views``
+    included, are read from), ``device``, ``backend`` (the rasterizer backend it renders
+    with: cpu, reference or cuda), ``train_views`` / ``test_views``
     (:class:`~.dataset.View`), ``extent`` (3DGS's scene extent of the training cameras, the
     scale the learning rates and densification use), ``gaussians`` (the :class:`~.gaussians.GaussianModel` being
     trained; its tensors change at densification, the object does not) and
@@ -89,6 +90,9 @@ class RunView(Protocol):
 
     @property
     def device(self) -> "torch.device": ...
+
+    @property
+    def backend(self) -> str: ...
 
     @property
     def train_views(self) -> Sequence["View"]: ...

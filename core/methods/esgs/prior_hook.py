@@ -10,6 +10,7 @@ from ...errors import ConfigError
 from ...priors import load_prior_maps
 from ...priors.align import align_depth_to_points
 from ...priors.losses import depth_loss, depth_normal_consistency_loss, edge_aware_weights, normal_loss, sky_loss
+from ...render import MEDIAN_SURFACE_BACKENDS
 from ...render.surface import median_surface_depth
 from ...train.hooks import RunView, TrainHook
 from ...train.losses import LossContext, LossTerm
@@ -55,7 +56,7 @@ class PriorLossHook(TrainHook):
         config = self.config
         start = run.scaled_step(config.prior_start_step)
         wants_sky = config.sky_loss_on
-        if config.depth and config.depth_render != "expected" and run.device.type == "cuda":
+        if config.depth and config.depth_render != "expected" and run.backend not in MEDIAN_SURFACE_BACKENDS:
             raise ConfigError(f"depth_render {config.depth_render!r} needs the median surface of each pixel, which "
                               "only the cpu and reference rasterizer backends return",
                               hint="train with --backend cpu, or set --depth-render expected")

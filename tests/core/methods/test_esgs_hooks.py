@@ -138,7 +138,7 @@ def test_a_median_surface_depth_is_refused_where_the_rasterizer_has_no_median_id
 
     esgs = ESGSConfig(priors="gt", depth=True, prior_start_step=0, depth_render="plane")
     # a run on the cuda backend: refused at setup, before any prior is loaded
-    cuda_run = SimpleNamespace(device=torch.device("cuda"), scaled_step=lambda step, minimum=0: step)
+    cuda_run = SimpleNamespace(device=torch.device("cuda"), backend="cuda", scaled_step=lambda step, minimum=0: step)
     with pytest.raises(ConfigError, match="cpu and reference"):
         PriorLossHook(esgs).setup(cuda_run)
     # a render without the ids (what gsplat returns): the loss term says why

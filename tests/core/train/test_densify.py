@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from esgs.core.train.densify import (DensifySettings, DensifyState, densify_and_prune, quaternion_to_rotation,
-                                     reset_opacity)
+from esgs.core.render.projection import quaternion_to_matrix
+from esgs.core.train.densify import DensifySettings, DensifyState, densify_and_prune, reset_opacity
 from esgs.core.train.gaussians import GaussianModel, PARAMETER_NAMES
 from esgs.core.train.optim import TrainOptimizer
 
@@ -172,10 +172,10 @@ def test_reset_opacity_clamps_and_zeroes_moments():
     assert optimizer.adam.state[model.params["means"]]["exp_avg"].any()
 
 
-def test_quaternion_to_rotation_is_orthonormal_and_matches_colmap():
+def test_the_split_rotation_is_orthonormal_and_matches_colmap():
     from esgs.core.colmap.geometry import quat_wxyz_to_matrix
 
     quats = torch.randn(20, 4, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
-    rotations = quaternion_to_rotation(quats)
+    rotations = quaternion_to_matrix(quats)  # what densification rotates split offsets with
     for quat, rotation in zip(quats.numpy(), rotations.numpy()):
         assert np.allclose(rotation, quat_wxyz_to_matrix(quat))
