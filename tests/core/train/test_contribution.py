@@ -9,7 +9,7 @@ from esgs.core.train.config import Schedule
 from esgs.core.render.constants import NEAR_PLANE
 from esgs.core.render.projection import project_gaussians
 from esgs.core.train.contribution import Visibility, footprint, training_visibility
-from esgs.core.train.gaussians import GaussianModel, RenderParams
+from esgs.core.train.gaussians import RenderParams
 from esgs.core.train.strategy import DefaultStrategy, DefaultStrategySettings, StrategyContext
 from tests.core.render.scenes import random_scene
 
