@@ -18,7 +18,8 @@ A strategy changes parameters, their Adam moments and its own statistics togethe
 aligned; its state is saved in checkpoints under ``"densify"``.
 
 :class:`DefaultStrategy` is 3DGS's clone / split / prune / opacity reset, with optional
-Morton (Z-order) sorting of the Gaussians after every change (``spatial_order``).
+Morton (Z-order) sorting of the Gaussians after every change (``spatial_order``) and the
+pruning of hidden Gaussians when densification ends (``prune_hidden``).
 """
 from __future__ import annotations
 
@@ -115,7 +116,9 @@ class DefaultStrategy(Strategy):
     while the schedule densifies. Changes: clone/split/prune on densification steps, then
     (with ``spatial_order``) one permutation back into Morton order of the centres, folded
     into the report's ``source_index``; opacity clamping on reset steps (a report with
-    ``reset_opacity=True`` and the identity index).
+    ``reset_opacity=True`` and the identity index); with ``prune_hidden`` > 0, at the first step
+    after densification, removal of the Gaussians hidden in every training view (the
+    context's ``visibility``; :mod:`.contribution`).
     """
 
     name = "default"
