@@ -37,8 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--list-methods", action="store_true", help="list the training methods and exit")
     parser.add_argument("--vanilla", action="store_true",
                         help="the published method's own settings, for comparisons with other tools (with the "
-                             "default method: plain 3DGS): no sky model and no sky masks (--sky none --mask-source "
-                             "none; esgs.core.train.config.VANILLA_3DGS)")
+                             "default method: plain 3DGS): no sky model, no sky masks and no pruning of hidden "
+                             "Gaussians (--sky none --mask-source none --prune-hidden 0; "
+                             "esgs.core.train.config.VANILLA_3DGS)")
     seen: set[str] = set()
     for name, settings_class in _settings_classes().items():
         group = parser.add_argument_group(f"method {name}", get_method(name).description)

@@ -174,6 +174,11 @@ def test_the_vanilla_switch_trains_plain_3dgs_and_refuses_clashing_flags(tmp_pat
     plain = train_command.build_config(parser.parse_args(["scene", "--out", str(tmp_path), "--vanilla"]))
     assert {key: getattr(plain, key) for key in VANILLA_3DGS} == VANILLA_3DGS
     assert plain.iterations == default.iterations and plain.method == "3dgs"
+    # hidden Gaussians are pruned by default, never in plain 3DGS
+    assert (default.prune_hidden, plain.prune_hidden) == (0.1, 0.0)
+    with pytest.raises(ConfigError, match="--prune-hidden"):
+        train_command.build_config(parser.parse_args(["scene", "--out", str(tmp_path), "--vanilla",
+                                                      "--prune-hidden", "0.2"]))
     # a flag saying the same is fine; one saying otherwise is an error naming it
     same = parser.parse_args(["scene", "--out", str(tmp_path), "--vanilla", "--sky", "none"])
     assert train_command.build_config(same).sky == "none"
