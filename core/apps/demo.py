@@ -23,13 +23,16 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
 
 from ..errors import ConfigError, DatasetError, ESGSError
 from ..progress import ProgressCallback, ProgressEvent, no_progress
 from ..formats.scene_dir import PriorSource, SceneDir, names
 from ..formats.run_dir import RunDir
+
+if TYPE_CHECKING:
+    from ..train import TrainConfig
 
 #: Prior sources the demo can train ESGS with (folders under SCENE/priors/).
 PRIOR_SOURCES = names(PriorSource.for_synthetic_scenes())
@@ -302,7 +305,7 @@ def train_method(config: DemoConfig, scene: Path, name: str, esgs: dict, progres
     return _run_summary(run)
 
 
-def _check_same_settings(run: Path, train_config: Any) -> None:
+def _check_same_settings(run: Path, train_config: "TrainConfig") -> None:
     """Refuse to reuse or resume ``run`` when it was started with other settings than
     ``train_config`` (every setting that changes the result, today's defaults included).
 

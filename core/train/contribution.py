@@ -28,7 +28,8 @@ from typing import Callable, Iterable
 
 import torch
 
-from ..render.constants import ALPHA_MAX
+from ..render.constants import ALPHA_MAX, FAR_PLANE, NEAR_PLANE
+from ..render.projection import project_gaussians
 from .gaussians import RenderParams
 
 #: render(params, view) -> image [H, W, C] of raw colour features, no background
@@ -89,9 +90,6 @@ def training_visibility(params: RenderParams, views: Iterable, render: Render, c
     renders with (the footprint is the same projected Gaussian). The geometry of ``params``
     is detached: nothing here reaches the optimiser.
     """
-    from ..render.constants import FAR_PLANE, NEAR_PLANE
-    from ..render.projection import project_gaussians
-
     count = params.means.shape[0]
     device = params.means.device
     geometry = replace(params, means=params.means.detach(), quats=params.quats.detach(),
