@@ -83,3 +83,54 @@ def median_surface_depth(median_ids: torch.Tensor, means: torch.Tensor, quats: t
         values = torch.minimum(torch.maximum(plane, centre[:, 2] - reach), centre[:, 2] + reach)
     depth = depth.index_put((valid,), values)
     return depth, valid
+
+
+def median_surface_normals(median_ids: torch.Tensor, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                           viewmat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Camera-frame unit normal of each pixel's median surface Gaussian, facing the camera.
+
+    The normal is the Gaussian's shortest axis (:func:`gaussian_normals`), turned towards the
+    camera (``n . centre < 0``): the same normal the rasterizer composites, but of the one
+    Gaussian at which the pixel's transmittance crosses one half. Gradients reach only that
+    Gaussian's rotation: a loss on these normals turns Gaussians and never moves or fades them.
+    Arguments as :func:`median_surface_depth`; returns (normals [H, W, 3], valid [H, W] bool),
+    zero where ``valid`` is False.
+    """
+    height, width = median_ids.shape
+    valid = median_ids >= 0
+    normals = torch.zeros((height, width, 3), dtype=quats.dtype, device=quats.device)
+    if not bool(valid.any()):
+        return normals, valid
+    ids = median_ids[valid].to(quats.device)
+    rotation = viewmat[:3, :3].to(quats)
+    normal = gaussian_normals(quats[ids], scales[ids]) @ rotation.T
+    centre = (means[ids].detach() @ rotation.T + viewmat[:3, 3].to(quats))
+    away = (normal * centre).sum(-1, keepdim=True) > 0
+    normal = torch.where(away, -normal, normal)
+    return normals.index_put((valid,), normal), valid
+
+
+def median_surface_thinness(median_ids: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                            viewmat: torch.Tensor, normals: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """How thick each pixel's median surface Gaussian is along a given normal, in [0, 3].
+
+    The Gaussian's variance along the unit normal over its mean variance,
+    ``n^T Sigma n / (tr Sigma / 3)``: 0 for a disc lying across ``n``, 1 for a ball, up to 3
+    for a needle along ``n``. Unlike the angle between ``n`` and the shortest axis it has a
+    gradient in the scales too, so a loss on it both turns and flattens that one Gaussian,
+    and never moves or fades it. median_ids [H, W], quats [N, 4], scales [N, 3] (activated),
+    viewmat [4, 4]; normals [H, W, 3] camera frame (a prior's), sign free. Returns
+    (thinness [H, W], valid [H, W] bool), 0 where ``valid`` is False.
+    """
+    valid = median_ids >= 0
+    values = torch.zeros(median_ids.shape, dtype=quats.dtype, device=quats.device)
+    if not bool(valid.any()):
+        return values, valid
+    ids = median_ids[valid].to(quats.device)
+    world = normals[valid].to(quats) @ viewmat[:3, :3].to(quats)  # camera -> world: R^T n, as rows
+    world = world / world.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    axes = quaternion_to_matrix(quats[ids])  # [M, 3, 3], columns = axes
+    along = (axes * world[:, :, None]).sum(1)  # [M, 3]: a_k . n
+    variance = scales[ids] ** 2
+    thick = (variance * along ** 2).sum(-1) / (variance.sum(-1) / 3.0).clamp_min(1e-30)
+    return values.index_put((valid,), thick), valid

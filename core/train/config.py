@@ -256,6 +256,8 @@ PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0, "sky":
                           "surface_alpha_weight": 0.0, "grayscale": "off", "sky_smooth_weight": 0.0,
                           "sky_unseen_weight": 0.0, "sky_grid_rows": 0, "sky_lr_decay": 1.0,
                           "prune_hidden": 0.0}
+#: The same for the settings of one method, in today's layout (``method_config`` of that method).
+PREDATING_METHOD_VALUES: dict = {"esgs": {"normal_render": "composited"}}
 
 #: Legacy layout (runs saved before methods were registered): the method's settings were
 #: the sections "esgs" (ESGSConfig) and "baselines" (Mip-Splatting and DropoutGS switches
@@ -311,7 +313,13 @@ def with_predating_values(data: dict) -> dict:
             filled.setdefault(key, value)
         elif isinstance(filled.get(section), dict) and key not in filled[section]:
             filled[section] = {**filled[section], key: value}
-    return from_legacy_layout(filled)
+    filled = from_legacy_layout(filled)
+    settings = filled.get("method_config")
+    if isinstance(settings, dict):
+        missing = {key: value for key, value in PREDATING_METHOD_VALUES.get(filled.get("method"), {}).items()
+                   if key not in settings}
+        filled["method_config"] = {**settings, **missing}
+    return filled
 
 
 def run_config_from_dict(data: dict, *, source: str | Path | None = None) -> TrainConfig:

@@ -87,6 +87,16 @@ def dssim_loss(context: LossContext) -> torch.Tensor:
     return 1.0 - ssim_map(image, target).mean()
 
 
+def flattening_loss(scales: torch.Tensor, extent: float = 1.0) -> torch.Tensor:
+    """Mean over Gaussians of the smallest scale, as a fraction of ``extent``. scales: [N, 3].
+
+    Flattens the Gaussians into discs, so that each one's shortest axis is a surface normal
+    (PGSR's flattening term; ESGS's ``flatten_weight``)."""
+    if scales.shape[0] == 0:
+        return scales.sum() * 0.0
+    return scales.min(dim=-1).values.mean() / float(extent)
+
+
 def photometric_terms(lambda_dssim: float) -> list[LossTerm]:
     """The 3DGS photometric loss as two terms: "l1" (1 - lambda) and "dssim" (lambda)."""
     return [LossTerm("l1", 1.0 - lambda_dssim, l1_loss), LossTerm("dssim", lambda_dssim, dssim_loss)]

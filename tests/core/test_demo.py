@@ -125,6 +125,11 @@ def test_a_run_folder_from_other_settings_is_neither_reused_nor_resumed(tmp_path
     del predating["prune_hidden"]
     with pytest.raises(ConfigError, match=r"prune_hidden 0.0 -> 0.1"):
         attempt(predating)
+    # a run from before the normal prior met each pixel's surface Gaussian
+    predating = _saved_config(config, "ndn")
+    del predating["method_config"]["normal_render"]
+    with pytest.raises(ConfigError, match=r"normal_render 'composited' -> 'thin'"):
+        attempt(predating)
     # the same settings are reused (no training: the scene does not even exist)
     events = []
     summary = attempt(_saved_config(config, "ndn"), events=events)

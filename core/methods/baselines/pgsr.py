@@ -41,7 +41,7 @@ import torch.nn.functional as F
 from ...render.surface import gaussian_normals, pixel_rays
 from ...train.gaussians import RenderParams
 from ...train.hooks import RunView, StepContext, TrainHook
-from ...train.losses import LossContext, LossTerm
+from ...train.losses import LossContext, LossTerm, flattening_loss
 from .config import PGSRConfig
 
 #: Mixed into the run seed so PGSR's sampling stream differs from every other.
@@ -69,13 +69,6 @@ def plane_features(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tenso
     normals = torch.where(away, -normals, normals)
     distance = -(normals * points).sum(-1, keepdim=True)
     return torch.cat([normals, distance], dim=-1)
-
-
-def flattening_loss(scales: torch.Tensor, extent: float = 1.0) -> torch.Tensor:
-    """Mean over Gaussians of the smallest scale, as a fraction of ``extent``. scales: [N, 3]."""
-    if scales.shape[0] == 0:
-        return scales.sum() * 0.0
-    return scales.min(dim=-1).values.mean() / float(extent)
 
 
 # --- per-pixel geometry -----------------------------------------------------------------------

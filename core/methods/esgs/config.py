@@ -9,6 +9,8 @@ from .gpdfn_settings import GPDFNConfig
 DEPTH_MODES = ("log", "inverse")
 #: Which rendered depth the depth prior is compared with (docs/esgs.md, "Which depth the prior meets").
 DEPTH_RENDERS = ("expected", "plane", "centre")
+#: Which rendered normal the normal prior meets (docs/esgs.md, "Which normal the prior meets").
+NORMAL_RENDERS = ("composited", "median", "thin")
 ALIGNMENTS = ("sfm", "render")
 
 
@@ -29,7 +31,9 @@ class ESGSConfig(GPDFNConfig):
     consistency: bool = field(default=False, metadata={"help": "depth-normal consistency loss (needs no prior)"})
     gpdfn: bool = field(default=False, metadata={"help": "GPDFN neighbour fusion"})
     depth_weight: float = field(default=1.0, metadata={"help": "weight of the depth-prior loss (docs/esgs_acceptance.md: how it was chosen)"})
-    normal_weight: float = field(default=0.05, metadata={"help": "weight of the normal-prior loss"})
+    normal_weight: float = field(default=0.02, metadata={
+        "help": "weight of the normal-prior loss (0.02 for normal_render thin, chosen in docs/esgs.md 'Which normal "
+                "the prior meets'; runs before it used 0.05 on the composited normal)"})
     consistency_weight: float = field(default=0.05, metadata={"help": "weight of the depth-normal consistency loss"})
     depth_mode: str = field(default="log", metadata={"help": "depth error space: log or inverse", "choices": DEPTH_MODES})
     depth_robust: float = field(default=0.0, metadata={
@@ -41,6 +45,18 @@ class ESGSConfig(GPDFNConfig):
                 "pixel's transmittance crosses one half (its median surface); centre = that Gaussian's centre "
                 "depth. plane and centre need the cpu or reference backend",
         "choices": DEPTH_RENDERS})
+    normal_render: str = field(default="thin", metadata={
+        "help": "the rendered normal the normal prior meets: composited = the blend of every Gaussian's normal "
+                "along the ray (its gradient also moves and fades Gaussians to change the blend); median = the "
+                "normal of the one Gaussian at which the pixel's transmittance crosses one half (the prior only "
+                "turns that Gaussian, never moves it); thin = that Gaussian's variance along the prior normal over its "
+                "mean variance (turns and flattens it, never moves it). median and thin need the cpu or reference "
+                "backend",
+        "choices": NORMAL_RENDERS})
+    flatten_weight: float = field(default=0.0, metadata={
+        "help": "weight of a flattening loss (the mean smallest scale over the scene extent) from the prior "
+                "start step: flat Gaussians make the shortest axis, which the normal prior turns, a normal; "
+                "0 = off"})
     relative_alignment: str = field(default="sfm", metadata={
         "help": "scale/shift of relative depth priors (NDN): sfm = fitted once to the SfM points each image "
                 "observes, so the prior holds the surface's distance too (falls back to render per view when "
@@ -68,10 +84,12 @@ class ESGSConfig(GPDFNConfig):
             raise ConfigError(f"depth_mode must be one of {DEPTH_MODES}, got {self.depth_mode!r}")
         if self.depth_render not in DEPTH_RENDERS:
             raise ConfigError(f"depth_render must be one of {DEPTH_RENDERS}, got {self.depth_render!r}")
+        if self.normal_render not in NORMAL_RENDERS:
+            raise ConfigError(f"normal_render must be one of {NORMAL_RENDERS}, got {self.normal_render!r}")
         if self.relative_alignment not in ALIGNMENTS:
             raise ConfigError(f"relative_alignment must be one of {ALIGNMENTS}, got {self.relative_alignment!r}")
         for name in ("depth_weight", "normal_weight", "consistency_weight", "edge_strength", "max_prior_depth",
-                     "max_alignment_error", "sky_weight", "depth_robust"):
+                     "max_alignment_error", "sky_weight", "depth_robust", "flatten_weight"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
         super().validate()

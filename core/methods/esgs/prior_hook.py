@@ -11,9 +11,9 @@ from ...priors import load_prior_maps
 from ...priors.align import align_depth_to_points
 from ...priors.losses import depth_loss, depth_normal_consistency_loss, edge_aware_weights, normal_loss, sky_loss
 from ...render import MEDIAN_SURFACE_BACKENDS
-from ...render.surface import median_surface_depth
+from ...render.surface import median_surface_depth, median_surface_normals, median_surface_thinness
 from ...train.hooks import RunView, TrainHook
-from ...train.losses import LossContext, LossTerm
+from ...train.losses import LossContext, LossTerm, flattening_loss
 from .config import ESGSConfig
 
 
@@ -50,6 +50,7 @@ class PriorLossHook(TrainHook):
         self.config = config
         self.priors: dict[str, ViewPriors] = {}
         self._weights: dict[str, torch.Tensor] = {}
+        self.normal_render = config.normal_render  # what the run's backend can give (setup)
 
     # ------------------------------------------------------------------------------
     def setup(self, run: RunView) -> None:
@@ -60,14 +61,28 @@ class PriorLossHook(TrainHook):
             raise ConfigError(f"depth_render {config.depth_render!r} needs the median surface of each pixel, which "
                               "only the cpu and reference rasterizer backends return",
                               hint="train with --backend cpu, or set --depth-render expected")
+        self.normal_render = config.normal_render
+        if config.normal and self.normal_render != "composited" and run.backend not in MEDIAN_SURFACE_BACKENDS:
+            # the default: a cuda run still gets a normal prior, the one its rasterizer can give
+            run.message(f"note: normal_render {config.normal_render!r} needs the median surface of each pixel, "
+                        f"which the {run.backend} backend does not return; the normal prior meets the composited "
+                        "normal in this run (--backend cpu for the median surface)")
+            self.normal_render = "composited"
         if config.depth or config.normal or wants_sky:
             self._load(run)
         if config.depth:
             run.add_loss_term(LossTerm("depth_prior", config.depth_weight, self._depth_term, start_step=start,
                                        needs=frozenset({"depth"}), densifies=False))
         if config.normal:
+            # the median surface's normals are read from the Gaussians, not rendered
+            needs = frozenset({"normals"}) if self.normal_render == "composited" else frozenset()
             run.add_loss_term(LossTerm("normal_prior", config.normal_weight, self._normal_term, start_step=start,
-                                       needs=frozenset({"normals"}), densifies=False))
+                                       needs=needs, densifies=False))
+        if config.flatten_weight > 0:
+            extent = run.extent
+            run.add_loss_term(LossTerm("flatten", config.flatten_weight,
+                                       lambda context: flattening_loss(context.params.scales, extent),
+                                       start_step=start, densifies=False))
         if wants_sky and any(p.sky is not None for p in self.priors.values()):
             run.add_loss_term(LossTerm("sky", config.sky_weight, self._sky_term, start_step=start,
                                        needs=frozenset({"depth"}), densifies=False))
@@ -159,21 +174,41 @@ class PriorLossHook(TrainHook):
 
     def _median_depth(self, context: LossContext) -> tuple[torch.Tensor, torch.Tensor]:
         """The depth of each pixel's median surface (``depth_render`` plane or centre) and where it exists."""
-        ids = context.output.meta.get("median_ids") if context.output is not None else None
-        if ids is None:
-            raise ConfigError(f"depth_render {self.config.depth_render!r}: the rasterizer returned no median "
-                              "surface ids (only the cpu and reference backends do)",
-                              hint="train with --backend cpu, or set --depth-render expected")
+        ids = self._median_ids(context, f"depth_render {self.config.depth_render!r}", "--depth-render expected")
         params, view = context.params, context.view
         return median_surface_depth(ids[0], params.means, params.quats, params.scales, view.viewmat, view.K,
                                     kind=self.config.depth_render)
 
+    @staticmethod
+    def _median_ids(context: LossContext, setting: str, fix: str) -> torch.Tensor:
+        ids = context.output.meta.get("median_ids") if context.output is not None else None
+        if ids is None:
+            raise ConfigError(f"{setting}: the rasterizer returned no median surface ids (only the cpu and "
+                              "reference backends do)", hint=f"train with --backend cpu, or set {fix}")
+        return ids
+
     def _normal_term(self, context: LossContext) -> torch.Tensor:
         prior = self.priors.get(context.view.name)
-        if prior is None or prior.normal is None or context.normals is None:
+        if prior is None or prior.normal is None:
             return context.image.sum() * 0.0
-        return normal_loss(context.normals, prior.normal, prior.mask, self._edge_weights(context),
-                           alpha=context.alpha[..., 0], confidence=prior.confidence)
+        if self.normal_render == "composited":
+            if context.normals is None:
+                return context.image.sum() * 0.0
+            return normal_loss(context.normals, prior.normal, prior.mask, self._edge_weights(context),
+                               alpha=context.alpha[..., 0], confidence=prior.confidence)
+        ids = self._median_ids(context, f"normal_render {self.normal_render!r}", "--normal-render composited")
+        params = context.params
+        if self.normal_render == "thin":
+            thick, surface = median_surface_thinness(ids[0], params.quats, params.scales, context.view.viewmat,
+                                                     prior.normal)
+            valid = prior.mask & surface & (prior.normal.norm(dim=-1) > 0.5)
+            error = thick if prior.confidence is None else thick * prior.confidence
+            weights = self._edge_weights(context) * valid
+            return (error * weights).sum() / weights.sum().clamp_min(1e-8)
+        normals, surface = median_surface_normals(ids[0], params.means, params.quats, params.scales,
+                                                  context.view.viewmat)
+        return normal_loss(normals, prior.normal, prior.mask & surface, self._edge_weights(context),
+                           confidence=prior.confidence)
 
     def _sky_term(self, context: LossContext) -> torch.Tensor:
         prior = self.priors.get(context.view.name)

@@ -13,7 +13,7 @@ from esgs.core.methods.esgs.gpdfn_hook import GPDFNHook
 from esgs.core.methods.esgs.hooks import esgs_hooks
 from esgs.core.priors import write_prior_maps
 from esgs.core.render import rasterization
-from esgs.core.render.surface import median_surface_depth
+from esgs.core.render.surface import median_surface_depth, median_surface_normals
 from esgs.core.train.config import TrainConfig
 from esgs.core.train.hooks import TrainHook
 from esgs.core.methods import make_trainer
@@ -97,7 +97,7 @@ def _depth_error(trainer, priors, depth_render: str = "expected") -> float:
 
 
 def test_prior_terms_are_added_and_pull_depth_onto_the_prior(scene, tmp_path):
-    esgs = ESGSConfig(priors="gt", depth=True, normal=True, prior_start_step=0, depth_weight=1.0, normal_weight=0.2)
+    esgs = ESGSConfig(priors="gt", depth=True, normal=True, prior_start_step=0, depth_weight=1.0)
     trainer = _trainer(scene, tmp_path / "run", esgs)
     baseline = _trainer(scene, tmp_path / "base", ESGSConfig())
     recorder = _Recorder()
@@ -152,6 +152,101 @@ def test_a_median_surface_depth_is_refused_where_the_rasterizer_has_no_median_id
                               image=output.image, target=None)
     with pytest.raises(ConfigError, match="no median"):
         hook._depth_term(context)
+
+
+def _median_normal_error(trainer, priors) -> float:
+    """Mean angle (radians) between each pixel's median-surface normal and the prior normal over
+    the valid prior pixels of every training view."""
+    angles = []
+    with torch.no_grad():
+        params = trainer.gaussians.render_params(1)
+        for view in trainer.data.train:
+            output = trainer.render(params, view)
+            normals, surface = median_surface_normals(output.meta["median_ids"][0], params.means, params.quats,
+                                                      params.scales, view.viewmat)
+            prior = priors[view.name]
+            valid = prior.mask & surface & (prior.normal.norm(dim=-1) > 0.5)
+            cos = (normals[valid] * prior.normal[valid]).sum(-1).clamp(-1, 1)
+            angles.append(torch.arccos(cos).mean())
+    return float(torch.stack(angles).mean())
+
+
+@pytest.mark.parametrize("normal_render", ["median", "thin"])
+def test_a_median_surface_normal_prior_turns_the_surface_onto_the_prior(scene, tmp_path, normal_render):
+    esgs = ESGSConfig(priors="gt", normal=True, prior_start_step=0, normal_weight=0.5, normal_render=normal_render)
+    # the Gaussians start round, their "shortest" axis 90 degrees off the plane's normal, and the
+    # prior can only turn them: a rotation lr that lets 40 steps swing an axis that far
+    trainer = _trainer(scene, tmp_path / "run", esgs, rotation_lr=0.05)
+    baseline = _trainer(scene, tmp_path / "base", ESGSConfig(), rotation_lr=0.05)
+    term = next(term for term in trainer.loss_terms if term.name == "normal_prior")
+    assert term.needs == frozenset()  # read from the Gaussians: no normal channel is rendered
+    priors = trainer.hooks[0].priors
+    start_error = _median_normal_error(trainer, priors)
+    for step in range(1, 41):
+        trainer.train_step(step)
+        baseline.train_step(step)
+    with_prior, without_prior = _median_normal_error(trainer, priors), _median_normal_error(baseline, priors)
+    assert with_prior < 0.4 * start_error, (start_error, with_prior)
+    assert with_prior < 0.5 * without_prior, (with_prior, without_prior)
+    with pytest.raises(ConfigError, match="normal_render"):
+        ESGSConfig(priors="gt", normal=True, normal_render="plane").validate()
+
+
+@pytest.mark.parametrize("normal_render", ["median", "thin"])
+def test_a_median_surface_normal_prior_never_moves_or_fades_a_gaussian(scene, tmp_path, normal_render):
+    """The composited normal's loss reaches positions and opacities through the blend; the
+    median surface's normal and thinness reach only rotations (and, for thin, scales)."""
+    from types import SimpleNamespace
+
+    grads = {}
+    for mode in ("composited", normal_render):
+        esgs = ESGSConfig(priors="gt", normal=True, prior_start_step=0, normal_render=mode)
+        trainer = _trainer(scene, tmp_path / mode, esgs)
+        with torch.no_grad():  # Gaussians start round, and a ball's thinness does not change as it turns
+            scales = trainer.gaussians.params["log_scales"]
+            scales += 0.5 * torch.randn(scales.shape, generator=torch.Generator().manual_seed(0))
+        view = trainer.data.train[1]
+        params = trainer.gaussians.render_params(1)
+        output = trainer.render(params, view, render_normals=True)
+        context = SimpleNamespace(view=view, output=output, params=params, normals=output.normals,
+                                  alpha=output.alpha, image=output.image, target=output.image.detach())
+        loss = trainer.hooks[0]._normal_term(context)
+        raw = trainer.gaussians.params
+        names = {"means": "means", "quats": "quats", "scales": "log_scales", "opacities": "opacity_logit"}
+        values = torch.autograd.grad(loss, [raw[name] for name in names.values()], allow_unused=True)
+        grads[mode] = {name: 0.0 if g is None else float(g.norm()) for name, g in zip(names, values)}
+    assert grads["composited"]["means"] > 0 and grads["composited"]["opacities"] > 0
+    assert grads[normal_render]["means"] == 0.0 and grads[normal_render]["opacities"] == 0.0
+    assert grads[normal_render]["quats"] > 0
+    assert (grads[normal_render]["scales"] > 0) == (normal_render == "thin")
+
+
+def test_a_median_surface_normal_falls_back_where_the_rasterizer_has_no_median_ids(scene, tmp_path):
+    from types import SimpleNamespace
+
+    from esgs.core.methods.esgs.prior_hook import PriorLossHook
+
+    esgs = ESGSConfig(priors="gt", normal=True, prior_start_step=0, normal_render="thin")
+    # a run on the cuda backend keeps a normal prior, the composited one, and says so
+    messages, terms = [], []
+    cuda_run = SimpleNamespace(device=torch.device("cpu"), backend="cuda", scaled_step=lambda step, minimum=0: step,
+                               train_views=[], scene=scene, message=messages.append, add_loss_term=terms.append,
+                               extent=1.0)
+    hook = PriorLossHook(esgs)
+    hook._load = lambda run: None  # no views to load in this stand-in run
+    hook.setup(cuda_run)
+    assert hook.normal_render == "composited"
+    assert any("normal_render 'thin' needs the median surface" in m and "composited" in m for m in messages)
+    assert [term.needs for term in terms if term.name == "normal_prior"] == [frozenset({"normals"})]
+    trainer = _trainer(scene, tmp_path / "run", esgs)
+    view = trainer.data.train[0]
+    params = trainer.gaussians.render_params(1)
+    output = trainer.render(params, view)
+    output.meta.pop("median_ids")
+    context = SimpleNamespace(view=view, output=output, params=params, normals=None, alpha=output.alpha,
+                              image=output.image, target=None)
+    with pytest.raises(ConfigError, match="no median"):
+        trainer.hooks[0]._normal_term(context)
 
 
 def test_sky_pixels_never_reach_the_loss(scene, tmp_path):

@@ -10,7 +10,8 @@ import torch
 from esgs.core.config import config_to_dict
 from esgs.core.errors import ConfigError
 from esgs.core.methods import PGSRConfig, get_method, method_names, train, train_config_from_dict
-from esgs.core.methods.baselines.pgsr import (apply_homography, depth_to_normals, edge_weights, flattening_loss,
+from esgs.core.train.losses import flattening_loss
+from esgs.core.methods.baselines.pgsr import (apply_homography, depth_to_normals, edge_weights,
                                               gaussian_normals, multi_view_losses, neighbour_views,
                                               normalised_cross_correlation, pixel_rays, plane_features,
                                               plane_homography, relative_pose, single_view_loss, unbiased_depth)

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from esgs.core.errors import ConfigError
-from esgs.core.priors.losses import depth_loss
+from esgs.core.priors.losses import depth_loss, normal_loss
 from esgs.core.render import rasterization
-from esgs.core.render.surface import median_surface_depth
+from esgs.core.render.surface import median_surface_depth, median_surface_normals, median_surface_thinness
 from tests.core.render.scenes import intrinsics, look_at_viewmat, random_scene
 
 
@@ -165,3 +165,110 @@ def test_a_median_depth_prior_moves_only_the_gaussian_at_the_surface():
         median = gradients(kind)
         assert float(median[0].norm()) == 0.0
         assert float(median[1].norm()) > 1e-3
+
+
+@pytest.mark.parametrize("backend", ["cpu", "reference"])
+def test_the_median_normal_is_the_surface_gaussians_axis_facing_the_camera(backend):
+    scene = _flat_gaussian(normal_tilt_deg=35.0)
+    render, alpha, meta = rasterization(scene["means"], scene["quats"], scene["scales"], scene["opacities"],
+                                        scene["colors"], scene["viewmats"], scene["Ks"], 40, 30,
+                                        render_normals=True, backend=backend)
+    ids = meta["median_ids"][0]
+    viewmat = scene["viewmats"][0]
+    normals, valid = median_surface_normals(ids, scene["means"], scene["quats"], scene["scales"], viewmat)
+    assert torch.equal(valid, ids >= 0) and int(valid.sum()) > 200
+    assert bool((normals[~valid] == 0).all())
+    # the plane's normal (0, -cos, -sin) in the camera frame, turned to face the camera
+    tilt = math.radians(35.0)
+    expected = viewmat[:3, :3] @ torch.tensor([0.0, -math.cos(tilt), -math.sin(tilt)], dtype=torch.float64)
+    centre = viewmat[:3, :3] @ scene["means"][0] + viewmat[:3, 3]
+    if float(expected @ centre) > 0:
+        expected = -expected
+    assert torch.allclose(normals[valid], expected.expand(int(valid.sum()), 3), atol=1e-9)
+    # the rasterizer composites the same normal, scaled by the pixel's alpha
+    composited = render[0, :, :, meta["channels"]["normal"]]
+    unit = composited[valid] / composited[valid].norm(dim=-1, keepdim=True)
+    assert torch.allclose(unit, normals[valid], atol=1e-6)
+
+
+def test_the_median_normal_gradient_matches_finite_differences():
+    scene = _flat_gaussian(normal_tilt_deg=20.0)
+    _, _, meta = _render(scene, "cpu")
+    ids = meta["median_ids"][0]
+    viewmat = scene["viewmats"][0]
+    weights = torch.rand(30, 40, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+
+    def loss(quats):
+        return (median_surface_normals(ids, scene["means"], quats, scene["scales"], viewmat)[0] * weights).sum()
+
+    assert torch.autograd.gradcheck(loss, (scene["quats"].clone().requires_grad_(),), eps=1e-6, atol=1e-5)
+
+
+def test_a_median_normal_prior_turns_the_surface_gaussian_and_moves_nothing():
+    """The composited normal's loss reaches every Gaussian's mean and opacity through the blend;
+    on the median surface's normal it reaches only the rotation of the Gaussian at the surface."""
+    front = _flat_gaussian(depth=3.0, opacity=0.3, normal_tilt_deg=10.0)
+    back = _flat_gaussian(depth=5.0, opacity=0.95, normal_tilt_deg=-25.0)
+    scene = dict(back)
+    for name in ("means", "quats", "scales", "opacities", "colors"):
+        scene[name] = torch.cat([front[name], back[name]])
+    viewmat = scene["viewmats"][0]
+    prior = torch.zeros(30, 40, 3, dtype=torch.float64)
+    prior[..., 2] = -1.0  # fronto-parallel: neither Gaussian agrees
+    mask = torch.ones(30, 40, dtype=torch.bool)
+
+    def gradients(kind: str) -> dict:
+        leaves = {name: scene[name].clone().requires_grad_() for name in ("means", "quats", "opacities")}
+        render, alpha, meta = rasterization(leaves["means"], leaves["quats"], scene["scales"], leaves["opacities"],
+                                            scene["colors"], scene["viewmats"], scene["Ks"], 40, 30,
+                                            render_normals=True, backend="cpu")
+        if kind == "composited":
+            loss = normal_loss(render[0, :, :, meta["channels"]["normal"]], prior, mask, alpha=alpha[0, :, :, 0])
+        else:
+            normals, valid = median_surface_normals(meta["median_ids"][0], leaves["means"], leaves["quats"],
+                                                    scene["scales"], viewmat)
+            loss = normal_loss(normals, prior, mask & valid)
+        loss.backward()
+        return {name: leaf.grad if leaf.grad is not None else torch.zeros_like(leaf) for name, leaf in leaves.items()}
+
+    composited = gradients("composited")
+    assert float(composited["means"].norm()) > 1e-6 and float(composited["opacities"].norm()) > 1e-6
+    median = gradients("median")
+    assert float(median["means"].norm()) == 0.0 and float(median["opacities"].norm()) == 0.0
+    assert float(median["quats"][0].norm()) == 0.0  # the translucent front is not the surface
+    assert float(median["quats"][1].norm()) > 1e-3
+
+
+def test_thinness_is_the_variance_along_the_normal_over_the_mean_variance():
+    scene = _flat_gaussian(normal_tilt_deg=35.0)
+    viewmat = scene["viewmats"][0]
+    ids = torch.zeros(2, 2, dtype=torch.long)
+    ids[1, 1] = -1
+    tilt = math.radians(35.0)
+    plane_normal = viewmat[:3, :3] @ torch.tensor([0.0, -math.cos(tilt), -math.sin(tilt)], dtype=torch.float64)
+    in_plane = viewmat[:3, :3] @ torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    normals = torch.stack([plane_normal, -plane_normal, in_plane, in_plane]).reshape(2, 2, 3)
+    thick, valid = median_surface_thinness(ids, scene["quats"], scene["scales"], viewmat, normals)
+    assert valid.tolist() == [[True, True], [True, False]]
+    mean_variance = float((scene["scales"] ** 2).sum() / 3)
+    assert thick[0, 0] == pytest.approx(0.002 ** 2 / mean_variance)  # across the disc, either sign
+    assert thick[0, 1] == pytest.approx(0.002 ** 2 / mean_variance)
+    assert thick[1, 0] == pytest.approx(1.5 ** 2 / mean_variance)  # along the disc
+    assert float(thick[1, 1]) == 0.0
+    ball = median_surface_thinness(ids, scene["quats"], torch.ones(1, 3, dtype=torch.float64), viewmat, normals)[0]
+    assert torch.allclose(ball[valid], torch.ones(3, dtype=torch.float64))
+
+
+def test_the_thinness_gradient_matches_finite_differences_and_reaches_rotation_and_scales():
+    scene = _flat_gaussian(normal_tilt_deg=20.0)
+    _, _, meta = _render(scene, "cpu")
+    ids = meta["median_ids"][0]
+    viewmat = scene["viewmats"][0]
+    normals = torch.randn(30, 40, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    scales = torch.tensor([[1.5, 0.9, 0.3]], dtype=torch.float64)
+
+    def loss(quats, scales):
+        return median_surface_thinness(ids, quats, scales, viewmat, normals)[0].sum()
+
+    assert torch.autograd.gradcheck(loss, (scene["quats"].clone().requires_grad_(), scales.clone().requires_grad_()),
+                                    eps=1e-6, atol=1e-5)
