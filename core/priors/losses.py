@@ -157,6 +157,20 @@ def normal_loss(rendered_normal: torch.Tensor, prior_normal: torch.Tensor, mask:
     return _masked_mean(error, weights * valid)
 
 
+def thinness_loss(thickness: torch.Tensor, prior_normal: torch.Tensor, mask: torch.Tensor,
+                  weights: torch.Tensor | None = None, confidence: torch.Tensor | None = None) -> torch.Tensor:
+    """Normal prior on each pixel's surface Gaussian: the mean of its thickness along the prior
+    normal (:func:`~esgs.core.render.surface.median_surface_thinness`, [H,W]) over the pixels of
+    ``mask`` with a prior normal, edge-weighted like :func:`normal_loss`; ``confidence`` scales
+    each pixel's value."""
+    valid = mask & (prior_normal.norm(dim=-1) > 0.5)
+    weights = torch.ones_like(thickness) if weights is None else weights
+    error = torch.where(valid, thickness, torch.zeros_like(thickness))
+    if confidence is not None:
+        error = error * confidence
+    return _masked_mean(error, weights * valid)
+
+
 def sky_loss(rendered_depth: torch.Tensor, alpha: torch.Tensor, sky: torch.Tensor,
              far_depth: torch.Tensor | float) -> torch.Tensor:
     """Push what the Gaussians draw over sky pixels beyond the scene's far surface.

@@ -9,7 +9,8 @@ import torch
 from ...errors import ConfigError
 from ...priors import load_prior_maps
 from ...priors.align import align_depth_to_points
-from ...priors.losses import depth_loss, depth_normal_consistency_loss, edge_aware_weights, normal_loss, sky_loss
+from ...priors.losses import (depth_loss, depth_normal_consistency_loss, edge_aware_weights, normal_loss, sky_loss,
+                              thinness_loss)
 from ...render import MEDIAN_SURFACE_BACKENDS
 from ...render.surface import median_surface_depth, median_surface_normals, median_surface_thinness
 from ...train.hooks import RunView, TrainHook
@@ -201,10 +202,8 @@ class PriorLossHook(TrainHook):
         if self.normal_render == "thin":
             thick, surface = median_surface_thinness(ids[0], params.quats, params.scales, context.view.viewmat,
                                                      prior.normal)
-            valid = prior.mask & surface & (prior.normal.norm(dim=-1) > 0.5)
-            error = thick if prior.confidence is None else thick * prior.confidence
-            weights = self._edge_weights(context) * valid
-            return (error * weights).sum() / weights.sum().clamp_min(1e-8)
+            return thinness_loss(thick, prior.normal, prior.mask & surface, self._edge_weights(context),
+                                 confidence=prior.confidence)
         normals, surface = median_surface_normals(ids[0], params.means, params.quats, params.scales,
                                                   context.view.viewmat)
         return normal_loss(normals, prior.normal, prior.mask & surface, self._edge_weights(context),

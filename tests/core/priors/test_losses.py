@@ -164,3 +164,18 @@ def test_sky_loss_counts_only_near_covered_sky_pixels():
     assert losses.sky_loss(depth, alpha, sky, 4.0).item() == pytest.approx(expected, rel=1e-12)
     assert losses.sky_loss(depth, alpha, torch.zeros_like(sky), 4.0).item() == 0.0
     assert losses.sky_loss(depth * 10, alpha, sky, 4.0).item() == 0.0
+
+
+def test_thinness_loss_is_the_weighted_mean_over_pixels_with_a_prior_normal():
+    from esgs.core.priors.losses import thinness_loss
+
+    thickness = torch.tensor([[0.5, 2.0], [1.0, 3.0]])
+    normal = torch.zeros(2, 2, 3)
+    normal[..., 2] = -1.0
+    normal[1, 1] = 0.0  # no prior normal here: never counts
+    mask = torch.tensor([[True, True], [False, True]])
+    weights = torch.tensor([[1.0, 3.0], [1.0, 1.0]])
+    confidence = torch.tensor([[0.5, 1.0], [1.0, 1.0]])
+    loss = thinness_loss(thickness, normal, mask, weights, confidence=confidence)
+    assert float(loss) == pytest.approx((1.0 * 0.5 * 0.5 + 3.0 * 2.0) / 4.0)
+    assert float(thinness_loss(thickness, normal, torch.zeros_like(mask))) == 0.0
