@@ -191,11 +191,15 @@ def test_the_median_normal_is_the_surface_gaussians_axis_facing_the_camera(backe
     assert torch.allclose(unit, normals[valid], atol=1e-6)
 
 
-def test_the_median_normal_gradient_matches_finite_differences():
+def _tilted_disc_and_its_median_ids() -> tuple[dict, torch.Tensor, torch.Tensor]:
+    """The 20-degree disc, its median ids on the cpu backend and its camera's viewmat."""
     scene = _flat_gaussian(normal_tilt_deg=20.0)
     _, _, meta = _render(scene, "cpu")
-    ids = meta["median_ids"][0]
-    viewmat = scene["viewmats"][0]
+    return scene, meta["median_ids"][0], scene["viewmats"][0]
+
+
+def test_the_median_normal_gradient_matches_finite_differences():
+    scene, ids, viewmat = _tilted_disc_and_its_median_ids()
     weights = torch.rand(30, 40, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
 
     def loss(quats):
@@ -260,10 +264,7 @@ def test_thinness_is_the_variance_along_the_normal_over_the_mean_variance():
 
 
 def test_the_thinness_gradient_matches_finite_differences_and_reaches_rotation_and_scales():
-    scene = _flat_gaussian(normal_tilt_deg=20.0)
-    _, _, meta = _render(scene, "cpu")
-    ids = meta["median_ids"][0]
-    viewmat = scene["viewmats"][0]
+    scene, ids, viewmat = _tilted_disc_and_its_median_ids()
     normals = torch.randn(30, 40, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
     scales = torch.tensor([[1.5, 0.9, 0.3]], dtype=torch.float64)
 
