@@ -14,6 +14,10 @@ autograd and no backend needs a backward of its own:
   normal to its shortest axis), kept within ``extent`` of its largest standard deviations of
   the centre's depth: the depth a flat Gaussian actually shows at that pixel.
 - ``"centre"``: the camera-z of its centre, the same at every pixel it covers.
+
+The same Gaussian carries the normal prior (ESGS's ``normal_render``): its shortest axis
+(:func:`median_surface_normals`) or its thickness along the prior normal
+(:func:`median_surface_thinness`), which reach its rotation (and scales) but never its position.
 """
 from __future__ import annotations
 
