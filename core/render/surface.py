@@ -45,6 +45,21 @@ def gaussian_normals(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
     return torch.gather(rotation, 2, index)[..., 0]
 
 
+def camera_facing_normals(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                          viewmat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each Gaussian's shortest axis in one camera's frame, turned towards the camera
+    (``n . centre <= 0``), and its centre in that frame: ([N, 3], [N, 3]).
+
+    means [N, 3] world, quats [N, 4], scales [N, 3] (activated), viewmat [4, 4] world-to-camera.
+    Which way the normal faces is a choice, not a function: no gradient flows through it.
+    """
+    rotation, translation = viewmat[:3, :3].to(means), viewmat[:3, 3].to(means)
+    centres = means @ rotation.T + translation
+    normals = gaussian_normals(quats, scales) @ rotation.T
+    away = (normals * centres).sum(-1, keepdim=True).detach() > 0
+    return torch.where(away, -normals, normals), centres
+
+
 def pixel_rays(K: torch.Tensor, width: int, height: int) -> torch.Tensor:
     """[H, W, 3] ``K^-1 (u, v, 1)`` at pixel centres (u = j + 0.5, v = i + 0.5): rays of unit z."""
     dtype, device = K.dtype, K.device
@@ -106,11 +121,7 @@ def median_surface_normals(median_ids: torch.Tensor, means: torch.Tensor, quats:
     if not bool(valid.any()):
         return normals, valid
     ids = median_ids[valid].to(quats.device)
-    rotation = viewmat[:3, :3].to(quats)
-    normal = gaussian_normals(quats[ids], scales[ids]) @ rotation.T
-    centre = (means[ids].detach() @ rotation.T + viewmat[:3, 3].to(quats))
-    away = (normal * centre).sum(-1, keepdim=True) > 0
-    normal = torch.where(away, -normal, normal)
+    normal, _ = camera_facing_normals(means[ids].detach(), quats[ids], scales[ids], viewmat)
     return normals.index_put((valid,), normal), valid
 
 

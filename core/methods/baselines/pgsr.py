@@ -38,7 +38,7 @@ from typing import Any, Optional, Sequence
 import torch
 import torch.nn.functional as F
 
-from ...render.surface import gaussian_normals, pixel_rays
+from ...render.surface import camera_facing_normals, pixel_rays
 from ...train.gaussians import RenderParams
 from ...train.hooks import RunView, StepContext, TrainHook
 from ...train.losses import LossContext, LossTerm, flattening_loss
@@ -62,11 +62,7 @@ def plane_features(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tenso
 
     means: [N, 3] world; viewmat: [4, 4] world-to-camera (OpenCV axes).
     """
-    rotation, translation = viewmat[:3, :3].to(means), viewmat[:3, 3].to(means)
-    points = means @ rotation.T + translation
-    normals = gaussian_normals(quats, scales) @ rotation.T
-    away = (normals * points).sum(-1, keepdim=True).detach() > 0
-    normals = torch.where(away, -normals, normals)
+    normals, points = camera_facing_normals(means, quats, scales, viewmat)
     distance = -(normals * points).sum(-1, keepdim=True)
     return torch.cat([normals, distance], dim=-1)
 

@@ -11,8 +11,9 @@ from esgs.core.config import config_to_dict
 from esgs.core.errors import ConfigError
 from esgs.core.methods import PGSRConfig, get_method, method_names, train, train_config_from_dict
 from esgs.core.train.losses import flattening_loss
+from esgs.core.render.surface import gaussian_normals
 from esgs.core.methods.baselines.pgsr import (apply_homography, depth_to_normals, edge_weights,
-                                              gaussian_normals, multi_view_losses, neighbour_views,
+                                              multi_view_losses, neighbour_views,
                                               normalised_cross_correlation, pixel_rays, plane_features,
                                               plane_homography, relative_pose, single_view_loss, unbiased_depth)
 from esgs.core.render import rasterization
