@@ -12,16 +12,21 @@ Gaussian-centre-to-mesh distances, plus training seconds.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
-from esgs.core.config import config_to_dict
-from esgs.core.experiments.ablate import available_priors
-from esgs.core.experiments.runs import RunTask, run_task
-from esgs.core.methods import full_esgs
-from esgs.core.experiments.tables import COST_COLUMNS, QUALITY_COLUMNS, aggregate, markdown_table
-from esgs.core.io_utils import atomic_write_json, atomic_write_text
-from esgs.core.formats.scene_dir import SceneDir
+# idle OpenMP threads spin by default and take the cores a busy machine's other runs need
+# (docs/rasterizer.md, "Spinning OpenMP workers"); set before torch loads
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from esgs.core.config import config_to_dict  # noqa: E402
+from esgs.core.experiments.ablate import available_priors  # noqa: E402
+from esgs.core.experiments.runs import RunTask, run_task  # noqa: E402
+from esgs.core.methods import full_esgs  # noqa: E402
+from esgs.core.experiments.tables import COST_COLUMNS, QUALITY_COLUMNS, aggregate, markdown_table  # noqa: E402
+from esgs.core.io_utils import atomic_write_json, atomic_write_text  # noqa: E402
+from esgs.core.formats.scene_dir import SceneDir  # noqa: E402
 
 
 def main(argv=None) -> int:

@@ -37,10 +37,14 @@ import traceback
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
-import torch
+# idle OpenMP threads spin by default and take the cores a busy machine's other runs need
+# (docs/rasterizer.md, "Spinning OpenMP workers"); set before torch loads
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from esgs.core.formats.run_dir import RunDir
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from esgs.core.formats.run_dir import RunDir  # noqa: E402
 
 STARTED = time.monotonic()
 GPU = torch.device("cuda")

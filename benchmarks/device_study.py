@@ -30,7 +30,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+# idle OpenMP threads spin by default and take the cores a busy machine's other runs need
+# (docs/rasterizer.md, "Spinning OpenMP workers"); set before torch loads
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numpy as np  # noqa: E402
 
 SUMMARY_KEYS = ("psnr", "ssim", "lpips", "psnr_sky_views", "psnr_ground_views", "sky_mae", "distance_mean",
                 "distance_median", "n_gaussians", "s_per_step")

@@ -25,22 +25,27 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-from esgs.core.experiments.acceptance import SOURCES, plan_runs, scene_rows, verdict
-from esgs.core.experiments.bench import ensure_priors
-from esgs.core.config import config_to_dict
-from esgs.core.experiments.runs import RunTask, run_task
-from esgs.core.methods import full_esgs
-from esgs.core.experiments.sfm_scene import make_sfm_scene
-from esgs.core.experiments.sky import sky_figures, write_sky_filled_priors
-from esgs.core.experiments.tables import QUALITY_COLUMNS, aggregate, format_cell, markdown_table
-from esgs.core.io_utils import atomic_write_json, atomic_write_text
-from esgs.core.formats.scene_dir import PriorSource, SceneDir
+# idle OpenMP threads spin by default and take the cores a busy machine's other runs need
+# (docs/rasterizer.md, "Spinning OpenMP workers"); set before torch loads
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from esgs.core.experiments.acceptance import SOURCES, plan_runs, scene_rows, verdict  # noqa: E402
+from esgs.core.experiments.bench import ensure_priors  # noqa: E402
+from esgs.core.config import config_to_dict  # noqa: E402
+from esgs.core.experiments.runs import RunTask, run_task  # noqa: E402
+from esgs.core.methods import full_esgs  # noqa: E402
+from esgs.core.experiments.sfm_scene import make_sfm_scene  # noqa: E402
+from esgs.core.experiments.sky import sky_figures, write_sky_filled_priors  # noqa: E402
+from esgs.core.experiments.tables import QUALITY_COLUMNS, aggregate, format_cell, markdown_table  # noqa: E402
+from esgs.core.io_utils import atomic_write_json, atomic_write_text  # noqa: E402
+from esgs.core.formats.scene_dir import PriorSource, SceneDir  # noqa: E402
 
 SKY_KEYS = ("psnr", "psnr_sky", "psnr_surface", "alpha_sky", "horizon_depth_error", "distance_mean")
 

@@ -23,18 +23,23 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
-import torch
+# idle OpenMP threads spin by default and take the cores a busy machine's other runs need
+# (docs/rasterizer.md, "Spinning OpenMP workers"); set before torch loads
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from esgs.core.experiments.runs import RunTask, geometry_figures, run_task
-from esgs.core.formats.run_dir import RunDir
-from esgs.core.formats.scene_dir import SceneDir
-from esgs.core.io_utils import atomic_write_json
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from esgs.core.experiments.runs import RunTask, geometry_figures, run_task  # noqa: E402
+from esgs.core.formats.run_dir import RunDir  # noqa: E402
+from esgs.core.formats.scene_dir import SceneDir  # noqa: E402
+from esgs.core.io_utils import atomic_write_json  # noqa: E402
 
 
 def sky_error(run_dir: Path, scene: Path) -> dict[str, Any]:

@@ -41,7 +41,13 @@ from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+import os
+
+# idle OpenMP threads spin by default and take the cores a busy machine's other runs need
+# (docs/rasterizer.md, "Spinning OpenMP workers"); set before torch loads
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numpy as np  # noqa: E402
 
 DEPTH_VARIANTS = ("centre", "graze", "graze2", "grazen", "plane", "planegraze", "aerial")
 SKY_VARIANTS = ("sky-above-horizon",)
