@@ -132,6 +132,28 @@ def depth_loss(rendered_depth: torch.Tensor, prior_depth: torch.Tensor, mask: to
     return _masked_mean(error, weights * valid)
 
 
+def incidence_weights(prior_normal: torch.Tensor, K: torch.Tensor, cosine: float) -> torch.Tensor:
+    """[H, W] weights ``min(1, (|n . r| / cosine)^2)`` of a view's depth-prior pixels.
+
+    A depth prior that comes from a surface estimate (a rebuilt mesh, a predicted height
+    field) errs along the ray by its error across the surface over ``|n . r|``, the cosine
+    between the unit ray ``r`` and the surface normal ``n``: where a ray grazes the surface a
+    small error in height is a large error in depth. Weighting each pixel by the inverse of
+    that growth squared (as an inverse variance), from ``cosine`` down, keeps the prior's pull
+    where it is accurate. prior_normal: [H, W, 3] camera-frame normals (zero-length: unknown,
+    weight 1); K: [3, 3]; ``cosine`` > 0.
+    """
+    from ..render.surface import pixel_rays
+
+    height, width = prior_normal.shape[:2]
+    rays = pixel_rays(K.to(prior_normal), width, height)
+    rays = rays / rays.norm(dim=-1, keepdim=True)
+    length = prior_normal.norm(dim=-1)
+    cos = (rays * prior_normal).sum(-1).abs() / length.clamp_min(_EPS)
+    weights = (cos / cosine).clamp(max=1.0) ** 2
+    return torch.where(length > _EPS, weights, torch.ones_like(weights))
+
+
 def normal_loss(rendered_normal: torch.Tensor, prior_normal: torch.Tensor, mask: torch.Tensor,
                 weights: torch.Tensor | None = None, alpha: torch.Tensor | None = None,
                 confidence: torch.Tensor | None = None) -> torch.Tensor:

@@ -36,6 +36,13 @@ class ESGSConfig(GPDFNConfig):
                 "the prior meets'; runs before it used 0.05 on the composited normal)"})
     consistency_weight: float = field(default=0.05, metadata={"help": "weight of the depth-normal consistency loss"})
     depth_mode: str = field(default="log", metadata={"help": "depth error space: log or inverse", "choices": DEPTH_MODES})
+    depth_decay: float = field(default=1.0, metadata={
+        "help": "the depth prior's weight at the run's last step, as a fraction of depth_weight, reached "
+                "geometrically from the prior start step (0.1: ten times weaker at the end); 1 = constant"})
+    depth_incidence: float = field(default=0.0, metadata={
+        "help": "a prior depth from a surface estimate errs along the ray as 1/|cos| of the angle between the "
+                "ray and the surface: depth-prior pixels whose prior normal meets the ray at |cos| below this "
+                "weigh (cos / this)^2 (needs prior normals); 0 = off"})
     depth_robust: float = field(default=0.0, metadata={
         "help": "scale s of a robust depth error: a pixel's error e counts as s log(1 + e/s), so prior pixels "
                 "that disagree with the render by much more than s pull less; 0 = plain L1"})
@@ -89,7 +96,8 @@ class ESGSConfig(GPDFNConfig):
         if self.relative_alignment not in ALIGNMENTS:
             raise ConfigError(f"relative_alignment must be one of {ALIGNMENTS}, got {self.relative_alignment!r}")
         for name in ("depth_weight", "normal_weight", "consistency_weight", "edge_strength", "max_prior_depth",
-                     "max_alignment_error", "sky_weight", "depth_robust", "flatten_weight"):
+                     "max_alignment_error", "sky_weight", "depth_robust", "flatten_weight", "depth_decay",
+                     "depth_incidence"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
         super().validate()

@@ -9,8 +9,8 @@ import torch
 from ...errors import ConfigError
 from ...priors import load_prior_maps
 from ...priors.align import align_depth_to_points
-from ...priors.losses import (depth_loss, depth_normal_consistency_loss, edge_aware_weights, normal_loss, sky_loss,
-                              thinness_loss)
+from ...priors.losses import (depth_loss, depth_normal_consistency_loss, edge_aware_weights, incidence_weights,
+                              normal_loss, sky_loss, thinness_loss)
 from ...render import MEDIAN_SURFACE_BACKENDS
 from ...render.surface import median_surface_depth, median_surface_normals, median_surface_thinness
 from ...train.hooks import RunView, TrainHook
@@ -26,7 +26,9 @@ class ViewPriors:
     [H, W, 3] unit normals, camera frame (OpenCV axes) or None; mask: [H, W] bool, where the
     prior losses act; sky: [H, W] bool, pixels with no surface (the sky loss), or None;
     far: the view's far surface distance (scene units; a 0-dim tensor) or None; confidence:
-    [H, W] trust in [0, 1] scaling both prior losses per pixel (the ``auto`` source), or None.
+    [H, W] trust in [0, 1] scaling both prior losses per pixel (the ``auto`` source), or None;
+    depth_confidence: [H, W] the depth loss's own weights where they differ from ``confidence``
+    (``depth_incidence``), or None.
     """
 
     depth: Optional[torch.Tensor]
@@ -36,6 +38,12 @@ class ViewPriors:
     sky: Optional[torch.Tensor] = None
     far: Optional[torch.Tensor] = None
     confidence: Optional[torch.Tensor] = None
+    depth_confidence: Optional[torch.Tensor] = None
+
+    @property
+    def depth_trust(self) -> Optional[torch.Tensor]:
+        """The per-pixel weights of the depth loss: ``depth_confidence`` when set, else ``confidence``."""
+        return self.depth_confidence if self.depth_confidence is not None else self.confidence
 
 
 class PriorLossHook(TrainHook):
@@ -52,6 +60,7 @@ class PriorLossHook(TrainHook):
         self.priors: dict[str, ViewPriors] = {}
         self._weights: dict[str, torch.Tensor] = {}
         self.normal_render = config.normal_render  # what the run's backend can give (setup)
+        self._depth_span = (0, 1)  # the steps over which the depth weight decays (setup)
 
     # ------------------------------------------------------------------------------
     def setup(self, run: RunView) -> None:
@@ -72,6 +81,7 @@ class PriorLossHook(TrainHook):
         if config.depth or config.normal or wants_sky:
             self._load(run)
         if config.depth:
+            self._depth_span = (start, max(run.scaled_step(30_000), start + 1))
             run.add_loss_term(LossTerm("depth_prior", config.depth_weight, self._depth_term, start_step=start,
                                        needs=frozenset({"depth"}), densifies=False))
         if config.normal:
@@ -124,6 +134,11 @@ class PriorLossHook(TrainHook):
             if depth is not None and not relative and self.config.max_prior_depth > 0:
                 mask = mask & (depth <= self.config.max_prior_depth)
             sky = self._sky_pixels(maps.sky, view, failed=depth is None and normal is None)
+            confidence = torch.from_numpy(maps.confidence.copy()) if maps.confidence is not None else None
+            depth_confidence = None
+            if depth is not None and normal is not None and self.config.depth_incidence > 0:
+                grazing = incidence_weights(normal, view.K, self.config.depth_incidence)
+                depth_confidence = (grazing * confidence if confidence is not None else grazing).to(device)
             self.priors[view.name] = ViewPriors(
                 depth=depth.to(device) if depth is not None else None,
                 normal=normal.to(device) if normal is not None else None,
@@ -131,7 +146,8 @@ class PriorLossHook(TrainHook):
                 relative=relative,
                 sky=sky.to(device) if sky is not None else None,
                 far=_far_depth(depth, mask) if depth is not None and not relative else None,
-                confidence=torch.from_numpy(maps.confidence.copy()).to(device) if maps.confidence is not None else None,
+                confidence=confidence.to(device) if confidence is not None else None,
+                depth_confidence=depth_confidence,
             )
         if alignments:
             run.message(_alignment_summary(alignments, self.config.max_alignment_error))
@@ -169,9 +185,18 @@ class PriorLossHook(TrainHook):
         else:
             depth, surface = self._median_depth(context)
             mask, alpha = prior.mask & surface, None  # a median surface exists only where alpha > 0.5
-        return depth_loss(depth, prior.depth, mask, self._edge_weights(context), mode=self.config.depth_mode,
-                          relative=prior.relative, alpha=alpha, confidence=prior.confidence,
+        loss = depth_loss(depth, prior.depth, mask, self._edge_weights(context), mode=self.config.depth_mode,
+                          relative=prior.relative, alpha=alpha, confidence=prior.depth_trust,
                           robust=self.config.depth_robust)
+        return loss * self._depth_decay_factor(context.step)
+
+    def _depth_decay_factor(self, step: int) -> float:
+        """``depth_decay`` ** (progress from the prior start step to the run's last step)."""
+        if self.config.depth_decay == 1.0:
+            return 1.0
+        first, last = self._depth_span
+        progress = min(max((step - first) / (last - first), 0.0), 1.0)
+        return float(self.config.depth_decay) ** progress
 
     def _median_depth(self, context: LossContext) -> tuple[torch.Tensor, torch.Tensor]:
         """The depth of each pixel's median surface (``depth_render`` plane or centre) and where it exists."""

@@ -488,3 +488,42 @@ def test_a_confidence_map_scales_the_prior_losses_the_trainer_adds(scene, tmp_pa
     for term in ("depth_prior", "normal_prior"):
         assert values["gt"][term] > 0
         assert values["halfsure"][term] == pytest.approx(0.5 * values["gt"][term], rel=1e-5)
+
+
+def test_grazing_prior_pixels_weigh_less_in_the_depth_loss_only(scene, tmp_path):
+    """depth_incidence: the depth loss's weights are the incidence weights of the view's prior
+    normals (times its confidence); the normal loss keeps its own; the first step's depth term
+    shrinks and the normal term does not change."""
+    from esgs.core.priors.losses import incidence_weights
+
+    values, hooks = {}, {}
+    for name, incidence in (("plain", 0.0), ("grazing", 0.9)):
+        esgs = ESGSConfig(priors="gt", depth=True, normal=True, prior_start_step=0, sky_weight=0.0,
+                          depth_incidence=incidence)
+        trainer = _trainer(scene, tmp_path / name, esgs)
+        hooks[name] = trainer.hooks[0]
+        recorder = _Recorder()
+        trainer.hooks.append(recorder)
+        trainer.train_step(1)
+        values[name] = recorder.values[0]
+    view = trainer.data.train[0]
+    plain, grazing = hooks["plain"].priors[view.name], hooks["grazing"].priors[view.name]
+    assert plain.depth_trust is None and grazing.confidence is None
+    expected = incidence_weights(grazing.normal, view.K, 0.9)
+    assert torch.allclose(grazing.depth_trust, expected)
+    assert float(expected[grazing.mask].min()) < 0.9  # the scene's tilted surfaces weigh less
+    assert values["grazing"]["depth_prior"] < 0.9 * values["plain"]["depth_prior"]
+    assert values["grazing"]["normal_prior"] == pytest.approx(values["plain"]["normal_prior"], rel=1e-6)
+
+
+def test_a_decaying_depth_weight_falls_geometrically_to_its_end_fraction(scene, tmp_path):
+    esgs = ESGSConfig(priors="gt", depth=True, prior_start_step=3000, depth_decay=0.1, sky_weight=0.0)
+    trainer = _trainer(scene, tmp_path / "decay", esgs, iterations=100)
+    hook = trainer.hooks[0]
+    first, last = trainer.scaled_step(3000), trainer.scaled_step(30_000)
+    assert (first, last) == (10, 100)
+    assert hook._depth_decay_factor(0) == 1.0 and hook._depth_decay_factor(first) == 1.0
+    assert hook._depth_decay_factor((first + last) // 2) == pytest.approx(0.1 ** 0.5)
+    assert hook._depth_decay_factor(last) == pytest.approx(0.1)
+    constant = _trainer(scene, tmp_path / "constant", ESGSConfig(priors="gt", depth=True, sky_weight=0.0), iterations=100)
+    assert constant.hooks[0]._depth_decay_factor(last) == 1.0

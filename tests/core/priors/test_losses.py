@@ -179,3 +179,29 @@ def test_thinness_loss_is_the_weighted_mean_over_pixels_with_a_prior_normal():
     loss = thinness_loss(thickness, normal, mask, weights, confidence=confidence)
     assert float(loss) == pytest.approx((1.0 * 0.5 * 0.5 + 3.0 * 2.0) / 4.0)
     assert float(thinness_loss(thickness, normal, torch.zeros_like(mask))) == 0.0
+
+
+def test_incidence_weights_follow_the_cosine_between_ray_and_prior_normal():
+    """(|n . r| / c)^2 capped at 1, against a per-pixel computation from K; unknown normals weigh 1."""
+    generator = torch.Generator().manual_seed(3)
+    height, width = 5, 7
+    K = torch.tensor([[40.0, 0.0, 3.2], [0.0, 38.0, 2.6], [0.0, 0.0, 1.0]])
+    normal = torch.randn(height, width, 3, generator=generator)
+    normal = normal / normal.norm(dim=-1, keepdim=True)
+    normal[0, 0] = 0.0  # no prior normal there
+    cosine = 0.4
+    weights = losses.incidence_weights(normal, K, cosine)
+    assert weights.shape == (height, width)
+    for i in range(height):
+        for j in range(width):
+            if i == 0 and j == 0:
+                assert weights[i, j] == 1.0
+                continue
+            ray = torch.tensor([(j + 0.5 - 3.2) / 40.0, (i + 0.5 - 2.6) / 38.0, 1.0])
+            cos = abs(float(ray @ normal[i, j])) / float(ray.norm())
+            assert float(weights[i, j]) == pytest.approx(min(1.0, (cos / cosine) ** 2), rel=1e-5)
+    # a surface facing the camera keeps its full weight
+    facing = torch.zeros(height, width, 3)
+    facing[..., 2] = -1.0
+    assert bool((losses.incidence_weights(facing, torch.tensor([[1e4, 0, 3.5], [0, 1e4, 2.5], [0, 0, 1.0]]),
+                                          cosine) == 1.0).all())
