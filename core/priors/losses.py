@@ -143,7 +143,7 @@ def incidence_weights(prior_normal: torch.Tensor, K: torch.Tensor, cosine: float
     where it is accurate. prior_normal: [H, W, 3] camera-frame normals (zero-length: unknown,
     weight 1); K: [3, 3]; ``cosine`` > 0.
     """
-    from ..render.surface import pixel_rays
+    from ..render.surface import pixel_rays  # here: this module stays torch-only (render loads the rasterizers)
 
     height, width = prior_normal.shape[:2]
     rays = pixel_rays(K.to(prior_normal), width, height)
