@@ -20,14 +20,30 @@ SUMMARY_NAME = "summary.json"
 def effective_settings(config: dict[str, Any]) -> dict[str, Any]:
     """``config`` (a TrainConfig dict of today's layout, ``method_config`` complete) with a
     method that adds nothing counted as plain 3DGS, whose settings cannot change the result
-    (an ESGS run with every part off does not depend on the ESGS depth weight)."""
+    (an ESGS run with every part off does not depend on the ESGS depth weight), and an ESGS
+    run's settings of its switched-off parts at their defaults."""
     settings = dict(config)
     method, method_config = settings.get("method", "3dgs"), settings.get("method_config")
     adds_nothing = (method == "esgs" and isinstance(method_config, dict) and not _esgs_enabled(method_config)) or \
         (method == "dropout-gs" and isinstance(method_config, dict) and not method_config.get("dropout_rate"))
     if method == "3dgs" or adds_nothing:
         settings["method"], settings["method_config"] = "3dgs", None
+    elif method == "esgs" and isinstance(method_config, dict):
+        settings["method_config"] = _without_idle_esgs_settings(method_config)
     return settings
+
+
+def _without_idle_esgs_settings(method_config: dict[str, Any]) -> dict[str, Any]:
+    """``method_config`` with the settings of its switched-off parts at their defaults
+    (:meth:`ESGSConfig.idle_settings`): a depth-only run does not depend on the normal prior's form."""
+    from ..methods import ESGSConfig
+
+    try:
+        idle = ESGSConfig(**method_config).idle_settings()
+    except TypeError:  # unknown keys: compare as they are
+        return method_config
+    defaults = ESGSConfig()
+    return {**method_config, **{name: getattr(defaults, name) for name in idle if name in method_config}}
 
 
 def _esgs_enabled(method_config: dict[str, Any]) -> bool:

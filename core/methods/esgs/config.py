@@ -12,6 +12,15 @@ DEPTH_RENDERS = ("expected", "plane", "centre")
 #: Which rendered normal the normal prior meets (docs/esgs.md, "Which normal the prior meets").
 NORMAL_RENDERS = ("composited", "median", "thin")
 ALIGNMENTS = ("sfm", "render")
+#: Settings that act only through one part of the method: with that part off they cannot change
+#: a run (:meth:`ESGSConfig.idle_settings`). The switches themselves (``depth``, ``gpdfn``,
+#: ``fused_k`` ...) are never listed: they decide whether the part is on.
+PART_SETTINGS = {
+    "depth": ("depth_weight", "depth_mode", "depth_decay", "depth_incidence", "depth_robust", "depth_render"),
+    "normal": ("normal_weight", "normal_render"),
+    "consistency": ("consistency_weight", "consistency_start_step"),
+    "gpdfn": ("gpdfn_hidden", "gpdfn_voxel_size", "gpdfn_max_shift_voxels", "gpdfn_lr", "gpdfn_every"),
+}
 
 
 @dataclass
@@ -101,6 +110,14 @@ class ESGSConfig(GPDFNConfig):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
         super().validate()
+
+    def idle_settings(self) -> tuple[str, ...]:
+        """Names of the settings that cannot change a run with these switches: those of the parts
+        that are off (:data:`PART_SETTINGS`). A saved run that differs from a request only in
+        them is the same run (the bench's and the studies' stale check)."""
+        off = {"depth": not self.depth, "normal": not self.normal, "consistency": not self.consistency,
+               "gpdfn": not (self.gpdfn and self.fused_k > 1)}
+        return tuple(name for part, names in PART_SETTINGS.items() if off[part] for name in names)
 
     @property
     def sky_loss_on(self) -> bool:

@@ -308,6 +308,38 @@ def test_a_run_saved_with_other_settings_is_stale_and_set_aside_whole(tmp_path, 
     assert plain.stale_settings() == []
 
 
+
+def test_settings_of_a_switched_off_esgs_part_do_not_make_a_run_stale(tmp_path, scene):
+    """A depth-only run saved with another normal-prior form, GPDFN rate or consistency weight is
+    the same run (those parts are off); a change to a part that is on, or to a switch, is not."""
+    from esgs.core.config import config_to_dict
+    from esgs.core.methods import train_config_from_dict
+
+    def task_saved_with(request: dict, **saved_changes) -> RunTask:
+        out = tmp_path / f"run{len(list(tmp_path.iterdir()))}"
+        task = RunTask(name="tiny/esgs", scene=scene, out=out,
+                       config={**TRAIN, "iterations": 5, "seed": 0, "method": "esgs", "method_config": request})
+        saved = config_to_dict(train_config_from_dict({**task.config, "scene": str(scene), "out": str(out)},
+                                                      saved=False))
+        saved["method_config"].update(saved_changes)
+        out.mkdir()
+        (out / "config.json").write_text(json.dumps(saved))
+        return task
+
+    depth_only = {"priors": "gt", "depth": True}
+    assert task_saved_with(depth_only).stale_settings() == []
+    assert task_saved_with(depth_only, normal_render="composited", normal_weight=0.05, gpdfn_lr=0.1,
+                           gpdfn_every=4, consistency_weight=1.0).stale_settings() == []
+    assert task_saved_with(depth_only, depth_decay=0.5).stale_settings() == ["method_config"]
+    assert task_saved_with(depth_only, normal=True).stale_settings() == ["method_config"]
+    with_normal = {**depth_only, "normal": True}
+    assert task_saved_with(with_normal, normal_render="composited").stale_settings() == ["method_config"]
+    # GPDFN is on only with fused_k > 1: fused_k is a switch, its other settings count when it is on
+    gpdfn = {**depth_only, "gpdfn": True}
+    assert task_saved_with(gpdfn, fused_k=1).stale_settings() == ["method_config"]
+    assert task_saved_with(gpdfn, gpdfn_lr=0.1).stale_settings() == ["method_config"]
+    assert task_saved_with({**gpdfn, "fused_k": 1}, gpdfn_lr=0.1).stale_settings() == []
+
 def test_budget_plan_gives_every_method_the_same_minutes_and_step_cap_in_its_own_folder(tmp_path, scene):
     tasks, _ = plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=300, budget_minutes=1.5, priors="gt")
     steps = {t.variant: t for t in tasks if "max_minutes" not in t.config}
