@@ -116,8 +116,13 @@ class ESGSConfig(GPDFNConfig):
         that are off (:data:`PART_SETTINGS`). A saved run that differs from a request only in
         them is the same run (the bench's and the studies' stale check)."""
         off = {"depth": not self.depth, "normal": not self.normal, "consistency": not self.consistency,
-               "gpdfn": not (self.gpdfn and self.fused_k > 1)}
+               "gpdfn": not self.gpdfn_on}
         return tuple(name for part, names in PART_SETTINGS.items() if off[part] for name in names)
+
+    @property
+    def gpdfn_on(self) -> bool:
+        """GPDFN acts only when switched on and fusing more than the Gaussian itself."""
+        return self.gpdfn and self.fused_k > 1
 
     @property
     def sky_loss_on(self) -> bool:
@@ -126,4 +131,4 @@ class ESGSConfig(GPDFNConfig):
 
     @property
     def enabled(self) -> bool:
-        return self.depth or self.normal or self.consistency or (self.gpdfn and self.fused_k > 1) or self.sky_loss_on
+        return self.depth or self.normal or self.consistency or self.gpdfn_on or self.sky_loss_on

@@ -14,6 +14,6 @@ def esgs_hooks(config: ESGSConfig) -> list[TrainHook]:
     hooks: list[TrainHook] = []
     if config.depth or config.normal or config.consistency or config.sky_loss_on:
         hooks.append(PriorLossHook(config))
-    if config.gpdfn and config.fused_k > 1:
+    if config.gpdfn_on:
         hooks.append(GPDFNHook(config))
     return hooks
