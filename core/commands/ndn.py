@@ -65,6 +65,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     shard.add_argument("--split", default="heldout", help="split prefix of the shard names (default heldout)")
     shard.add_argument("--working-size", type=int, default=128, help="long side of the triples in pixels")
     shard.add_argument("--multiple", type=int, default=4, help="triple sizes are multiples of this")
+    shard.add_argument("--sfm-points", action=argparse.BooleanOptionalAction, default=True,
+                       help="triangulate the scene's images with its known poses and store the points' depth "
+                            "(the evidence an evidence-conditioned network reads)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -146,7 +149,7 @@ def _shard(args: argparse.Namespace) -> int:
 
     for scene in args.scenes:
         name = scene.name if scene.name.startswith(f"{args.split}_") else f"{args.split}_{scene.name}"
-        triples = scene_triples(scene, args.working_size, args.multiple)
+        triples = scene_triples(scene, args.working_size, args.multiple, sfm_points=args.sfm_points)
         path = args.data / "shards" / f"{name}.npz"
         path.parent.mkdir(parents=True, exist_ok=True)
         write_shard(path, triples, {"scene": str(scene), "split": args.split})

@@ -18,6 +18,11 @@ class NDNModelConfig:
     levels: int = field(default=3, metadata={"help": "UNet resolution levels (each halves the size)"})
     time_dim: int = field(default=128, metadata={"help": "width of the sinusoidal time-step embedding"})
     working_size: int = field(default=128, metadata={"help": "long side of the working resolution in pixels"})
+    evidence: bool = field(default=False, metadata={
+        "help": "the network also reads the reference view's metric evidence (SfM points and stereo labels, "
+                "4 channels; core/ndn/evidence.py) and predicts depth in metres about it; needs the log depth state"})
+    sky: bool = field(default=False, metadata={
+        "help": "a sky head: the depth branch also predicts a per-pixel sky logit (trained on the no-surface pixels)"})
 
     def validate(self) -> None:
         if self.base_channels < 4 or self.base_channels % 4:
@@ -92,6 +97,8 @@ class NDNTrainConfig:
     learning_rate: float = field(default=2e-4, metadata={"help": "AdamW learning rate"})
     weight_decay: float = field(default=1e-4, metadata={"help": "AdamW weight decay"})
     normal_weight: float = field(default=1.0, metadata={"help": "weight of the normal branch loss"})
+    sky_weight: float = field(default=0.1, metadata={
+        "help": "weight of the sky head's cross-entropy (networks with --sky only)"})
     checkpoint_every: int = field(default=200, metadata={"help": "steps between checkpoints"})
     seed: int = field(default=0, metadata={"help": "seed of batches, noise and initial weights"})
     threads: int = field(default=0, metadata={"help": "torch threads (0 = torch's default)"})
@@ -161,6 +168,9 @@ class NDNDataConfig:
     working_size: int = field(default=128, metadata={"help": "long side of the stored triples in pixels"})
     multiple: int = field(default=4, metadata={"help": "stored sizes are multiples of this (2**(levels-1))"})
     keep_scenes: bool = field(default=False, metadata={"help": "keep the rendered scene folders under OUT/scenes"})
+    sfm_points: bool = field(default=True, metadata={
+        "help": "triangulate each scene's images with its known poses and store the points' depth in the shard "
+                "(the evidence an evidence-conditioned network reads; ~2 s per 8-view scene)"})
 
     def validate(self) -> None:
         for name in ("scenes", "heldout", "validation"):
@@ -186,3 +196,6 @@ class NDNConfig:
     def validate(self) -> None:
         self.model.validate()
         self.diffusion.validate()
+        if self.model.evidence and self.diffusion.depth_state != "log":
+            raise ConfigError("an evidence-conditioned network needs the log depth state (--depth-state log): its "
+                              "output is metric about the evidence's reference depth")

@@ -8,7 +8,11 @@ scene as one npz shard:
 - ``views`` [N, 9, h, w] uint8: reference RGB, neighbour 1 RGB, neighbour 2 RGB;
 - ``depth`` [N, h, w] float32: z depth in metres (0 = no surface);
 - ``normal`` [N, 3, h, w] float32: unit normals in the camera frame (OpenCV axes), 0 = none;
-- ``mask`` [N, h, w] bool: valid surface.
+- ``mask`` [N, h, w] bool: valid surface;
+- ``sfm_depth`` [N, h, w] float32 (shards built with SfM points): the z depth of the points
+  triangulated from the scene's rendered images with its known poses (SIFT, matching,
+  triangulation: what a real capture gives, not the generator's exact samples), the median
+  of the points in each working pixel, 0 where none falls (:mod:`.evidence`).
 
 The diffusion targets are derived on the fly from the stored metric depth (so one data
 folder serves every kind of state): :func:`depth_to_state` maps depth to [-1, 1] per view
@@ -156,11 +160,15 @@ class SceneTriples:
     depth: np.ndarray | None = None  # [N, h, w] float32
     normal: np.ndarray | None = None  # [N, 3, h, w] float32
     mask: np.ndarray | None = None  # [N, h, w] bool
+    sfm_depth: np.ndarray | None = None  # [N, h, w] float32, triangulated points (0 = none)
 
 
 def scene_triples(scene_dir: str | Path, working_size: int, multiple: int, *, with_targets: bool = True,
-                  target_source: str = "gt") -> SceneTriples:
-    """Read a scene folder (images/, sparse/0, and priors/<target_source>/ for targets) into triples."""
+                  target_source: str = "gt", sfm_points: bool = False) -> SceneTriples:
+    """Read a scene folder (images/, sparse/0, and priors/<target_source>/ for targets) into triples.
+
+    With ``sfm_points`` the scene's images are also triangulated with their known poses
+    (:func:`.baselines.triangulate_known_poses`) into ``sfm_depth`` at the working size."""
     import cv2
 
     from ..colmap import read_model
@@ -209,6 +217,14 @@ def scene_triples(scene_dir: str | Path, working_size: int, multiple: int, *, wi
     result = SceneTriples(names=[image.name for image in images], image_sizes=sizes, views=views)
     if with_targets:
         result.depth, result.normal, result.mask = np.stack(depth), np.stack(normal), np.stack(mask)
+    if sfm_points:
+        from .baselines import triangulate_known_poses
+        from .evidence import bin_sparse_depth
+
+        observed = triangulate_known_poses(scene_dir)
+        working = (views.shape[-1], views.shape[-2])
+        result.sfm_depth = np.stack([bin_sparse_depth(observed[image.name].uv, observed[image.name].depth, size, working)
+                                     for image, size in zip(images, sizes)])
     return result
 
 
@@ -218,14 +234,16 @@ def write_shard(path: str | Path, triples: SceneTriples, metadata: dict) -> None
         raise DatasetError("a training shard needs depth/normal targets", path=path)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as handle:
+            optional = {} if triples.sfm_depth is None else {"sfm_depth": triples.sfm_depth}
             np.savez_compressed(handle, format=np.array(SHARD_FORMAT), views=triples.views, depth=triples.depth,
                                 normal=triples.normal, mask=triples.mask, names=np.array(triples.names),
-                                metadata=np.array(json.dumps(metadata)))
+                                metadata=np.array(json.dumps(metadata)), **optional)
 
 
 def load_shards(data_dir: str | Path, split: str = "train", *, with_scenes: bool = False) -> dict[str, np.ndarray]:
-    """Concatenate the shards of one split: views, depth, normal, mask (see the module docstring);
-    with ``with_scenes`` also ``scene`` [N] (str), the shard each triple came from (its file stem).
+    """Concatenate the shards of one split: views, depth, normal, mask (see the module docstring),
+    and ``sfm_depth`` when every shard has it; with ``with_scenes`` also ``scene`` [N] (str), the
+    shard each triple came from (its file stem).
 
     Shards with different working resolutions cannot be batched together: a mix raises
     :class:`DatasetError`.
@@ -237,18 +255,23 @@ def load_shards(data_dir: str | Path, split: str = "train", *, with_scenes: bool
                            hint="build them with `esgs ndn build-data --out DIR`")
     arrays: dict[str, list[np.ndarray]] = {"views": [], "depth": [], "normal": [], "mask": []}
     scenes: list[np.ndarray] = []
+    points: list[np.ndarray] = []
     for path in paths:
         with np.load(path, allow_pickle=False) as shard:
             if "format" not in shard or str(shard["format"]) != SHARD_FORMAT:
                 raise DatasetError("not an NDN shard (missing or unknown format tag)", path=path)
             for key in arrays:
                 arrays[key].append(shard[key])
+            if "sfm_depth" in shard:
+                points.append(shard["sfm_depth"])
             scenes.append(np.full(len(shard["views"]), path.stem))
     shapes = {array.shape[-2:] for array in arrays["views"]}
     if len(shapes) != 1:
         raise DatasetError(f"shards have different working resolutions {sorted(shapes)}", path=data_dir / "shards",
                            hint="rebuild the data set with one --working-size")
     loaded = {key: np.concatenate(values) for key, values in arrays.items()}
+    if len(points) == len(paths):
+        loaded["sfm_depth"] = np.concatenate(points)
     if with_scenes:
         loaded["scene"] = np.concatenate(scenes)
     return loaded
@@ -321,7 +344,7 @@ def render_scene(preset: str, seed: int, *, views: int, width: int, height: int,
 def build_dataset(out_dir: str | Path, scenes: int, *, heldout: int = 1, validation: int = 0, presets: tuple[str, ...] = TRAIN_PRESETS,
                   heldout_presets: tuple[str, ...] = (), views: int = 8, width: int = 160, height: int = 90,
                   samples: int = 8, working_size: int = 128, multiple: int = 4, keep_scenes: bool = False,
-                  progress: ProgressCallback = no_progress) -> dict:
+                  sfm_points: bool = True, progress: ProgressCallback = no_progress) -> dict:
     """Render scenes with ``esgs scene`` and write one shard per scene under ``OUT/shards``.
 
     Resumable: a shard that already exists is skipped, so an interrupted build continues
@@ -332,12 +355,12 @@ def build_dataset(out_dir: str | Path, scenes: int, *, heldout: int = 1, validat
 
     NDNDataConfig(scenes=scenes, heldout=heldout, validation=validation, presets=tuple(presets), heldout_presets=tuple(heldout_presets),
                   views=views, width=width, height=height, samples=samples, working_size=working_size,
-                  multiple=multiple, keep_scenes=keep_scenes).validate()
+                  multiple=multiple, keep_scenes=keep_scenes, sfm_points=sfm_points).validate()
     out_dir = Path(out_dir)
     (out_dir / "shards").mkdir(parents=True, exist_ok=True)
     plan = plan_scenes(scenes, heldout, tuple(presets), tuple(heldout_presets), validation)
     manifest = {"format": SHARD_FORMAT, "working_size": working_size, "multiple": multiple, "views": views,
-                "resolution": [width, height], "samples": samples,
+                "resolution": [width, height], "samples": samples, "sfm_points": sfm_points,
                 "scenes": [{"split": s, "preset": p, "seed": seed, "shard": f"shards/{s}_{p}_{seed}.npz"}
                            for s, p, seed in plan]}
     atomic_write_json(out_dir / "manifest.json", manifest)
@@ -354,7 +377,7 @@ def build_dataset(out_dir: str | Path, scenes: int, *, heldout: int = 1, validat
             except ESGSError as error:
                 raise DatasetError(f"rendering scene {preset} seed {seed} failed: {error.message}",
                                    path=error.path or scene_dir, hint=error.hint) from error
-            triples = scene_triples(scene_dir, working_size, multiple)
+            triples = scene_triples(scene_dir, working_size, multiple, sfm_points=sfm_points)
             write_shard(shard, triples, {"preset": preset, "seed": seed, "split": split})
             if keep_scenes:
                 kept = out_dir / "scenes" / f"{split}_{preset}_{seed}"

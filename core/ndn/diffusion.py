@@ -28,6 +28,17 @@ def make_betas(timesteps: int, schedule: str = "cosine") -> torch.Tensor:
     raise ValueError(f"unknown beta schedule {schedule!r} (use cosine or linear)")
 
 
+def _evidence_kwargs(evidence: torch.Tensor | None) -> dict:
+    """Keyword arguments passing evidence to the network only when there is some (networks
+    without evidence inputs refuse it)."""
+    return {} if evidence is None else {"evidence": evidence}
+
+
+def _sky_probability(outputs: tuple[torch.Tensor, ...]) -> torch.Tensor | None:
+    """The sky probability from a network's outputs (None without a sky head)."""
+    return torch.sigmoid(outputs[2]) if len(outputs) > 2 else None
+
+
 class GaussianDiffusion:
     """The noise schedule with q_sample, the training loss and DDIM sampling."""
 
@@ -69,25 +80,36 @@ class GaussianDiffusion:
 
     def training_loss(self, model: torch.nn.Module, views: torch.Tensor, depth: torch.Tensor, normal: torch.Tensor,
                       generator: torch.Generator | None = None, normal_weight: float = 1.0,
-                      timesteps: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+                      timesteps: torch.Tensor | None = None, *, evidence: torch.Tensor | None = None,
+                      sky: torch.Tensor | None = None, sky_weight: float = 0.1) -> tuple[torch.Tensor, dict[str, float]]:
         """Mean squared error of the predicted noise (or v) of both branches at random steps.
 
         ``views`` [B, 9, H, W], ``depth`` [B, 1, H, W] and ``normal`` [B, 3, H, W] are the clean
-        targets in [-1, 1]. Returns (loss, {"depth": ..., "normal": ...}).
+        targets in [-1, 1]; ``evidence`` [B, 4, H, W] goes to a network that reads it. With a sky
+        head, ``sky`` [B, 1, H, W] (1 = no surface) is its target: binary cross-entropy times
+        ``sky_weight`` joins the loss. Returns (loss, {"depth": ..., "normal": ...[, "sky": ...]}).
         """
         batch = views.shape[0]
         if self.regression:
-            return self._regression_loss(model, views, depth, normal, normal_weight)
-        if timesteps is None:
-            timesteps = torch.randint(0, self.timesteps, (batch,), generator=generator).to(views.device)
-        depth_noise = torch.randn(depth.shape, generator=generator).to(depth)
-        normal_noise = torch.randn(normal.shape, generator=generator).to(normal)
-        depth_out, normal_out = model(views, self.q_sample(depth, timesteps, depth_noise),
-                                      self.q_sample(normal, timesteps, normal_noise), timesteps)
-        depth_loss = F.mse_loss(depth_out, self.target(depth, timesteps, depth_noise))
-        normal_loss = F.mse_loss(normal_out, self.target(normal, timesteps, normal_noise))
+            outputs = model(views, *self._regression_inputs(views), **_evidence_kwargs(evidence))
+            depth_loss = F.mse_loss(outputs[0], depth)
+            normal_loss = F.mse_loss(outputs[1], normal)
+        else:
+            if timesteps is None:
+                timesteps = torch.randint(0, self.timesteps, (batch,), generator=generator).to(views.device)
+            depth_noise = torch.randn(depth.shape, generator=generator).to(depth)
+            normal_noise = torch.randn(normal.shape, generator=generator).to(normal)
+            outputs = model(views, self.q_sample(depth, timesteps, depth_noise),
+                            self.q_sample(normal, timesteps, normal_noise), timesteps, **_evidence_kwargs(evidence))
+            depth_loss = F.mse_loss(outputs[0], self.target(depth, timesteps, depth_noise))
+            normal_loss = F.mse_loss(outputs[1], self.target(normal, timesteps, normal_noise))
         loss = depth_loss + normal_weight * normal_loss
-        return loss, {"depth": float(depth_loss.detach()), "normal": float(normal_loss.detach())}
+        parts = {"depth": float(depth_loss.detach()), "normal": float(normal_loss.detach())}
+        if len(outputs) > 2 and sky is not None:
+            sky_loss = F.binary_cross_entropy_with_logits(outputs[2], sky.to(outputs[2].dtype))
+            loss = loss + sky_weight * sky_loss
+            parts["sky"] = float(sky_loss.detach())
+        return loss, parts
 
     def ddim_timesteps(self, steps: int | None = None) -> list[int]:
         """The DDIM schedule: ``steps`` evenly spaced steps from T-1 down to 0."""
@@ -97,7 +119,8 @@ class GaussianDiffusion:
 
     @torch.no_grad()
     def sample(self, model: torch.nn.Module, views: torch.Tensor, steps: int | None = None,
-               seed: int = 0, ensemble: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+               seed: int = 0, ensemble: int | None = None, *, evidence: torch.Tensor | None = None,
+               return_sky: bool = False) -> tuple[torch.Tensor, ...]:
         """Deterministic DDIM (eta = 0): views [B, 9, H, W] -> (depth [B, 1, H, W], normal [B, 3, H, W]).
 
         The starting noise comes from a generator seeded with ``seed``, so the same weights,
@@ -106,26 +129,35 @@ class GaussianDiffusion:
         denoised n times from different noise (one batch of B x n) and the n results are
         combined per pixel by the config's ``sample_reduce`` (median: the lower middle value
         for even n; mean). Normals are combined component-wise and not renormalised here.
+        ``evidence`` [B, 4, H, W] is passed to a network that reads it. With ``return_sky`` a
+        third map, the sky probability [B, 1, H, W] of the last network pass (mean over an
+        ensemble), is returned; None from a network without a sky head.
         """
         batch, _, height, width = views.shape
         if self.regression:
-            return self._regress(model, views)
+            outputs = model(views, *self._regression_inputs(views), **_evidence_kwargs(evidence))
+            result = (outputs[0].clamp(-1.0, 1.0), outputs[1])
+            return (*result, _sky_probability(outputs)) if return_sky else result
         ensemble = int(ensemble or self.config.sample_ensemble)
         if ensemble > 1:
             views = views.repeat_interleave(ensemble, dim=0)  # copies of a view are neighbours in the batch
+            evidence = evidence.repeat_interleave(ensemble, dim=0) if evidence is not None else None
         generator = torch.Generator().manual_seed(int(seed))
         depth = torch.randn((views.shape[0], 1, height, width), generator=generator).to(views)
         normal = torch.randn((views.shape[0], 3, height, width), generator=generator).to(views)
         schedule = self.ddim_timesteps(steps)
+        outputs: tuple[torch.Tensor, ...] = ()
         for index, step in enumerate(schedule):
             timesteps = torch.full((views.shape[0],), step, dtype=torch.long, device=views.device)
-            depth_out, normal_out = model(views, depth, normal, timesteps)
+            outputs = model(views, depth, normal, timesteps, **_evidence_kwargs(evidence))
             previous = schedule[index + 1] if index + 1 < len(schedule) else -1
-            depth = self._ddim_step(depth, timesteps, depth_out, previous)
-            normal = self._ddim_step(normal, timesteps, normal_out, previous)
+            depth = self._ddim_step(depth, timesteps, outputs[0], previous)
+            normal = self._ddim_step(normal, timesteps, outputs[1], previous)
+        sky = _sky_probability(outputs)
         if ensemble > 1:
             depth, normal = (self._combine(x.view(batch, ensemble, *x.shape[1:])) for x in (depth, normal))
-        return depth, normal
+            sky = sky.view(batch, ensemble, *sky.shape[1:]).mean(dim=1) if sky is not None else None
+        return (depth, normal, sky) if return_sky else (depth, normal)
 
     def _combine(self, samples: torch.Tensor) -> torch.Tensor:
         """[B, n, C, H, W] -> [B, C, H, W] by the configured reduction over the n samples."""
@@ -145,17 +177,3 @@ class GaussianDiffusion:
         batch, _, height, width = views.shape
         return (views.new_zeros((batch, 1, height, width)), views.new_zeros((batch, 3, height, width)),
                 torch.zeros((batch,), dtype=torch.long, device=views.device))
-
-    def _regression_loss(self, model: torch.nn.Module, views: torch.Tensor, depth: torch.Tensor, normal: torch.Tensor,
-                         normal_weight: float) -> tuple[torch.Tensor, dict[str, float]]:
-        """Regression baseline: MSE of the clean depth state and normals predicted in one pass."""
-        depth_out, normal_out = model(views, *self._regression_inputs(views))
-        depth_loss = F.mse_loss(depth_out, depth)
-        normal_loss = F.mse_loss(normal_out, normal)
-        loss = depth_loss + normal_weight * normal_loss
-        return loss, {"depth": float(depth_loss.detach()), "normal": float(normal_loss.detach())}
-
-    def _regress(self, model: torch.nn.Module, views: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Regression baseline inference: one forward pass, depth clipped to [-1, 1] like DDIM's x0."""
-        depth, normal = model(views, *self._regression_inputs(views))
-        return depth.clamp(-1.0, 1.0), normal

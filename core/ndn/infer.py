@@ -179,8 +179,46 @@ def score_view(relative: np.ndarray, normal: np.ndarray, truth_depth: np.ndarray
 
 
 def mean_scores(per_view: list[dict[str, float]]) -> dict[str, float]:
-    """Means over views of every score in ``per_view``."""
-    return {key: float(np.mean([scores[key] for scores in per_view])) for key in per_view[0]} if per_view else {}
+    """Means over views of every score in ``per_view`` (a score some views lack, such as the sky
+    IoU of views without sky, is the mean over the views that have it)."""
+    keys: list[str] = []
+    for scores in per_view:
+        keys += [key for key in scores if key not in keys]
+    return {key: float(np.mean([scores[key] for scores in per_view if key in scores])) for key in keys}
+
+
+def sky_iou(sky_probability: np.ndarray, surface: np.ndarray) -> float | None:
+    """IoU of the predicted sky (probability > 0.5) with the true one (no surface); None when
+    neither has a sky pixel (a view without sky says nothing about it)."""
+    predicted, truth = np.asarray(sky_probability) > 0.5, ~np.asarray(surface, bool)
+    union = int((predicted | truth).sum())
+    return None if union == 0 else float((predicted & truth).sum() / union)
+
+
+def arrays_evidence(arrays: dict[str, np.ndarray], index: int, mode: str,
+                    log_range: float) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """The evidence of triple ``index`` for ``mode`` (:data:`.evidence.EVIDENCE_MODES`): SfM from
+    ``sfm_depth``, stereo from ``stereo_depth`` (real labels added to the arrays by the caller).
+    Returns (evidence [1, 4, h, w], reference [1]), or (None, None) for no evidence."""
+    from ..errors import DatasetError
+    from .evidence import EVIDENCE_MODES, encode_evidence, evidence_reference
+
+    if mode not in EVIDENCE_MODES:
+        raise ValueError(f"evidence mode must be one of {EVIDENCE_MODES}, got {mode!r}")
+    if mode == "none":
+        return None, None
+    shape = arrays["depth"][index].shape
+    maps = {}
+    for key, wanted in (("sfm_depth", "sfm" in mode), ("stereo_depth", "stereo" in mode)):
+        if wanted and key not in arrays:
+            raise DatasetError(f"evidence mode {mode!r} needs {key!r} in the data, which has none",
+                               hint="shards get sfm_depth from `esgs ndn shard`/`build-data`; stereo comes from labels")
+        maps[key] = torch.from_numpy(np.asarray(arrays[key][index], np.float32))[None] if wanted \
+            else torch.zeros((1, *shape))
+    reference = evidence_reference(maps["sfm_depth"], maps["stereo_depth"])
+    if float(reference[0]) <= 0:
+        return None, None
+    return encode_evidence(maps["sfm_depth"], maps["stereo_depth"], reference, log_range), reference
 
 
 def scores_by_scene(per_view: list[dict[str, float]], scenes) -> dict[str, dict[str, float]]:
@@ -194,24 +232,51 @@ def scores_by_scene(per_view: list[dict[str, float]], scenes) -> dict[str, dict[
 
 def evaluate_arrays(model: NDNUNet, diffusion: GaussianDiffusion, arrays: dict[str, np.ndarray], *,
                     steps: int | None = None, seed: int = 0, ensemble: int | None = None,
-                    progress: ProgressCallback = no_progress) -> list[dict[str, float]]:
+                    evidence_mode: str = "none", progress: ProgressCallback = no_progress) -> list[dict[str, float]]:
     """Scores of every triple in ``arrays`` (views, depth, normal, mask as in a shard); triple
     ``i`` is sampled alone from noise seeded with ``seed + i`` (``ensemble`` samples of it
     when given, else the model's ``sample_ensemble``); states are read as the diffusion
-    config's ``depth_state``. Returns one dict per triple."""
+    config's ``depth_state``. Returns one dict per triple.
+
+    A network that reads evidence gets the triple's ``evidence_mode`` evidence
+    (:func:`arrays_evidence`); its depth is then metric, and ``abs_rel_metric`` and
+    ``delta1_metric`` score it without any alignment. A network with a sky head adds
+    ``sky_iou`` on views where it or the truth has sky."""
+    from .evidence import depth_from_state
+
     views = torch.from_numpy(arrays["views"].astype(np.float32) / 127.5 - 1.0)
     count = views.shape[0]
+    log_range = diffusion.config.log_depth_range
     per_view = []
     for index in range(count):
         progress(ProgressEvent(index, count, "ndn-eval"))
-        depth_state, normal = diffusion.sample(model, views[index:index + 1], steps=steps, seed=seed + index,
-                                               ensemble=ensemble)
-        relative = state_to_relative_depth(depth_state[0, 0].numpy(), diffusion.config.depth_state,
-                                           diffusion.config.log_depth_range)
-        per_view.append(score_view(relative, normal[0].numpy(),
-                                   arrays["depth"][index], arrays["normal"][index], arrays["mask"][index]))
+        evidence, reference = arrays_evidence(arrays, index, evidence_mode, log_range) \
+            if model.config.evidence else (None, None)
+        depth_state, normal, sky = diffusion.sample(model, views[index:index + 1], steps=steps, seed=seed + index,
+                                                    ensemble=ensemble, evidence=evidence, return_sky=True)
+        relative = state_to_relative_depth(depth_state[0, 0].numpy(), diffusion.config.depth_state, log_range)
+        scores = score_view(relative, normal[0].numpy(),
+                            arrays["depth"][index], arrays["normal"][index], arrays["mask"][index])
+        if reference is not None:
+            metric = depth_from_state(depth_state, reference, log_range)[0, 0].numpy()
+            scores.update(metric_depth_scores(metric, arrays["depth"][index], arrays["mask"][index]))
+        if sky is not None:
+            iou = sky_iou(sky[0, 0].numpy(), arrays["mask"][index])
+            if iou is not None:
+                scores["sky_iou"] = iou
+        per_view.append(scores)
     progress(ProgressEvent(count, count, "ndn-eval", kind="done"))
     return per_view
+
+
+def metric_depth_scores(depth: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict[str, float]:
+    """AbsRel and delta1 of a metric depth [h, w] against the truth over ``mask``, unaligned."""
+    valid = np.asarray(mask, bool) & (truth > 0)
+    predicted = np.maximum(np.asarray(depth, np.float64)[valid], 1e-6)
+    target = np.asarray(truth, np.float64)[valid]
+    ratio = np.maximum(predicted / target, target / predicted)
+    return {"abs_rel_metric": float(np.mean(np.abs(predicted - target) / target)),
+            "delta1_metric": float(np.mean(ratio < 1.25))}
 
 
 def evaluate_ndn(weights: str | Path, data_dir: str | Path, *, split: str = "heldout", steps: int | None = None,

@@ -8,7 +8,12 @@ Inputs (working resolution H x W, both multiples of ``2 ** (levels - 1)``):
 - ``normal_state`` [B, 3, H, W]: the noisy camera-frame normal state of the normal branch;
 - ``timesteps`` [B] (int): the diffusion step t of each sample.
 
-Outputs: ``(depth_out [B, 1, H, W], normal_out [B, 3, H, W])``, the predicted noise (or v).
+- ``evidence`` [B, 4, H, W] (only with ``config.evidence``; None = no evidence): the reference
+  view's SfM and stereo depth as log states with their validity (:mod:`.evidence`).
+
+Outputs: ``(depth_out [B, 1, H, W], normal_out [B, 3, H, W])``, the predicted noise (or v,
+or the clean maps for the regression variant); with ``config.sky`` a third output, the sky
+logit [B, 1, H, W] (a side output of the depth branch, never noised).
 
 How the paper's description is read here (section 3.3, our interpretation):
 
@@ -35,6 +40,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from .config import NDNModelConfig
+from .evidence import EVIDENCE_CHANNELS
 
 
 def timestep_embedding(timesteps: torch.Tensor, dim: int) -> torch.Tensor:
@@ -152,11 +158,14 @@ class NDNUNet(nn.Module):
         self.time_mlp = nn.Sequential(nn.Linear(time_dim, time_dim), nn.SiLU(), nn.Linear(time_dim, time_dim))
         self.encoder = ViewEncoder(channels)
         self.context = nn.ModuleList(nn.Conv2d(3 * width, width, 1) for width in channels)
-        self.depth_branch = BranchUNet(3 + 3, 1, channels, channels, time_dim)
-        self.normal_branch = BranchUNet(3, 3, channels, channels, time_dim)
+        # evidence (when read) enters both branches beside their states; the sky logit is a second
+        # output channel of the depth branch
+        evidence = EVIDENCE_CHANNELS if self.config.evidence else 0
+        self.depth_branch = BranchUNet(3 + 3 + evidence, 1 + int(self.config.sky), channels, channels, time_dim)
+        self.normal_branch = BranchUNet(3 + evidence, 3, channels, channels, time_dim)
 
     def forward(self, views: torch.Tensor, depth_state: torch.Tensor, normal_state: torch.Tensor,
-                timesteps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                timesteps: torch.Tensor, evidence: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
         batch = views.shape[0]
         multiple = 2 ** (len(self.channels) - 1)
         if views.shape[1] != 9 or views.shape[-1] % multiple or views.shape[-2] % multiple:
@@ -169,12 +178,22 @@ class NDNUNet(nn.Module):
             grouped = features.reshape(batch, 3 * features.shape[1], *features.shape[-2:])
             context.append(self.context[level](grouped))
             reference.append(features.reshape(batch, 3, features.shape[1], *features.shape[-2:])[:, 0])
-        depth_input = torch.cat([views[:, :3], depth_state.expand(-1, 3, -1, -1)], dim=1)
-        depth_out = self.depth_branch(depth_input, time_embedding, context)
+        depth_input = [views[:, :3], depth_state.expand(-1, 3, -1, -1)]
+        normal_input = [normal_state]
+        if self.config.evidence:
+            if evidence is None:
+                evidence = views.new_zeros((batch, EVIDENCE_CHANNELS, *views.shape[-2:]))
+            depth_input.append(evidence)
+            normal_input.append(evidence)
+        elif evidence is not None:
+            raise ValueError("this network was built without evidence inputs (NDNModelConfig.evidence is off)")
+        depth_out = self.depth_branch(torch.cat(depth_input, dim=1), time_embedding, context)
         fine = (timesteps < self.refine_below).to(views.dtype)[:, None, None, None]
         last = len(reference) - 1
         normal_extras = [reference[level] * fine if level < last else reference[level] for level in range(len(reference))]
-        normal_out = self.normal_branch(normal_state, time_embedding, normal_extras)
+        normal_out = self.normal_branch(torch.cat(normal_input, dim=1), time_embedding, normal_extras)
+        if self.config.sky:
+            return depth_out[:, :1], normal_out, depth_out[:, 1:]
         return depth_out, normal_out
 
 

@@ -166,14 +166,42 @@ def training_tensors(arrays: dict[str, np.ndarray], depth_state: str = "affine",
                      log_range: float = LOG_DEPTH_RANGE) -> dict[str, torch.Tensor]:
     """Shard arrays -> network inputs and targets in [-1, 1]: views [N, 9, h, w], depth state
     [N, 1, h, w] (of kind ``depth_state``, see :func:`.data.depth_to_state`), normal state
-    [N, 3, h, w] (0 where there is no surface), mask [N, 1, h, w]."""
+    [N, 3, h, w] (0 where there is no surface), mask [N, 1, h, w]; also the metric depth
+    ``metric`` [N, h, w] and, when the shards have them, the SfM points' depth ``sfm`` [N, h, w]
+    (an evidence-conditioned network's targets and evidence are drawn from these per batch)."""
     views = torch.from_numpy(arrays["views"].astype(np.float32) / 127.5 - 1.0)
     depth = np.stack([depth_to_state(d, m, depth_state, log_range)
                       for d, m in zip(arrays["depth"], arrays["mask"])])[:, None]
     normal = arrays["normal"] * arrays["mask"][:, None]
-    return {"views": views, "depth": torch.from_numpy(depth.astype(np.float32)),
-            "normal": torch.from_numpy(normal.astype(np.float32)),
-            "mask": torch.from_numpy(arrays["mask"][:, None].copy())}
+    tensors = {"views": views, "depth": torch.from_numpy(depth.astype(np.float32)),
+               "normal": torch.from_numpy(normal.astype(np.float32)),
+               "mask": torch.from_numpy(arrays["mask"][:, None].copy()),
+               "metric": torch.from_numpy(arrays["depth"].astype(np.float32))}
+    if "sfm_depth" in arrays:
+        tensors["sfm"] = torch.from_numpy(arrays["sfm_depth"].astype(np.float32))
+    return tensors
+
+
+def evidence_batch(data: dict[str, torch.Tensor], index: torch.Tensor, flip: bool, config: NDNConfig,
+                   generator: torch.Generator) -> dict[str, torch.Tensor]:
+    """What an evidence-conditioned or sky-predicting network trains on for the triples ``index``
+    (mirrored when ``flip``): the depth state about the drawn evidence's reference, the evidence
+    (:func:`.evidence.draw_evidence`) and the sky target (1 = no surface)."""
+    from .evidence import draw_evidence, target_state
+
+    metric, mask = data["metric"][index], data["mask"][index, 0]
+    sfm = data["sfm"][index] if "sfm" in data else torch.zeros_like(metric)
+    if flip:
+        metric, mask, sfm = metric.flip(-1), mask.flip(-1), sfm.flip(-1)
+    batch: dict[str, torch.Tensor] = {}
+    if config.model.sky:
+        batch["sky"] = (~mask)[:, None].float()
+    if config.model.evidence:
+        log_range = config.diffusion.log_depth_range
+        evidence, reference, _ = draw_evidence(metric, mask, sfm, generator, log_range)
+        batch["evidence"] = evidence
+        batch["depth"] = target_state(metric, mask, reference, log_range)
+    return batch
 
 
 def flip_horizontally(views: torch.Tensor, depth: torch.Tensor, normal: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -300,6 +328,11 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
     if has_validation:
         check_disjoint_splits(data_dir)  # a score on scenes seen in training would choose nothing
         validation = validation_subset(load_shards(data_dir, "validation"), train_config.validation_triples)
+    if config.model.evidence and "sfm_depth" not in arrays:
+        raise CheckpointError("an evidence-conditioned network trains on SfM points, and these shards have none",
+                              path=Path(data_dir) / "shards",
+                              hint="rebuild them with `esgs ndn build-data` (points are on by default) or re-shard the "
+                                   "kept scenes with `esgs ndn shard --split train`")
     data = training_tensors(arrays, config.diffusion.depth_state, config.diffusion.log_depth_range)
     optimizer = torch.optim.AdamW(model.parameters(), lr=train_config.learning_rate,
                                   weight_decay=train_config.weight_decay)
@@ -332,12 +365,18 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
             group["lr"] = learning_rate
         index = torch.randint(0, count, (min(train_config.batch_size, count),), generator=generator)
         views, depth, normal = data["views"][index], data["depth"][index], data["normal"][index]
-        if bool(torch.rand((), generator=generator) < 0.5):
+        flip = bool(torch.rand((), generator=generator) < 0.5)
+        if flip:
             views, depth, normal = flip_horizontally(views, depth, normal)
         if train_config.augment > 0 and bool(torch.rand((), generator=generator) < train_config.augment):
             views = augment_photometric(views, generator)
+        extra_inputs: dict[str, torch.Tensor] = {}
+        if config.model.evidence or config.model.sky:
+            extra_inputs = evidence_batch(data, index, flip, config, generator)
+            depth = extra_inputs.pop("depth", depth)
         loss, parts = diffusion.training_loss(model, views, depth, normal, generator=generator,
-                                              normal_weight=train_config.normal_weight)
+                                              normal_weight=train_config.normal_weight,
+                                              sky_weight=train_config.sky_weight, **extra_inputs)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -360,7 +399,8 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
                 diffusion.config.sample_reduce = train_config.validation_reduce or reduce
                 scores = mean_scores(evaluate_arrays(scored, diffusion, validation, seed=0,
                                                      steps=train_config.validation_steps or None,
-                                                     ensemble=train_config.validation_ensemble or None))
+                                                     ensemble=train_config.validation_ensemble or None,
+                                                     evidence_mode="sfm" if config.model.evidence else "none"))
                 extra["validation_reduce"] = diffusion.config.sample_reduce
                 diffusion.config.sample_reduce = reduce  # the model's own setting stays as saved
                 scores["score"] = selection_score(scores)
