@@ -1,0 +1,210 @@
+"""Full-image evaluation of the learned completion against what a scene already has.
+
+Every surface pixel of every view counts (not only the pixels a source covers): a source that
+leaves holes is scored after the filling a user would get. Rows, per evaluation set:
+
+- ``sfm_interpolated``: the view's triangulated points, interpolated (linear, nearest outside
+  their hull), normals from the interpolated depth;
+- ``stereo_filled``: the ``auto`` prior as shipped before the completion network (stereo labels
+  from ``esgs labels --reconstruct``, the shipped NDN pinned to the SfM points where labels are
+  missing, SfM points), its remaining holes filled by the SfM interpolation;
+- ``<weights>:none`` / ``:sfm`` / ``:sfm_stereo``: a completion network (or any NDN weights) with
+  no evidence, with the SfM points, with the points and the real stereo labels.
+
+Depth is scored after the robust scale/shift fit the trainer uses (``abs_rel``, ``delta1``) and,
+for rows that are metric, without any alignment (``abs_rel_metric``, ``delta1_metric``);
+normals by their mean angle and share under 11.25 degrees; the sky head by its IoU on views with
+sky. Each set is summarised over all views and over its views with sky (the rover-height ones).
+
+Scene preparation is cached under ``--work``: a copy with triangulated points
+(``esgs.core.experiments.sfm_scene.make_sfm_scene``) and its ``auto`` priors (labels, shipped NDN,
+fusion). The SfM evidence is the same triangulation the training shards hold
+(``scene_triples(..., sfm_points=True)``).
+
+    .venv/bin/python benchmarks/ndn_completion.py --set heldout=/work/runs/c25/data/scenes/heldout_* \\
+        --set landform_mixed=... --weights completion=MODEL/checkpoints/step_N.pt --work DIR --json OUT
+"""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # an idle OpenMP worker must not spin beside other jobs
+
+import argparse  # noqa: E402
+import glob  # noqa: E402
+import platform  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+SKY_VIEW_SHARE = 0.02  # a view with at least this share of no-surface pixels is a "view with sky"
+
+
+def prepare_scene(scene: Path, work: Path) -> Path:
+    """The scene's copy with triangulated points and its ``auto`` priors (cached)."""
+    from esgs.core.experiments.sfm_scene import make_sfm_scene
+    from esgs.core.priors.auto import ensure_auto_priors
+
+    copy = work / f"{scene.name}_sfm"
+    if not copy.exists():
+        make_sfm_scene(scene, copy)
+    ensure_auto_priors(copy)
+    return copy
+
+
+def _resize_valid(depth: np.ndarray, valid: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Depth at the working size, averaged over valid pixels; 0 where under half a cell is valid."""
+    from esgs.core.ndn.data import _resize_masked
+
+    small, coverage = _resize_masked(np.where(valid, depth, 0.0), valid, *size)
+    return np.where(coverage > 0.5, small, 0.0).astype(np.float32)
+
+
+def _resize_normals(normal: np.ndarray, valid: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    from esgs.core.ndn.data import _resize_masked
+
+    small, _ = _resize_masked(np.where(valid[..., None], normal, 0.0), valid, *size)
+    length = np.linalg.norm(small, axis=-1, keepdims=True)
+    return (small / np.maximum(length, 1e-6)).transpose(2, 0, 1).astype(np.float32)
+
+
+def _interpolated(sparse: np.ndarray, intrinsics: tuple[float, float, float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """SfM cells [h, w] -> (dense depth [h, w], normals [3, h, w]) at the working size."""
+    from esgs.core.ndn.baselines import densify_sparse_depth, normals_from_depth
+
+    height, width = sparse.shape
+    rows, columns = np.nonzero(sparse > 0)
+    dense = densify_sparse_depth(np.stack([columns + 0.5, rows + 0.5], axis=1), sparse[rows, columns], width, height)
+    if dense is None:
+        dense = np.ones((height, width), np.float32)
+    return dense, normals_from_depth(dense, *intrinsics).astype(np.float32)
+
+
+def scene_views(scene: Path, copy: Path, working_size: int = 128) -> dict:
+    """Everything the rows need for one scene at the working size."""
+    from esgs.core.colmap import read_model
+    from esgs.core.ndn.data import scene_triples
+    from esgs.core.priors.io import load_prior_maps
+
+    triples = scene_triples(scene, working_size, 4, sfm_points=True)
+    width, height = triples.views.shape[-1], triples.views.shape[-2]
+    model = read_model(scene, use_pycolmap=False)
+    camera = next(iter(model.cameras.values()))
+    full_width, full_height = triples.image_sizes[0]
+    fx, fy, cx, cy = (float(v) for v in camera.params[:4])
+    intrinsics = (fx * width / full_width, fy * height / full_height, cx * width / full_width, cy * height / full_height)
+    stereo, auto_depth, auto_normal = [], [], []
+    for name in triples.names:
+        labels = load_prior_maps(copy, "labels", name, size=(full_width, full_height))
+        valid = labels.mask & (labels.depth > 0)
+        stereo.append(_resize_valid(labels.depth, valid, (width, height)))
+        fused = load_prior_maps(copy, "auto", name, size=(full_width, full_height))
+        valid = fused.mask & (fused.depth > 0)
+        auto_depth.append(_resize_valid(fused.depth, valid, (width, height)))
+        normal = fused.normal if fused.normal is not None else np.zeros((full_height, full_width, 3), np.float32)
+        has_normal = valid & (np.linalg.norm(normal, axis=-1) > 0.5)
+        auto_normal.append(np.where(_resize_valid(np.ones_like(fused.depth), has_normal, (width, height))[None] > 0,
+                                    _resize_normals(normal, has_normal, (width, height)), 0.0))
+    return {"names": triples.names, "views": triples.views, "depth": triples.depth, "normal": triples.normal,
+            "mask": triples.mask, "sfm_depth": triples.sfm_depth, "stereo_depth": np.stack(stereo),
+            "auto_depth": np.stack(auto_depth), "auto_normal": np.stack(auto_normal), "intrinsics": intrinsics}
+
+
+def baseline_rows(data: dict) -> dict[str, list[dict]]:
+    """Scores of the rows that need no network, per view."""
+    from esgs.core.ndn.infer import metric_depth_scores, score_view
+
+    rows: dict[str, list[dict]] = {"sfm_interpolated": [], "stereo_filled": []}
+    for index in range(len(data["names"])):
+        truth = (data["depth"][index], data["normal"][index], data["mask"][index])
+        dense, normals = _interpolated(data["sfm_depth"][index], data["intrinsics"])
+        rows["sfm_interpolated"].append({**score_view(dense, normals, *truth), **metric_depth_scores(dense, truth[0], truth[2])})
+        fused = data["auto_depth"][index]
+        filled = np.where(fused > 0, fused, dense)
+        fused_normal = data["auto_normal"][index]
+        normal = np.where(np.linalg.norm(fused_normal, axis=0, keepdims=True) > 0.5, fused_normal, normals)
+        rows["stereo_filled"].append({**score_view(filled, normal, *truth), **metric_depth_scores(filled, truth[0], truth[2]),
+                                      "hole_share": float(((fused <= 0) & truth[2]).sum() / max(truth[2].sum(), 1))})
+    return rows
+
+
+def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: int | None,
+                 ensemble: int | None) -> dict[str, list[dict]]:
+    """Scores of one set of weights under each evidence mode, per view (with seconds per view)."""
+    from esgs.core.ndn.checkpoint import load_checkpoint
+    from esgs.core.ndn.infer import evaluate_arrays
+
+    model, diffusion, config, _ = load_checkpoint(weights)
+    arrays = {key: data[key] for key in ("views", "depth", "normal", "mask", "sfm_depth", "stereo_depth")}
+    rows = {}
+    for mode in modes if config.model.evidence else ["none"]:
+        started = time.process_time()
+        scores = evaluate_arrays(model, diffusion, arrays, steps=steps, ensemble=ensemble, evidence_mode=mode)
+        seconds = (time.process_time() - started) / max(len(scores), 1)
+        rows[f"{name}:{mode}"] = [{**s, "cpu_s_per_view": seconds} for s in scores]
+    return rows
+
+
+def summarise(per_view: list[dict], sky_views: list[bool]) -> dict:
+    from esgs.core.ndn.infer import mean_scores
+
+    chosen = [s for s, sky in zip(per_view, sky_views) if sky]
+    return {"views": len(per_view), "all": mean_scores(per_view),
+            "views_with_sky": {"views": len(chosen), **mean_scores(chosen)} if chosen else None}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--set", action="append", required=True, metavar="NAME=GLOB[,GLOB]",
+                        help="an evaluation set: scene folders (globs)")
+    parser.add_argument("--weights", action="append", default=[], metavar="NAME=PATH", help="network weights to score")
+    parser.add_argument("--modes", nargs="+", default=["none", "sfm", "sfm_stereo"], help="evidence modes")
+    parser.add_argument("--steps", type=int, default=None, help="DDIM steps of diffusion weights (default: theirs)")
+    parser.add_argument("--ensemble", type=int, default=None, help="samples per view of diffusion weights")
+    parser.add_argument("--work", type=Path, required=True, help="cache of prepared scene copies")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--json", type=Path, required=True)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    args.work.mkdir(parents=True, exist_ok=True)
+    weights = [(text.partition("=")[0], Path(text.partition("=")[2])) for text in args.weights]
+    result: dict = {"what": "full-image scores of the learned completion against SfM and stereo labels with "
+                            "today's hole filling (benchmarks/ndn_completion.py)",
+                    "command": " ".join([Path(sys.executable).name, *sys.argv]), "machine": platform.node(),
+                    "weights": {name: str(path) for name, path in weights}, "sets": {}}
+    for text in args.set:
+        set_name, _, patterns = text.partition("=")
+        scenes = sorted(Path(p) for pattern in patterns.split(",") for p in glob.glob(pattern))
+        per_row: dict[str, list[dict]] = {}
+        sky_views: list[bool] = []
+        view_names: list[str] = []
+        for scene in scenes:
+            print(f"[{set_name}] {scene.name}", flush=True)
+            copy = prepare_scene(scene, args.work)
+            data = scene_views(scene, copy)
+            sky_views += [float((~mask).mean()) >= SKY_VIEW_SHARE for mask in data["mask"]]
+            view_names += [f"{scene.name}/{name}" for name in data["names"]]
+            rows = baseline_rows(data)
+            for name, path in weights:
+                rows.update(network_rows(name, path, data, args.modes, args.steps, args.ensemble))
+            for row, scores in rows.items():
+                per_row.setdefault(row, []).extend(scores)
+        result["sets"][set_name] = {"scenes": [str(s) for s in scenes], "views": view_names,
+                                    "rows": {row: summarise(scores, sky_views) for row, scores in per_row.items()},
+                                    "per_view": per_row}
+        from esgs.core.io_utils import atomic_write_json
+
+        atomic_write_json(args.json, result)  # after every set: a long run keeps what it has
+        for row, summary in result["sets"][set_name]["rows"].items():
+            a = summary["all"]
+            print(f"  {row:32s} AbsRel {a['abs_rel']:.4f} d1 {a['delta1']:.3f} normals {a['normal_mean_deg']:.1f} "
+                  f"metric {a.get('abs_rel_metric', float('nan')):.4f} sky {a.get('sky_iou', float('nan')):.3f}",
+                  flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
