@@ -85,12 +85,48 @@ def maps_from_states(depth_state: np.ndarray, normal_state: np.ndarray,
     return np.where(mask, relative, 0.0).astype(np.float32), np.where(mask[..., None], normal, 0.0), mask
 
 
+def scene_evidence(scene_dir: str | Path, triples: SceneTriples, *, stereo_source: str | None = "labels",
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The evidence an evidence-conditioned network reads for a scene's views, at the working size:
+    (SfM depth [N, h, w] from the scene's own points as each view observes them, stereo depth
+    [N, h, w] from ``priors/<stereo_source>`` where that folder exists, else zeros)."""
+    from ..colmap import read_model
+    from ..priors import load_prior_maps
+    from ..priors.sfm import sparse_depth_map
+    from .data import _resize_masked
+    from .evidence import bin_sparse_depth
+
+    model = read_model(scene_dir, use_pycolmap=False)
+    by_name = {image.name: image for image in model.images.values()}
+    count, height, width = len(triples.names), triples.views.shape[-2], triples.views.shape[-1]
+    sfm = np.zeros((count, height, width), np.float32)
+    stereo = np.zeros((count, height, width), np.float32)
+    has_stereo = stereo_source is not None and SceneDir(scene_dir).has_prior_maps(stereo_source, "depth")
+    for index, (name, size) in enumerate(zip(triples.names, triples.image_sizes)):
+        sparse = sparse_depth_map(model, by_name[name].image_id)
+        rows, columns = np.nonzero(sparse > 0)
+        points = np.stack([columns + 0.5, rows + 0.5], axis=1)
+        sfm[index] = bin_sparse_depth(points, sparse[rows, columns], (sparse.shape[1], sparse.shape[0]), (width, height))
+        if has_stereo:
+            labels = load_prior_maps(scene_dir, stereo_source, name, size=size)
+            valid = labels.mask & (labels.depth > 0) if labels.depth is not None else np.zeros(labels.shape, bool)
+            if valid.any() and not labels.relative_depth:
+                small, coverage = _resize_masked(np.where(valid, labels.depth, 0.0), valid, width, height)
+                stereo[index] = np.where(coverage > 0.5, small, 0.0)
+    return sfm, stereo
+
+
 def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *, steps: int | None = None, seed: int = 0,
                      batch_size: int = 4, progress: ProgressCallback = no_progress) -> int:
     """Predict and write ``SCENE/priors/ndn/`` for every view of the scene; returns the view count.
 
     ``weights``: a weights/checkpoint file or a model folder (``weights.pt`` or latest checkpoint);
     None means ``$ESGS_NDN_WEIGHTS`` or else the weights shipped with the package.
+
+    Weights that read evidence get each view's SfM points and, where ``priors/labels`` exists,
+    its stereo labels (:func:`scene_evidence`); their depth is then written in metres (a view
+    without any evidence stays relative). Weights with a sky head mark the sky: their pixels
+    with sky probability above one half are left out of the mask and written as ``sky``.
     """
     import os
     import shutil
@@ -100,6 +136,7 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
     from ..io_utils import atomic_directory
     from ..priors import prior_dir, write_prior_maps
 
+    from .evidence import depth_from_state, encode_evidence, evidence_reference
     from .shipped import resolve_default_weights
 
     scene_dir = Path(scene_dir)
@@ -109,18 +146,33 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
                                           with_targets=False)
     views = torch.from_numpy(triples.views.astype(np.float32) / 127.5 - 1.0)
     total = len(triples.names)
-    depth_states, normal_states = [], []
+    log_range = config.diffusion.log_depth_range
+    evidence = reference = None
+    if config.model.evidence:
+        sfm, stereo = scene_evidence(scene_dir, triples)
+        sfm_t, stereo_t = torch.from_numpy(sfm), torch.from_numpy(stereo)
+        reference = evidence_reference(sfm_t, stereo_t)
+        evidence = encode_evidence(sfm_t, stereo_t, reference, log_range)
+    depth_states, normal_states, sky_maps = [], [], []
     batch_size = views_per_batch(batch_size, diffusion)
     for start in range(0, total, batch_size):
         progress(ProgressEvent(start, total, "ndn-infer"))
-        depth, normal = diffusion.sample(model, views[start:start + batch_size], steps=steps, seed=seed + start)
+        part = slice(start, start + batch_size)
+        depth, normal, sky = diffusion.sample(model, views[part], steps=steps, seed=seed + start,
+                                              evidence=evidence[part] if evidence is not None else None,
+                                              return_sky=True)
         depth_states.append(depth.numpy())
         normal_states.append(normal.numpy())
+        sky_maps.append(sky.numpy() if sky is not None else None)
     depth_states_all, normal_states_all = np.concatenate(depth_states), np.concatenate(normal_states)
+    sky_all = np.concatenate(sky_maps) if sky_maps and sky_maps[0] is not None else None
     metadata = {"method": "ndn", "weights": str(weights), "ddim_steps": str(steps or config.diffusion.sample_steps),
                 "seed": str(seed), "depth_state": config.diffusion.depth_state}
     if config.diffusion.depth_state == "log":
         metadata["log_depth_range"] = str(config.diffusion.log_depth_range)
+    if config.model.evidence:
+        metadata["evidence"] = "sfm points" + (" + stereo labels" if evidence is not None and bool(evidence[:, 3].any())
+                                               else "")
     # all maps go to a staging folder that replaces priors/ndn only when complete: a failure
     # never leaves a mix of old and new views
     priors = SceneDir(scene_dir).priors
@@ -130,17 +182,50 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
         for index, name in enumerate(triples.names):
             image = read_image(SceneDir(scene_dir).image(name))
             image = np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
-            depth, normal, mask = maps_from_states(depth_states_all[index, 0], normal_states_all[index], image,
-                                                   kind=config.diffusion.depth_state,
-                                                   log_range=config.diffusion.log_depth_range)
-            write_prior_maps(work, "ndn", name, depth=depth, normal=normal, mask=mask, relative_depth=True,
-                             units="relative", metadata=metadata, mask_kind="surface")
+            state = depth_states_all[index, 0]
+            # metric where the view had evidence (its reference depth is known), else relative
+            metric = bool(reference is not None and float(reference[index]) > 0)
+            if metric:
+                in_metres = depth_from_state(torch.from_numpy(state)[None, None], reference[index:index + 1], log_range)
+                depth, normal, mask = metric_maps(in_metres[0, 0].numpy(), normal_states_all[index], image)
+            else:
+                depth, normal, mask = maps_from_states(state, normal_states_all[index], image,
+                                                       kind=config.diffusion.depth_state, log_range=log_range)
+            sky = None
+            if sky_all is not None:
+                sky = upsample_probability(sky_all[index, 0], image) > 0.5
+                mask &= ~sky
+                depth, normal = np.where(mask, depth, 0.0).astype(np.float32), np.where(mask[..., None], normal, 0.0)
+            write_prior_maps(work, "ndn", name, depth=depth, normal=normal, mask=mask, relative_depth=not metric,
+                             units="m" if metric else "relative", metadata=metadata, mask_kind="surface", sky=sky)
         with atomic_directory(prior_dir(scene_dir, "ndn"), overwrite=True) as staging:
             os.replace(prior_dir(work, "ndn"), staging)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     progress(ProgressEvent(total, total, "ndn-infer", kind="done"))
     return total
+
+
+def upsample_probability(probability: np.ndarray, guide_rgb: np.ndarray) -> np.ndarray:
+    """A [h, w] probability map at the guide's size (image-guided, clipped to [0, 1])."""
+    return np.clip(guided_upsample(probability, guide_rgb), 0.0, 1.0)
+
+
+def metric_maps(depth: np.ndarray, normal_state: np.ndarray,
+                guide_rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One view's metric depth [h, w] and normal state [3, h, w] -> (depth [H, W] in metres,
+    unit normals [H, W, 3], surface mask [H, W]) at the guide's size, as :func:`maps_from_states`."""
+    import cv2
+
+    height, width = guide_rgb.shape[:2]
+    normal = guided_upsample(normal_state.transpose(1, 2, 0), guide_rgb)
+    surface = cv2.resize((np.linalg.norm(normal_state, axis=0) > SURFACE_NORMAL_LENGTH).astype(np.uint8),
+                         (width, height), interpolation=cv2.INTER_NEAREST).astype(bool)
+    # depth is up-sampled in log space: a guided filter's averages must not mix near and far linearly
+    depth = np.exp(guided_upsample(np.log(np.maximum(depth, 1e-6)), guide_rgb))
+    length = np.linalg.norm(normal, axis=-1, keepdims=True)
+    normal = np.where(length > 1e-6, normal / np.maximum(length, 1e-6), 0.0).astype(np.float32)
+    return np.where(surface, depth, 0.0).astype(np.float32), np.where(surface[..., None], normal, 0.0), surface
 
 
 def depth_metrics(relative: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> dict[str, float]:

@@ -184,3 +184,42 @@ def test_evaluation_evidence_and_the_sky_iou():
     half[:, :12] = 0.1  # half of the sky missed
     assert sky_iou(half, surface) == pytest.approx(0.5)
     assert sky_iou(np.zeros((4, 4)), np.ones((4, 4), bool)) is None  # no sky anywhere: says nothing
+
+
+def _constant_network(tmp_path, state: float, sky_logit: float):
+    """A tiny evidence + sky network whose outputs are constants (output weights zero, biases set)."""
+    from esgs.core.ndn.checkpoint import save_checkpoint
+
+    config = completion_config()
+    config.model.working_size = 48
+    model, _ = build_model(config)
+    with torch.no_grad():
+        model.depth_branch.output.bias.copy_(torch.tensor([state, sky_logit]))
+        model.normal_branch.output.bias.copy_(torch.tensor([0.0, 0.0, -1.0]))
+    return save_checkpoint(tmp_path / f"weights_{sky_logit:+.0f}.pt", model, config)
+
+
+def test_written_priors_are_metric_about_the_evidence_and_the_sky_head_marks_the_sky(scene, tmp_path):
+    from esgs.core.ndn.infer import write_ndn_priors
+    from esgs.core.priors import load_prior_maps, write_prior_maps
+
+    truth = {}
+    for index in range(4):  # stereo labels on the lower part of each view: the evidence
+        name = f"view_{index:03d}.png"
+        gt = load_prior_maps(scene, "gt", name)
+        labels = gt.mask.copy()
+        labels[:14] = False
+        write_prior_maps(scene, "labels", name, depth=np.where(labels, gt.depth, 0).astype(np.float32), mask=labels)
+        truth[name] = gt.depth[labels]
+    state = 0.2
+    write_ndn_priors(scene, _constant_network(tmp_path, state, sky_logit=-5.0))
+    for name, labelled in truth.items():
+        maps = load_prior_maps(scene, "ndn", name)
+        assert not maps.relative_depth and maps.mask.all() and not maps.sky.any()
+        # the reference is the median of the labels at the working size: close to the full-size median
+        implied_reference = maps.depth / math.exp(LOG_RANGE * state)
+        np.testing.assert_allclose(implied_reference, np.median(labelled), rtol=0.03)
+        assert float(implied_reference.std()) < 1e-3 * float(implied_reference.mean())  # one constant, in metres
+    write_ndn_priors(scene, _constant_network(tmp_path, state, sky_logit=5.0))
+    maps = load_prior_maps(scene, "ndn", "view_000.png")
+    assert maps.sky.all() and not maps.mask.any() and not maps.depth.any()  # the trainer's format: sky, no surface
