@@ -5,7 +5,9 @@ The scene is the Navcam station of ../shared/data/mars_navcam_pan registered by
 frames pointing closest to it). For a few frames this writes
 ``docs/images/ndn_navcam_<stem>.png``: the frame | predicted relative depth (turbo
 colour map, dark blue = near, red = far, black = no surface) | predicted normals
-(camera frame, RGB = (n + 1) / 2 with OpenCV axes), each 192 px wide.
+(camera frame, RGB = (n + 1) / 2 with OpenCV axes) | with weights that have a sky head, the
+sky probability (white = sky; the depth and normal panels are black where it is above one
+half), each 192 px wide.
 
     esgs dataset rotation-only ../shared/data/mars_navcam_pan/images --out STATION --focal-px 621
     .venv/bin/python benchmarks/ndn_navcam_figures.py STATION [--weights W] [--frames 4]
@@ -23,7 +25,8 @@ DOC_FIGURES = REPO.joinpath("docs", "images")
 PANEL = 192
 
 
-def navcam_figures(scene_dir: Path, out_dir: Path, weights=None, frames: int = 4, seed: int = 0) -> list[Path]:
+def navcam_figures(scene_dir: Path, out_dir: Path, weights=None, frames: int = 4, seed: int = 0,
+                   prefix: str = "ndn_navcam") -> list[Path]:
     """Write one PNG per chosen frame (evenly spaced over the sorted names); returns the paths."""
     import cv2
     import torch
@@ -39,7 +42,7 @@ def navcam_figures(scene_dir: Path, out_dir: Path, weights=None, frames: int = 4
     triples = scene_triples(scene_dir, config.model.working_size, 2 ** (config.model.levels - 1), with_targets=False)
     picks = np.linspace(0, len(triples.names) - 1, frames).round().astype(int)
     views = torch.from_numpy(triples.views[picks].astype(np.float32) / 127.5 - 1.0)
-    depth_states, normal_states = diffusion.sample(model, views, seed=seed)
+    depth_states, normal_states, sky = diffusion.sample(model, views, seed=seed, return_sky=True)
     paths = []
     for row, index in enumerate(picks):
         name = triples.names[index]
@@ -49,6 +52,12 @@ def navcam_figures(scene_dir: Path, out_dir: Path, weights=None, frames: int = 4
         relative, normal, mask = maps_from_states(depth_states[row, 0].numpy(), normal_states[row].numpy(), small,
                                                   kind=config.diffusion.depth_state,
                                                   log_range=config.diffusion.log_depth_range)
+        panels = []
+        if sky is not None:
+            sky_probability = np.clip(cv2.resize(sky[row, 0].numpy(), small.shape[1::-1], interpolation=cv2.INTER_LINEAR),
+                                      0.0, 1.0)
+            mask &= sky_probability <= 0.5
+            panels.append(np.repeat((sky_probability * 255).astype(np.uint8)[..., None], 3, axis=-1))
         # colour by the view's own depth range: affine states give [1, 2], log states exp(c * state)
         low, high = np.percentile(relative[mask], (1, 99)) if mask.any() else (0.0, 1.0)
         depth_byte = np.clip((relative - low) / max(high - low, 1e-6) * 255.0, 0, 255).astype(np.uint8)
@@ -56,8 +65,8 @@ def navcam_figures(scene_dir: Path, out_dir: Path, weights=None, frames: int = 4
         depth_rgb[~mask] = 0
         normal_rgb = np.clip((normal + 1.0) * 127.5, 0, 255).astype(np.uint8)
         normal_rgb[~mask] = 0
-        path = out_dir / f"ndn_navcam_{Path(name).stem}.png"
-        write_png(path, np.concatenate([small, depth_rgb, normal_rgb], axis=1))
+        path = out_dir / f"{prefix}_{Path(name).stem}.png"
+        write_png(path, np.concatenate([small, depth_rgb, normal_rgb, *panels], axis=1))
         paths.append(path)
     return paths
 
@@ -68,13 +77,14 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=DOC_FIGURES)
     parser.add_argument("--weights", default=None, help="default: the shipped weights")
     parser.add_argument("--frames", type=int, default=4)
+    parser.add_argument("--prefix", default="ndn_navcam", help="file name prefix of the figures")
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
 
     import torch
 
     torch.set_num_threads(args.threads)
-    for path in navcam_figures(args.scene, args.out, args.weights, args.frames):
+    for path in navcam_figures(args.scene, args.out, args.weights, args.frames, prefix=args.prefix):
         print(f"wrote {path}")
     return 0
 
