@@ -57,6 +57,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                           help="samples per view combined per pixel (default: the model's sample_ensemble)")
     evaluate.add_argument("--reduce", choices=("median", "mean"), default=None,
                           help="how an ensemble is combined (default: the model's sample_reduce)")
+    evaluate.add_argument("--evidence", choices=("none", "sfm"), default="sfm",
+                          help="what an evidence-conditioned network reads: the shards' SfM points (default) or nothing")
     evaluate.add_argument("--json", type=Path, default=None, help="also write the scores to this JSON file")
 
     shard = sub.add_parser("shard", help="add scene folders (with priors/gt) to a data folder as shards")
@@ -97,7 +99,8 @@ def run(args: argparse.Namespace) -> int:
         from ..ndn.infer import evaluate_ndn
 
         scores = evaluate_ndn(args.model, args.data, split=args.split, steps=args.steps, seed=args.seed,
-                              limit=args.limit, ensemble=args.ensemble, reduce=args.reduce, progress=bar)
+                              limit=args.limit, ensemble=args.ensemble, reduce=args.reduce,
+                              evidence_mode=args.evidence, progress=bar)
         bar.close()
         print(json.dumps(scores, indent=2))
         if args.json:

@@ -366,12 +366,13 @@ def metric_depth_scores(depth: np.ndarray, truth: np.ndarray, mask: np.ndarray) 
 
 def evaluate_ndn(weights: str | Path, data_dir: str | Path, *, split: str = "heldout", steps: int | None = None,
                  seed: int = 0, limit: int = 0, ensemble: int | None = None, reduce: str | None = None,
-                 progress: ProgressCallback = no_progress) -> dict:
+                 evidence_mode: str = "sfm", progress: ProgressCallback = no_progress) -> dict:
     """Scores on a data split: mean AbsRel and delta1 (depth after scale/shift alignment),
     normal mean angular error and the fraction within 11.25 deg, over surface pixels, and the
     same means per scene (``per_scene``: shard stem -> scores, with its ``views`` count).
-    ``steps``, ``ensemble`` and ``reduce`` override the model's sampling settings."""
-    model, diffusion, _, _ = load_checkpoint(weights)
+    ``steps``, ``ensemble`` and ``reduce`` override the model's sampling settings; an
+    evidence-conditioned network reads ``evidence_mode`` evidence (:func:`arrays_evidence`)."""
+    model, diffusion, config, _ = load_checkpoint(weights)
     if reduce:
         diffusion.config.sample_reduce = reduce
         diffusion.config.validate()
@@ -379,7 +380,9 @@ def evaluate_ndn(weights: str | Path, data_dir: str | Path, *, split: str = "hel
     if limit:
         arrays = {key: value[:limit] for key, value in arrays.items()}
     scenes = arrays.pop("scene")
-    per_view = evaluate_arrays(model, diffusion, arrays, steps=steps, seed=seed, ensemble=ensemble, progress=progress)
-    return {"split": split, "views": len(per_view), "ddim_steps": steps or diffusion.config.sample_steps,
+    evidence_mode = evidence_mode if config.model.evidence else "none"
+    per_view = evaluate_arrays(model, diffusion, arrays, steps=steps, seed=seed, ensemble=ensemble,
+                               evidence_mode=evidence_mode, progress=progress)
+    return {"split": split, "evidence": evidence_mode, "views": len(per_view), "ddim_steps": steps or diffusion.config.sample_steps,
             "ensemble": ensemble or diffusion.config.sample_ensemble, "reduce": diffusion.config.sample_reduce,
             **mean_scores(per_view), "per_scene": scores_by_scene(per_view, scenes)}
