@@ -9,7 +9,9 @@ leaves holes is scored after the filling a user would get. Rows, per evaluation 
   from ``esgs labels --reconstruct``, the shipped NDN pinned to the SfM points where labels are
   missing, SfM points), its remaining holes filled by the SfM interpolation;
 - ``<weights>:none`` / ``:sfm`` / ``:sfm_stereo``: a completion network (or any NDN weights) with
-  no evidence, with the SfM points, with the points and the real stereo labels.
+  no evidence, with the SfM points, with the points and the real stereo labels;
+- ``<weights>:fused``: the stereo labels where they hold a value, the network's ``sfm_stereo``
+  output elsewhere (the fusion ``priors/auto`` makes).
 
 Depth is scored after the robust scale/shift fit the trainer uses (``abs_rel``, ``delta1``) and,
 for rows that are metric, without any alignment (``abs_rel_metric``, ``delta1_metric``);
@@ -96,11 +98,13 @@ def scene_views(scene: Path, copy: Path, working_size: int = 128) -> dict:
     full_width, full_height = triples.image_sizes[0]
     fx, fy, cx, cy = (float(v) for v in camera.params[:4])
     intrinsics = (fx * width / full_width, fy * height / full_height, cx * width / full_width, cy * height / full_height)
-    stereo, auto_depth, auto_normal = [], [], []
+    stereo, stereo_normal, auto_depth, auto_normal = [], [], [], []
     for name in triples.names:
         labels = load_prior_maps(copy, "labels", name, size=(full_width, full_height))
         valid = labels.mask & (labels.depth > 0)
         stereo.append(_resize_valid(labels.depth, valid, (width, height)))
+        stereo_normal.append(_resize_normals(labels.normal, valid, (width, height)) if labels.normal is not None
+                             else np.zeros((3, height, width), np.float32))
         fused = load_prior_maps(copy, "auto", name, size=(full_width, full_height))
         valid = fused.mask & (fused.depth > 0)
         auto_depth.append(_resize_valid(fused.depth, valid, (width, height)))
@@ -110,6 +114,7 @@ def scene_views(scene: Path, copy: Path, working_size: int = 128) -> dict:
                                     _resize_normals(normal, has_normal, (width, height)), 0.0))
     return {"names": triples.names, "views": triples.views, "depth": triples.depth, "normal": triples.normal,
             "mask": triples.mask, "sfm_depth": triples.sfm_depth, "stereo_depth": np.stack(stereo),
+            "stereo_normal": np.stack(stereo_normal),
             "auto_depth": np.stack(auto_depth), "auto_normal": np.stack(auto_normal), "intrinsics": intrinsics}
 
 
@@ -133,18 +138,49 @@ def baseline_rows(data: dict) -> dict[str, list[dict]]:
 
 def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: int | None,
                  ensemble: int | None) -> dict[str, list[dict]]:
-    """Scores of one set of weights under each evidence mode, per view (with seconds per view)."""
+    """Scores of one set of weights under each evidence mode, per view (with CPU seconds per view).
+
+    With the stereo mode, a ``<name>:fused`` row too: the stereo labels (depth and normals) where
+    they are valid, the network's metric output elsewhere (what ``priors/auto`` does with them).
+    """
     from esgs.core.ndn.checkpoint import load_checkpoint
-    from esgs.core.ndn.infer import evaluate_arrays
+    from esgs.core.ndn.data import state_to_relative_depth
+    from esgs.core.ndn.evidence import depth_from_state
+    from esgs.core.ndn.infer import arrays_evidence, metric_depth_scores, score_view, sky_iou
 
     model, diffusion, config, _ = load_checkpoint(weights)
-    arrays = {key: data[key] for key in ("views", "depth", "normal", "mask", "sfm_depth", "stereo_depth")}
-    rows = {}
+    log_range = config.diffusion.log_depth_range
+    views = torch.from_numpy(data["views"].astype(np.float32) / 127.5 - 1.0)
+    rows: dict[str, list[dict]] = {}
     for mode in modes if config.model.evidence else ["none"]:
-        started = time.process_time()
-        scores = evaluate_arrays(model, diffusion, arrays, steps=steps, ensemble=ensemble, evidence_mode=mode)
-        seconds = (time.process_time() - started) / max(len(scores), 1)
-        rows[f"{name}:{mode}"] = [{**s, "cpu_s_per_view": seconds} for s in scores]
+        for index in range(views.shape[0]):
+            truth = (data["depth"][index], data["normal"][index], data["mask"][index])
+            started = time.process_time()
+            evidence, reference = arrays_evidence(data, index, mode, log_range) if config.model.evidence else (None, None)
+            state, normal, sky = diffusion.sample(model, views[index:index + 1], steps=steps, seed=index,
+                                                  ensemble=ensemble, evidence=evidence, return_sky=True)
+            seconds = time.process_time() - started
+            normal = normal[0].numpy()
+            if reference is not None:
+                depth = depth_from_state(state, reference, log_range)[0, 0].numpy()
+            else:
+                depth = state_to_relative_depth(state[0, 0].numpy(), config.diffusion.depth_state, log_range)
+            scores = {**score_view(depth, normal, *truth), "cpu_s_per_view": seconds}
+            if reference is not None:
+                scores.update(metric_depth_scores(depth, truth[0], truth[2]))
+            if sky is not None:
+                iou = sky_iou(sky[0, 0].numpy(), truth[2])
+                if iou is not None:
+                    scores["sky_iou"] = iou
+            rows.setdefault(f"{name}:{mode}", []).append(scores)
+            if mode == "sfm_stereo" and reference is not None:
+                stereo = data["stereo_depth"][index]
+                fused_depth = np.where(stereo > 0, stereo, depth)
+                stereo_normal = data["stereo_normal"][index]
+                has_normal = (stereo > 0) & (np.linalg.norm(stereo_normal, axis=0) > 0.5)
+                fused_normal = np.where(has_normal[None], stereo_normal, normal)
+                rows.setdefault(f"{name}:fused", []).append(
+                    {**score_view(fused_depth, fused_normal, *truth), **metric_depth_scores(fused_depth, truth[0], truth[2])})
     return rows
 
 
