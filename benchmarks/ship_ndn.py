@@ -80,8 +80,17 @@ def build_data_command(data_dir: Path, plan: dict) -> str:
                       f"--samples {plan['samples']} --working-size {plan['working_size']}")
 
 
-def output_line(diffusion: dict) -> str:
-    """How to read the shipped depth output, by the weights' depth state."""
+def output_line(diffusion: dict, model: dict | None = None) -> str:
+    """How to read the shipped depth output, by the weights' depth state (and evidence inputs)."""
+    model = model or {}
+    if model.get("evidence"):
+        return ("- Output: depth in metres about each view's evidence (the scene's SfM points and, where "
+                "`priors/labels` exists, its stereo labels: `reference x exp("
+                f"{diffusion.get('log_depth_range', 2.5)} x state)` with the evidence's median as reference; relative "
+                "for a view without evidence), unit camera-frame normals (OpenCV axes)"
+                + (" and a sky probability (above one half: no surface, written as the priors' sky)" if model.get("sky")
+                   else "") + " at 128 px on the long side, guided-upsampled to the image size. Held-out scores below "
+                "read the shards' triangulated SfM points; the test slice is scored without evidence.")
     if diffusion.get("depth_state", "affine") == "log":
         return (f"- Output: relative depth in the log depth state (`exp({diffusion.get('log_depth_range', 2.5)} x state)`: "
                 "true z depth up to one scale; `fit_scale_shift` recovers it with a shift of ~0) and unit "
@@ -98,7 +107,8 @@ def evaluate_split(model, diffusion, data_dir: Path, split: str) -> dict:
 
     arrays = load_shards(data_dir, split, with_scenes=True)
     scenes = arrays.pop("scene")
-    per_view = evaluate_arrays(model, diffusion, arrays, seed=0)
+    evidence = "sfm" if model.config.evidence and "sfm_depth" in arrays else "none"
+    per_view = evaluate_arrays(model, diffusion, arrays, seed=0, evidence_mode=evidence)
     return {"triples": len(per_view), **mean_scores(per_view), "per_scene": scores_by_scene(per_view, scenes)}
 
 
@@ -256,7 +266,7 @@ def card(step: int, facts: dict, weights: Path, heldout: dict, landform: dict | 
         f"{shipped_diffusion}.",
         f"- Weights: {weights.stat().st_size / 1e6:.1f} MB, float16 (loaded as float32), sha256 `{sha256(weights)[:16]}`, "
         f"training step **{step}**.",
-        output_line(shipped_diffusion),
+        output_line(shipped_diffusion, ndn.get("model", {})),
         "",
         "## Training",
         f"- Data: `{data_dir}` from `esgs ndn build-data` (command below): synthetic Mars scenes of the presets "

@@ -66,6 +66,9 @@ def test_output_line_follows_the_depth_state(ship):
     assert "affine in true z depth" in ship.output_line({})  # weights from before the field: affine
     log_line = ship.output_line({"depth_state": "log", "log_depth_range": 2.5})
     assert "exp(2.5 x state)" in log_line and "affine" not in log_line
+    evidence_line = ship.output_line({"depth_state": "log", "log_depth_range": 2.5}, {"evidence": True, "sky": True})
+    assert "metres" in evidence_line and "sky probability" in evidence_line and "relative depth" not in evidence_line
+    assert "sky" not in ship.output_line({"depth_state": "log"}, {"evidence": True, "sky": False})
 
 
 def test_train_command_names_a_log_state_only_on_the_first_run(ship):
