@@ -223,3 +223,64 @@ def test_written_priors_are_metric_about_the_evidence_and_the_sky_head_marks_the
     write_ndn_priors(scene, _constant_network(tmp_path, state, sky_logit=5.0))
     maps = load_prior_maps(scene, "ndn", "view_000.png")
     assert maps.sky.all() and not maps.mask.any() and not maps.depth.any()  # the trainer's format: sky, no surface
+
+
+def test_scene_evidence_reads_the_points_each_view_observes_and_the_stereo_labels(scene):
+    """The inference evidence: each view's own SfM observations binned to the working size, and
+    the labels (when the scene has them) resized over their valid pixels."""
+    from esgs.core.colmap import read_model
+    from esgs.core.colmap.io import write_model
+    from esgs.core.colmap.model import Point3D
+    from esgs.core.ndn.data import scene_triples
+    from esgs.core.ndn.infer import scene_evidence
+    from esgs.core.priors import load_prior_maps, write_prior_maps
+
+    model = read_model(scene, use_pycolmap=False)
+    camera = model.cameras[1]
+    fx, fy, cx, cy = camera.params
+    gt = load_prior_maps(scene, "gt", "view_000.png")
+    # points on the plane seen by images 1 and 2 (the plane is the same in every camera: they move along x)
+    pixels = np.array([[10.5, 12.5], [30.5, 20.5], [40.5, 8.5]])
+    points, expected = {}, {1: [], 2: []}
+    images = {image_id: image for image_id, image in model.images.items()}
+    for image_id in (1, 2):
+        images[image_id].points2d = np.zeros((0, 2))
+        images[image_id].point3d_ids = np.zeros(0, np.int64)
+    for index, (u, v) in enumerate(pixels):
+        z = float(gt.depth[int(v), int(u)])
+        centre_1 = -images[1].translation
+        world = centre_1 + z * np.array([(u - cx) / fx, (v - cy) / fy, 1.0])
+        track = []
+        for image_id in (1, 2):
+            camera_point = world + images[image_id].translation
+            observed = np.array([fx * camera_point[0] / camera_point[2] + cx, fy * camera_point[1] / camera_point[2] + cy])
+            images[image_id].points2d = np.vstack([images[image_id].points2d, observed])
+            images[image_id].point3d_ids = np.append(images[image_id].point3d_ids, index + 1)
+            track.append((image_id, len(images[image_id].points2d) - 1))
+            expected[image_id].append((observed, camera_point[2]))
+        points[index + 1] = Point3D(index + 1, world, np.array([90, 90, 90], np.uint8), 0.3,
+                                    np.array([t[0] for t in track]), np.array([t[1] for t in track]))
+    model.points = points
+    write_model(model, scene / "sparse" / "0", overwrite=True)
+    triples = scene_triples(scene, 32, 4, with_targets=False)
+    width, height = triples.views.shape[-1], triples.views.shape[-2]
+    sfm, stereo = scene_evidence(scene, triples)
+    assert sfm.shape == stereo.shape == (4, height, width) and not stereo.any()
+    for image_id in (3, 4):  # these views observe nothing
+        assert not sfm[triples.names.index(images[image_id].name)].any()
+    for image_id in (1, 2):
+        view = triples.names.index(images[image_id].name)
+        assert (sfm[view] > 0).sum() == 3
+        for (u, v), z in expected[image_id]:
+            # the keypoint's pixel (sparse_depth_map), then that pixel's centre binned to the working size
+            row = int((np.floor(v) + 0.5) * height / camera.height)
+            column = int((np.floor(u) + 0.5) * width / camera.width)
+            assert sfm[view, row, column] == pytest.approx(z, rel=1e-5)
+    labels = gt.mask.copy()
+    labels[:, :20] = False
+    for name in triples.names:
+        write_prior_maps(scene, "labels", name, depth=np.where(labels, gt.depth, 0).astype(np.float32), mask=labels)
+    _, stereo = scene_evidence(scene, triples)
+    assert (stereo > 0).any() and not stereo[:, :, : (20 * width) // camera.width - 1].any()
+    inside = stereo[0] > 0
+    assert float(np.abs(stereo[0][inside] / np.median(gt.depth[labels]) - 1).max()) < 0.5
