@@ -11,7 +11,8 @@ leaves holes is scored after the filling a user would get. Rows, per evaluation 
 - ``<weights>:none`` / ``:sfm`` / ``:sfm_stereo``: a completion network (or any NDN weights) with
   no evidence, with the SfM points, with the points and the real stereo labels;
 - ``<weights>:fused``: the stereo labels where they hold a value, the network's ``sfm_stereo``
-  output elsewhere (the fusion ``priors/auto`` makes).
+  output elsewhere (the fusion ``priors/auto`` makes); ``:fused_pinned`` the same with the
+  network's depth first fitted to the labels (robust scale and shift, as the trainer aligns).
 
 Depth is scored after the robust scale/shift fit the trainer uses (``abs_rel``, ``delta1``) and,
 for rows that are metric, without any alignment (``abs_rel_metric``, ``delta1_metric``);
@@ -136,6 +137,22 @@ def baseline_rows(data: dict) -> dict[str, list[dict]]:
     return rows
 
 
+def pin_to(depth: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """``depth`` [h, w] after the robust scale/shift fit (``fit_scale_shift``) to ``reference``'s
+    valid pixels (> 0); unchanged with fewer than 20 of them or a fit whose scale is not positive."""
+    from esgs.core.priors.losses import fit_scale_shift
+
+    valid = (reference > 0) & (depth > 0)
+    if int(valid.sum()) < 20:
+        return depth
+    scale, shift = fit_scale_shift(torch.from_numpy(depth[valid].astype(np.float64)),
+                                   torch.from_numpy(reference[valid].astype(np.float64)),
+                                   torch.ones(int(valid.sum()), dtype=torch.bool))
+    if float(scale) <= 0:
+        return depth
+    return np.maximum(float(scale) * depth + float(shift), 1e-3).astype(np.float32)
+
+
 def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: int | None,
                  ensemble: int | None) -> dict[str, list[dict]]:
     """Scores of one set of weights under each evidence mode, per view (with CPU seconds per view).
@@ -181,6 +198,13 @@ def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: 
                 fused_normal = np.where(has_normal[None], stereo_normal, normal)
                 rows.setdefault(f"{name}:fused", []).append(
                     {**score_view(fused_depth, fused_normal, *truth), **metric_depth_scores(fused_depth, truth[0], truth[2])})
+                # the network's depth pinned to the labels by the trainer's robust scale/shift fit before it fills
+                # their holes (a network scale error then cannot reach the filled pixels)
+                pinned = pin_to(depth, stereo)
+                pinned_depth = np.where(stereo > 0, stereo, pinned)
+                rows.setdefault(f"{name}:fused_pinned", []).append(
+                    {**score_view(pinned_depth, fused_normal, *truth),
+                     **metric_depth_scores(pinned_depth, truth[0], truth[2])})
     return rows
 
 
