@@ -155,3 +155,11 @@ def test_shard_command_adds_a_scene_folder_to_a_data_folder(tmp_path, capsys):
     expected = scene_triples(scene, 32, 2)
     np.testing.assert_array_equal(arrays["views"], expected.views)
     np.testing.assert_array_equal(arrays["depth"], expected.depth)
+    # the shard carries the points triangulated from the scene's images, as training reads them
+    assert arrays["sfm_depth"].shape == arrays["depth"].shape
+    # 48x27 random textures give SIFT nothing it can match across views: no point, and none invented
+    # (the triangulation's accuracy on a textured plane is checked above)
+    assert not arrays["sfm_depth"].any()
+    assert main(["ndn", "shard", str(scene), "--data", str(tmp_path / "bare"), "--working-size", "32",
+                 "--multiple", "2", "--no-sfm-points"]) == 0
+    assert "sfm_depth" not in load_shards(tmp_path / "bare", "heldout")
