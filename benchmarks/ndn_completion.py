@@ -137,22 +137,6 @@ def baseline_rows(data: dict) -> dict[str, list[dict]]:
     return rows
 
 
-def pin_to(depth: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """``depth`` [h, w] after the robust scale/shift fit (``fit_scale_shift``) to ``reference``'s
-    valid pixels (> 0); unchanged with fewer than 20 of them or a fit whose scale is not positive."""
-    from esgs.core.priors.losses import fit_scale_shift
-
-    valid = (reference > 0) & (depth > 0)
-    if int(valid.sum()) < 20:
-        return depth
-    scale, shift = fit_scale_shift(torch.from_numpy(depth[valid].astype(np.float64)),
-                                   torch.from_numpy(reference[valid].astype(np.float64)),
-                                   torch.ones(int(valid.sum()), dtype=torch.bool))
-    if float(scale) <= 0:
-        return depth
-    return np.maximum(float(scale) * depth + float(shift), 1e-3).astype(np.float32)
-
-
 def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: int | None,
                  ensemble: int | None) -> dict[str, list[dict]]:
     """Scores of one set of weights under each evidence mode, per view (with CPU seconds per view).
@@ -164,6 +148,7 @@ def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: 
     from esgs.core.ndn.data import state_to_relative_depth
     from esgs.core.ndn.evidence import depth_from_state
     from esgs.core.ndn.infer import arrays_evidence, metric_depth_scores, score_view, sky_iou
+    from esgs.core.priors.auto import pin_relative_depth
 
     model, diffusion, config, _ = load_checkpoint(weights)
     log_range = config.diffusion.log_depth_range
@@ -200,7 +185,8 @@ def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: 
                     {**score_view(fused_depth, fused_normal, *truth), **metric_depth_scores(fused_depth, truth[0], truth[2])})
                 # the network's depth pinned to the labels by the trainer's robust scale/shift fit before it fills
                 # their holes (a network scale error then cannot reach the filled pixels)
-                pinned = pin_to(depth, stereo)
+                pinned = pin_relative_depth(depth, np.ones(depth.shape, bool), stereo)  # None: too few labels
+                pinned = depth if pinned is None else np.where(pinned > 0, pinned, depth)
                 pinned_depth = np.where(stereo > 0, stereo, pinned)
                 rows.setdefault(f"{name}:fused_pinned", []).append(
                     {**score_view(pinned_depth, fused_normal, *truth),
