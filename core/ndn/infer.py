@@ -85,8 +85,8 @@ def maps_from_states(depth_state: np.ndarray, normal_state: np.ndarray,
     return np.where(mask, relative, 0.0).astype(np.float32), np.where(mask[..., None], normal, 0.0), mask
 
 
-def scene_evidence(scene_dir: str | Path, triples: SceneTriples, *, stereo_source: str | None = "labels",
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def scene_evidence(scene_dir: str | Path, triples: SceneTriples, *,
+                   stereo_source: str | None = "labels") -> tuple[np.ndarray, np.ndarray]:
     """The evidence an evidence-conditioned network reads for a scene's views, at the working size:
     (SfM depth [N, h, w] from the scene's own points as each view observes them, stereo depth
     [N, h, w] from ``priors/<stereo_source>`` where that folder exists, else zeros)."""
