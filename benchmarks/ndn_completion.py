@@ -148,7 +148,7 @@ def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: 
     from esgs.core.ndn.data import state_to_relative_depth
     from esgs.core.ndn.evidence import depth_from_state
     from esgs.core.ndn.infer import arrays_evidence, metric_depth_scores, score_view, sky_iou
-    from esgs.core.priors.auto import pin_relative_depth
+    from esgs.core.priors.pinning import pin_relative_depth
 
     model, diffusion, config, _ = load_checkpoint(weights)
     log_range = config.diffusion.log_depth_range

@@ -211,13 +211,13 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
 
 def pin_to_labels(depth: np.ndarray, labels: np.ndarray) -> np.ndarray:
     """A completion's metric depth [h, w] fitted to the view's stereo labels [h, w] (0 = none) by
-    the trainer's robust scale and shift (``priors.auto.pin_relative_depth``), so the pixels it
+    the trainer's robust scale and shift (``priors.pinning.pin_relative_depth``), so the pixels it
     fills continue the labels; unchanged with too few labels or a fit that is not positive.
 
     Why: the network's own scale is less accurate than its shape (held-out AbsRel 0.077 unaligned
     against 0.052 aligned), and labels-then-pinned-completion measured best of the fusions
     (docs/ndn.md, the ``fused_pinned`` row)."""
-    from ..priors.auto import pin_relative_depth
+    from ..priors.pinning import pin_relative_depth
 
     pinned = pin_relative_depth(depth, np.ones(depth.shape, bool), labels)
     return depth if pinned is None else np.where(pinned > 0, pinned, depth).astype(np.float32)

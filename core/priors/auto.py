@@ -44,11 +44,12 @@ from ..errors import ConfigError, ESGSError
 from ..formats.scene_dir import PriorSource, SceneDir
 from ..io_utils import atomic_directory
 from ..progress import ProgressCallback, ProgressEvent, no_progress
+from .pinning import MIN_PIN_SAMPLES, pin_relative_depth
 
 #: ``priors/auto/auto.json``: what the fused folder was made from, per view and in total.
 REPORT_NAME = "auto.json"
 #: Fewer SfM points on a view's valid dense pixels than this and its error is unknown.
-MIN_CHECK_POINTS = 20
+MIN_CHECK_POINTS = MIN_PIN_SAMPLES
 #: Confidence of a dense source on a view whose error could not be checked (too few points).
 UNCHECKED_CONFIDENCE = 0.5
 #: Bumped when the fusion rule changes, so cached folders are rebuilt.
@@ -99,26 +100,6 @@ def sfm_fit_error(depth: np.ndarray, valid: np.ndarray, sfm_depth: np.ndarray) -
     if count < MIN_CHECK_POINTS:
         return float("nan"), count
     return float(np.median(np.abs(depth[check] - sfm_depth[check]) / sfm_depth[check])), count
-
-
-def pin_relative_depth(relative: np.ndarray, valid: np.ndarray, sfm_depth: np.ndarray) -> Optional[np.ndarray]:
-    """A relative depth map made metric by a robust scale and shift fitted to the SfM samples
-    (:func:`~.losses.fit_scale_shift`); None with too few samples or a scale that is not
-    positive (the prediction inverts near and far)."""
-    import torch
-
-    from .losses import fit_scale_shift
-
-    check = valid & (sfm_depth > 0) & (relative > 0)
-    if int(check.sum()) < MIN_CHECK_POINTS:
-        return None
-    scale, shift = fit_scale_shift(torch.from_numpy(relative[check].astype(np.float64)),
-                                   torch.from_numpy(sfm_depth[check].astype(np.float64)),
-                                   torch.ones(int(check.sum()), dtype=torch.bool))
-    if float(scale) <= 0:
-        return None
-    pinned = (float(scale) * relative.astype(np.float64) + float(shift)).astype(np.float32)
-    return np.where(valid & (relative > 0) & (pinned > 0), pinned, 0.0).astype(np.float32)
 
 
 def _view_trust(error: float, settings: AutoPriorSettings) -> float:
