@@ -58,18 +58,10 @@ def prepare_scene(scene: Path, work: Path) -> Path:
     return copy
 
 
-def _resize_valid(depth: np.ndarray, valid: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Depth at the working size, averaged over valid pixels; 0 where under half a cell is valid."""
-    from esgs.core.ndn.data import _resize_masked
-
-    small, coverage = _resize_masked(np.where(valid, depth, 0.0), valid, *size)
-    return np.where(coverage > 0.5, small, 0.0).astype(np.float32)
-
-
 def _resize_normals(normal: np.ndarray, valid: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    from esgs.core.ndn.data import _resize_masked
+    from esgs.core.ndn.data import resize_masked
 
-    small, _ = _resize_masked(np.where(valid[..., None], normal, 0.0), valid, *size)
+    small, _ = resize_masked(normal, valid, *size)
     length = np.linalg.norm(small, axis=-1, keepdims=True)
     return (small / np.maximum(length, 1e-6)).transpose(2, 0, 1).astype(np.float32)
 
@@ -89,7 +81,7 @@ def _interpolated(sparse: np.ndarray, intrinsics: tuple[float, float, float, flo
 def scene_views(scene: Path, copy: Path, working_size: int = 128) -> dict:
     """Everything the rows need for one scene at the working size."""
     from esgs.core.colmap import read_model
-    from esgs.core.ndn.data import scene_triples
+    from esgs.core.ndn.data import resize_valid_depth, scene_triples
     from esgs.core.priors.io import load_prior_maps
 
     triples = scene_triples(scene, working_size, 4, sfm_points=True)
@@ -103,15 +95,15 @@ def scene_views(scene: Path, copy: Path, working_size: int = 128) -> dict:
     for name in triples.names:
         labels = load_prior_maps(copy, "labels", name, size=(full_width, full_height))
         valid = labels.mask & (labels.depth > 0)
-        stereo.append(_resize_valid(labels.depth, valid, (width, height)))
+        stereo.append(resize_valid_depth(labels.depth, valid, width, height))
         stereo_normal.append(_resize_normals(labels.normal, valid, (width, height)) if labels.normal is not None
                              else np.zeros((3, height, width), np.float32))
         fused = load_prior_maps(copy, "auto", name, size=(full_width, full_height))
         valid = fused.mask & (fused.depth > 0)
-        auto_depth.append(_resize_valid(fused.depth, valid, (width, height)))
+        auto_depth.append(resize_valid_depth(fused.depth, valid, width, height))
         normal = fused.normal if fused.normal is not None else np.zeros((full_height, full_width, 3), np.float32)
         has_normal = valid & (np.linalg.norm(normal, axis=-1) > 0.5)
-        auto_normal.append(np.where(_resize_valid(np.ones_like(fused.depth), has_normal, (width, height))[None] > 0,
+        auto_normal.append(np.where(resize_valid_depth(np.ones_like(fused.depth), has_normal, width, height)[None] > 0,
                                     _resize_normals(normal, has_normal, (width, height)), 0.0))
     return {"names": triples.names, "views": triples.views, "depth": triples.depth, "normal": triples.normal,
             "mask": triples.mask, "sfm_depth": triples.sfm_depth, "stereo_depth": np.stack(stereo),
@@ -142,55 +134,32 @@ def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: 
     """Scores of one set of weights under each evidence mode, per view (with CPU seconds per view).
 
     With the stereo mode, a ``<name>:fused`` row too: the stereo labels (depth and normals) where
-    they are valid, the network's metric output elsewhere (what ``priors/auto`` does with them).
+    they are valid, the network's metric output elsewhere (what ``priors/auto`` does with them),
+    and ``:fused_pinned``, the same with the network's depth first fitted to the labels.
     """
     from esgs.core.ndn.checkpoint import load_checkpoint
-    from esgs.core.ndn.data import state_to_relative_depth
-    from esgs.core.ndn.evidence import depth_from_state
-    from esgs.core.ndn.infer import arrays_evidence, metric_depth_scores, score_view, sky_iou
-    from esgs.core.priors.pinning import pin_relative_depth
+    from esgs.core.ndn.infer import metric_depth_scores, pin_to_labels, predict_triple, score_triple, score_view
 
     model, diffusion, config, _ = load_checkpoint(weights)
-    log_range = config.diffusion.log_depth_range
-    views = torch.from_numpy(data["views"].astype(np.float32) / 127.5 - 1.0)
     rows: dict[str, list[dict]] = {}
     for mode in modes if config.model.evidence else ["none"]:
-        for index in range(views.shape[0]):
-            truth = (data["depth"][index], data["normal"][index], data["mask"][index])
+        for index in range(len(data["names"])):
             started = time.process_time()
-            evidence, reference = arrays_evidence(data, index, mode, log_range) if config.model.evidence else (None, None)
-            state, normal, sky = diffusion.sample(model, views[index:index + 1], steps=steps, seed=index,
-                                                  ensemble=ensemble, evidence=evidence, return_sky=True)
+            depth, normal, sky, metric = predict_triple(model, diffusion, data, index, steps=steps, seed=index,
+                                                        ensemble=ensemble, evidence_mode=mode)
             seconds = time.process_time() - started
-            normal = normal[0].numpy()
-            if reference is not None:
-                depth = depth_from_state(state, reference, log_range)[0, 0].numpy()
-            else:
-                depth = state_to_relative_depth(state[0, 0].numpy(), config.diffusion.depth_state, log_range)
-            scores = {**score_view(depth, normal, *truth), "cpu_s_per_view": seconds}
-            if reference is not None:
-                scores.update(metric_depth_scores(depth, truth[0], truth[2]))
-            if sky is not None:
-                iou = sky_iou(sky[0, 0].numpy(), truth[2])
-                if iou is not None:
-                    scores["sky_iou"] = iou
-            rows.setdefault(f"{name}:{mode}", []).append(scores)
-            if mode == "sfm_stereo" and reference is not None:
+            rows.setdefault(f"{name}:{mode}", []).append(
+                {**score_triple(depth, normal, sky, metric, data, index), "cpu_s_per_view": seconds})
+            if mode == "sfm_stereo" and metric:
+                truth = (data["depth"][index], data["normal"][index], data["mask"][index])
                 stereo = data["stereo_depth"][index]
-                fused_depth = np.where(stereo > 0, stereo, depth)
                 stereo_normal = data["stereo_normal"][index]
                 has_normal = (stereo > 0) & (np.linalg.norm(stereo_normal, axis=0) > 0.5)
                 fused_normal = np.where(has_normal[None], stereo_normal, normal)
-                rows.setdefault(f"{name}:fused", []).append(
-                    {**score_view(fused_depth, fused_normal, *truth), **metric_depth_scores(fused_depth, truth[0], truth[2])})
-                # the network's depth pinned to the labels by the trainer's robust scale/shift fit before it fills
-                # their holes (a network scale error then cannot reach the filled pixels)
-                pinned = pin_relative_depth(depth, np.ones(depth.shape, bool), stereo)  # None: too few labels
-                pinned = depth if pinned is None else np.where(pinned > 0, pinned, depth)
-                pinned_depth = np.where(stereo > 0, stereo, pinned)
-                rows.setdefault(f"{name}:fused_pinned", []).append(
-                    {**score_view(pinned_depth, fused_normal, *truth),
-                     **metric_depth_scores(pinned_depth, truth[0], truth[2])})
+                for row, filler in (("fused", depth), ("fused_pinned", pin_to_labels(depth, stereo))):
+                    fused = np.where(stereo > 0, stereo, filler)
+                    rows.setdefault(f"{name}:{row}", []).append(
+                        {**score_view(fused, fused_normal, *truth), **metric_depth_scores(fused, truth[0], truth[2])})
     return rows
 
 

@@ -133,7 +133,7 @@ def state_to_relative_depth(state: np.ndarray, kind: str = "affine",
     return np.exp(log_range * state)
 
 
-def _resize_masked(values: np.ndarray, weight: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+def resize_masked(values: np.ndarray, weight: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """Area-resize ``values`` [H, W(, C)] averaging only where ``weight`` [H, W] is 1."""
     import cv2
 
@@ -144,6 +144,14 @@ def _resize_masked(values: np.ndarray, weight: np.ndarray, width: int, height: i
     coverage = cv2.resize(weight, (width, height), interpolation=cv2.INTER_AREA)
     denominator = np.maximum(coverage, 1e-6)
     return summed / (denominator[..., None] if summed.ndim == 3 else denominator), coverage
+
+
+def resize_valid_depth(depth: np.ndarray, valid: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Depth [H, W] at (width, height), averaged over ``valid`` pixels only; 0 where less than half
+    a cell was valid (how targets, stereo evidence and the evaluation's maps are brought to the
+    working size)."""
+    small, coverage = resize_masked(depth, valid, width, height)
+    return np.where(coverage > 0.5, small, 0.0).astype(np.float32)
 
 
 def _rgb(image: np.ndarray) -> np.ndarray:
@@ -200,8 +208,8 @@ def scene_triples(scene_dir: str | Path, working_size: int, multiple: int, *, wi
                 raise DatasetError(f"{target_source} priors of {image.name!r} lack depth or normals",
                                    path=scene.prior(target_source))
             valid = maps.mask & (maps.depth > 0)
-            small_depth, coverage = _resize_masked(maps.depth, valid, small_width, small_height)
-            small_normal, _ = _resize_masked(maps.normal, valid, small_width, small_height)
+            small_depth, coverage = resize_masked(maps.depth, valid, small_width, small_height)
+            small_normal, _ = resize_masked(maps.normal, valid, small_width, small_height)
             small_mask = coverage > 0.5
             length = np.linalg.norm(small_normal, axis=-1, keepdims=True)
             small_normal = np.where(small_mask[..., None], small_normal / np.maximum(length, 1e-6), 0.0)

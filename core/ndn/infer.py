@@ -93,7 +93,7 @@ def scene_evidence(scene_dir: str | Path, triples: SceneTriples, *,
     from ..colmap import read_model
     from ..priors import load_prior_maps
     from ..priors.sfm import sparse_depth_map
-    from .data import _resize_masked
+    from .data import resize_valid_depth
     from .evidence import bin_sparse_depth
 
     model = read_model(scene_dir, use_pycolmap=False)
@@ -111,8 +111,7 @@ def scene_evidence(scene_dir: str | Path, triples: SceneTriples, *,
             labels = load_prior_maps(scene_dir, stereo_source, name, size=size)
             valid = labels.mask & (labels.depth > 0) if labels.depth is not None else np.zeros(labels.shape, bool)
             if valid.any() and not labels.relative_depth:
-                small, coverage = _resize_masked(np.where(valid, labels.depth, 0.0), valid, width, height)
-                stereo[index] = np.where(coverage > 0.5, small, 0.0)
+                stereo[index] = resize_valid_depth(labels.depth, valid, width, height)
     return sfm, stereo
 
 
@@ -332,41 +331,59 @@ def scores_by_scene(per_view: list[dict[str, float]], scenes) -> dict[str, dict[
     return {scene: {"views": len(members), **mean_scores(members)} for scene, members in grouped.items()}
 
 
+def predict_triple(model: NDNUNet, diffusion: GaussianDiffusion, arrays: dict[str, np.ndarray], index: int, *,
+                   steps: int | None = None, seed: int = 0, ensemble: int | None = None,
+                   evidence_mode: str = "none") -> tuple[np.ndarray, np.ndarray, np.ndarray | None, bool]:
+    """One triple of ``arrays`` sampled from noise seeded with ``seed``: (depth [h, w], normals
+    [3, h, w], sky probability [h, w] or None, whether the depth is metric). A network that reads
+    evidence gets the triple's ``evidence_mode`` evidence (:func:`arrays_evidence`) and its depth
+    is then in metres; otherwise it is relative (the weights' depth state)."""
+    from .evidence import depth_from_state
+
+    log_range = diffusion.config.log_depth_range
+    views = torch.from_numpy(arrays["views"][index:index + 1].astype(np.float32) / 127.5 - 1.0)
+    evidence, reference = arrays_evidence(arrays, index, evidence_mode, log_range) \
+        if model.config.evidence else (None, None)
+    state, normal, sky = diffusion.sample(model, views, steps=steps, seed=seed, ensemble=ensemble,
+                                          evidence=evidence, return_sky=True)
+    if reference is not None:
+        depth = depth_from_state(state, reference, log_range)[0, 0].numpy()
+    else:
+        depth = state_to_relative_depth(state[0, 0].numpy(), diffusion.config.depth_state, log_range)
+    return depth, normal[0].numpy(), (sky[0, 0].numpy() if sky is not None else None), reference is not None
+
+
+def score_triple(depth: np.ndarray, normal: np.ndarray, sky: np.ndarray | None, metric: bool,
+                 arrays: dict[str, np.ndarray], index: int) -> dict[str, float]:
+    """Every score of one prediction (:func:`predict_triple`) against triple ``index``'s truth:
+    :func:`score_view`, the unaligned ``abs_rel_metric``/``delta1_metric`` of a metric depth and
+    ``sky_iou`` where the prediction or the truth has sky."""
+    truth = (arrays["depth"][index], arrays["normal"][index], arrays["mask"][index])
+    scores = score_view(depth, normal, *truth)
+    if metric:
+        scores.update(metric_depth_scores(depth, truth[0], truth[2]))
+    if sky is not None:
+        iou = sky_iou(sky, truth[2])
+        if iou is not None:
+            scores["sky_iou"] = iou
+    return scores
+
+
 def evaluate_arrays(model: NDNUNet, diffusion: GaussianDiffusion, arrays: dict[str, np.ndarray], *,
                     steps: int | None = None, seed: int = 0, ensemble: int | None = None,
                     evidence_mode: str = "none", progress: ProgressCallback = no_progress) -> list[dict[str, float]]:
     """Scores of every triple in ``arrays`` (views, depth, normal, mask as in a shard); triple
     ``i`` is sampled alone from noise seeded with ``seed + i`` (``ensemble`` samples of it
     when given, else the model's ``sample_ensemble``); states are read as the diffusion
-    config's ``depth_state``. Returns one dict per triple.
-
-    A network that reads evidence gets the triple's ``evidence_mode`` evidence
-    (:func:`arrays_evidence`); its depth is then metric, and ``abs_rel_metric`` and
-    ``delta1_metric`` score it without any alignment. A network with a sky head adds
-    ``sky_iou`` on views where it or the truth has sky."""
-    from .evidence import depth_from_state
-
-    views = torch.from_numpy(arrays["views"].astype(np.float32) / 127.5 - 1.0)
-    count = views.shape[0]
-    log_range = diffusion.config.log_depth_range
+    config's ``depth_state``. Returns one dict per triple (:func:`score_triple`); a network that
+    reads evidence gets ``evidence_mode`` evidence (:func:`predict_triple`)."""
+    count = arrays["views"].shape[0]
     per_view = []
     for index in range(count):
         progress(ProgressEvent(index, count, "ndn-eval"))
-        evidence, reference = arrays_evidence(arrays, index, evidence_mode, log_range) \
-            if model.config.evidence else (None, None)
-        depth_state, normal, sky = diffusion.sample(model, views[index:index + 1], steps=steps, seed=seed + index,
-                                                    ensemble=ensemble, evidence=evidence, return_sky=True)
-        relative = state_to_relative_depth(depth_state[0, 0].numpy(), diffusion.config.depth_state, log_range)
-        scores = score_view(relative, normal[0].numpy(),
-                            arrays["depth"][index], arrays["normal"][index], arrays["mask"][index])
-        if reference is not None:
-            metric = depth_from_state(depth_state, reference, log_range)[0, 0].numpy()
-            scores.update(metric_depth_scores(metric, arrays["depth"][index], arrays["mask"][index]))
-        if sky is not None:
-            iou = sky_iou(sky[0, 0].numpy(), arrays["mask"][index])
-            if iou is not None:
-                scores["sky_iou"] = iou
-        per_view.append(scores)
+        prediction = predict_triple(model, diffusion, arrays, index, steps=steps, seed=seed + index,
+                                    ensemble=ensemble, evidence_mode=evidence_mode)
+        per_view.append(score_triple(*prediction, arrays, index))
     progress(ProgressEvent(count, count, "ndn-eval", kind="done"))
     return per_view
 
