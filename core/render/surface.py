@@ -125,8 +125,14 @@ def median_surface_normals(median_ids: torch.Tensor, means: torch.Tensor, quats:
     return normals.index_put((valid,), normal), valid
 
 
+def _fused_on(*tensors: torch.Tensor) -> bool:
+    """Whether the Numba kernel serves these tensors: all on the CPU, float32 or float64 values."""
+    return all(t.device.type == "cpu" for t in tensors) and tensors[0].dtype in (torch.float32, torch.float64)
+
+
 def median_surface_thinness(median_ids: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
-                            viewmat: torch.Tensor, normals: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                            viewmat: torch.Tensor, normals: torch.Tensor,
+                            fused: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """How thick each pixel's median surface Gaussian is along a given normal, in [0, 3].
 
     The Gaussian's variance along the unit normal over its mean variance,
@@ -135,9 +141,15 @@ def median_surface_thinness(median_ids: torch.Tensor, quats: torch.Tensor, scale
     gradient in the scales too, so a loss on it both turns and flattens that one Gaussian,
     and never moves or fades it. median_ids [H, W], quats [N, 4], scales [N, 3] (activated),
     viewmat [4, 4]; normals [H, W, 3] camera frame (a prior's), sign free. Returns
-    (thinness [H, W], valid [H, W] bool), 0 where ``valid`` is False.
+    (thinness [H, W], valid [H, W] bool), 0 where ``valid`` is False. ``fused``: on CPU
+    tensors, one Numba pass per pixel (:mod:`.surface_kernels`, the same values and gradients);
+    False for the torch expression (the reference the tests compare it with).
     """
     valid = median_ids >= 0
+    if fused and _fused_on(quats, scales, normals, median_ids):
+        from .surface_kernels import fused_thinness  # Numba, loaded on first use
+
+        return fused_thinness(median_ids, quats, scales, viewmat, normals), valid
     values = torch.zeros(median_ids.shape, dtype=quats.dtype, device=quats.device)
     if not bool(valid.any()):
         return values, valid
