@@ -165,6 +165,31 @@ class VoxelTable:
 FUSION_BLOCK = 4096
 
 
+def add_rows_(target: torch.Tensor, index: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
+    """``target.index_add_(0, index, source)`` for 2D tensors; on the CPU by :func:`.gpdfn_kernels.add_rows`
+    (same sums, added in index order), elsewhere by torch. Returns ``target``."""
+    if target.device.type == "cpu" and target.is_contiguous() and source.dtype == target.dtype \
+            and target.dtype in (torch.float32, torch.float64) and index.dtype == torch.int64:
+        kernels.add_rows(target.numpy(), index.contiguous().numpy(), source.contiguous().numpy())
+        return target
+    return target.index_add_(0, index, source)
+
+
+class _RowSums(torch.autograd.Function):
+    """[V, D] sums of the rows of ``values`` [N, D] by group ``inverse`` [N] (ids < V): ``index_add``
+    with :func:`add_rows_` forward; backward the gather ``grad[inverse]``."""
+
+    @staticmethod
+    def forward(ctx, values: torch.Tensor, inverse: torch.Tensor, groups: int) -> torch.Tensor:
+        ctx.save_for_backward(inverse)
+        return add_rows_(values.new_zeros(groups, values.shape[1]), inverse, values.detach())
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        (inverse,) = ctx.saved_tensors
+        return grad.index_select(0, inverse), None, None
+
+
 def _fusion_block(tensor: torch.Tensor) -> int:
     """Gaussians per block of :class:`_FusionCore` for tensors on ``tensor``'s device."""
     return FUSION_BLOCK if tensor.device.type == "cpu" else max(int(tensor.shape[0]), 1)
@@ -288,8 +313,8 @@ class _FusionCore(torch.autograd.Function):
                 gathered = voxel_projection.index_select(0, block_index).view(fused - 1, rows, hidden)
                 grad_weight[:, block] = (grad_sampled * gathered).sum(2)
             if grad_voxel_projection is not None:
-                grad_voxel_projection.index_add_(0, block_index,
-                                                 (grad_sampled * block_weight.unsqueeze(2)).view(-1, hidden))
+                add_rows_(grad_voxel_projection, block_index,
+                          (grad_sampled * block_weight.unsqueeze(2)).view(-1, hidden))
         return (grad_own, grad_voxel_projection, None, grad_weight, *grads)
 
 
@@ -391,9 +416,8 @@ class GPDFN(nn.Module):
                                           unit_quats)
         voxels = table.counts.shape[0]
         per_voxel = table.counts.unsqueeze(1)
-        voxel_features = features.new_zeros(voxels, features.shape[1]).index_add_(0, table.inverse, features)
-        voxel_features = voxel_features / per_voxel
-        centroids = means.new_zeros(voxels, 3).index_add_(0, table.inverse, means.detach()) / per_voxel
+        voxel_features = _RowSums.apply(features, table.inverse, voxels) / per_voxel
+        centroids = add_rows_(means.new_zeros(voxels, 3), table.inverse, means.detach()) / per_voxel
         neighbours = self.config.fused_k - 1
         full_count = count
         if rows is not None and rows.numel() == 0:

@@ -134,3 +134,17 @@ def lookup(points: np.ndarray, voxel_size, slots: np.ndarray) -> np.ndarray:
             slot = (slot + 1) & (size - 1)
         result[n] = found
     return result
+
+
+@njit(cache=True)
+def add_rows(target: np.ndarray, index: np.ndarray, source: np.ndarray) -> None:
+    """``target[index[r]] += source[r]`` for every row r, in order (serial: the same sums every run).
+
+    torch's ``index_add_`` on the CPU goes through a general scatter: ~6x slower for the
+    [rows, 16] blocks of GPDFN's backward (measured at 8,192 rows: 0.41 against 0.07 ms).
+    """
+    columns = source.shape[1]
+    for r in range(index.shape[0]):
+        row = index[r]
+        for c in range(columns):
+            target[row, c] += source[r, c]

@@ -192,6 +192,24 @@ def test_fast_path_equals_the_plain_autograd_statement(fused_k, dtype, monkeypat
         torch.testing.assert_close(a, b, **tolerance, msg=f"gradient of {name}")
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_row_adds_equal_index_add_with_repeated_rows_and_their_gradient_is_the_gather(dtype):
+    generator = torch.Generator().manual_seed(4)
+    index = torch.tensor([3, 0, 3, 3, 1, 0, 5])  # repeats, and row 2 and 4 never named
+    source = torch.randn(7, 5, generator=generator, dtype=dtype)
+    target = torch.randn(6, 5, generator=generator, dtype=dtype)
+    expected = target.clone().index_add_(0, index, source)
+    assert gpdfn.add_rows_(target, index, source) is target
+    torch.testing.assert_close(target, expected, rtol=1e-12 if dtype == torch.float64 else 1e-6, atol=1e-6)
+
+    values = source.clone().requires_grad_()
+    sums = gpdfn._RowSums.apply(values, index, 6)
+    torch.testing.assert_close(sums, torch.zeros(6, 5, dtype=dtype).index_add_(0, index, source))
+    upstream = torch.randn(6, 5, generator=generator, dtype=dtype)
+    (sums * upstream).sum().backward()
+    assert torch.equal(values.grad, upstream[index])
+
+
 def test_fusion_core_backward_against_finite_differences(monkeypatch):
     generator = torch.Generator().manual_seed(2)
     count, neighbours, hidden, voxels, outputs = 5, 2, 4, 3, 7
