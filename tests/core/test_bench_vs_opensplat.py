@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import importlib.util
+import os
 import sys
 from pathlib import Path
 
@@ -91,3 +92,14 @@ def test_process_cpu_time_from_proc_follows_the_work_done(bench):
     after = bench._process_cpu_s(os.getpid())
     assert after - before == pytest.approx(0.3, abs=0.1)
     assert bench._process_cpu_s(2**22 + 12345) is None  # no such process
+
+
+def test_a_floor_is_the_peak_memory_of_the_command_and_grows_with_what_it_touches(bench):
+    env = dict(os.environ)
+    idle = bench.floor_rss_mib([sys.executable, "-c", "pass"], env)
+    touched = bench.floor_rss_mib([sys.executable, "-c", "b = bytearray(300 * 2**20); b[::4096] = b'x' * len(b[::4096])"],
+                                  env)
+    assert 1.0 < idle < touched
+    assert touched - idle > 250.0  # the 300 MiB it wrote count, to within what the interpreter shares
+    with pytest.raises(SystemExit, match="failed"):
+        bench.floor_rss_mib([sys.executable, "-c", "raise SystemExit(3)"], env)
