@@ -29,8 +29,10 @@ What it does:
 - Step times: ours from ``events.jsonl`` (``--progress-every 1``: one timestamped event per
   step, with the Gaussian count); OpenSplat's from the time its per-step ``Step k:`` lines
   arrive, with the count followed through its "new count"/"remaining" lines.
-- Peak resident memory and CPU time (user + system, setup included) of each child from
-  ``wait4``; CPU seconds per step depend less on the machine's load than wall-clock ones.
+- Peak resident memory of each child (``VmHWM`` sampled from /proc while it runs; ``wait4``'s
+  ``ru_maxrss`` would include this benchmark's own size, inherited across the fork) and CPU
+  time (user + system, setup included, from ``wait4``); CPU seconds per step depend less on
+  the machine's load than wall-clock ones.
   Each trainer's memory is also given above its floor, the peak of its runtime doing nothing
   (ours: ``python -c "import torch"``; OpenSplat: ``opensplat --version``, libtorch loaded).
 - Quality: both output PLYs are loaded with our PLY reader and rendered with our renderer
@@ -188,7 +190,8 @@ def _opensplat_schedule(iterations: int, scaled: bool) -> list[str]:
 
 
 def _wait(process: subprocess.Popen, run: ChildRun, started: float) -> None:
-    """Reap ``process`` with wait4 to get its own peak RSS (KiB on Linux)."""
+    """Reap ``process`` with wait4: exit code, wall and CPU time, and a first peak RSS (``ru_maxrss``,
+    replaced by the sampled ``VmHWM`` in :func:`_cpu_at_steps`: see :func:`_process_peak_kib`)."""
     _, status, usage = os.wait4(process.pid, 0)
     process.returncode = os.waitstatus_to_exitcode(status)
     run.returncode = process.returncode
@@ -197,15 +200,35 @@ def _wait(process: subprocess.Popen, run: ChildRun, started: float) -> None:
     run.cpu_s = usage.ru_utime + usage.ru_stime
 
 
+#: Runs ``argv[1:]`` as its own child and prints that child's peak RSS (KiB) and exit code. A
+#: process forked from this benchmark inherits its ~400 MiB (torch, NumPy) in ``ru_maxrss``, which
+#: Linux carries over an exec: the peak of a small command would read as the benchmark's own size.
+#: Forked from this small launcher (``python -S``, no site packages), it starts from a few MiB.
+_PEAK_LAUNCHER = (
+    "import os, sys\n"
+    "pid = os.fork()\n"
+    "if pid == 0:\n"
+    "    null = os.open(os.devnull, os.O_RDWR)\n"
+    "    os.dup2(null, 1); os.dup2(null, 2)\n"
+    "    os.execvp(sys.argv[1], sys.argv[1:])\n"
+    "_, status, usage = os.wait4(pid, 0)\n"
+    "print(usage.ru_maxrss, os.waitstatus_to_exitcode(status))\n")
+
+
 def floor_rss_mib(command: list[str], env: dict) -> float:
     """Peak resident memory (MiB) of ``command`` run to its end: a trainer's floor, what its
     runtime costs before any training (ours: the interpreter plus ``import torch``; OpenSplat:
-    its binary with libtorch loaded, printing its version)."""
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
-    _, status, usage = os.wait4(process.pid, 0)
-    if os.waitstatus_to_exitcode(status) != 0:
-        raise SystemExit(f"the floor measurement {' '.join(command)!r} failed")
-    return usage.ru_maxrss / 1024.0
+    its binary with libtorch loaded, printing its version). Measured through
+    :data:`_PEAK_LAUNCHER`, so the benchmark's own size does not leak into it."""
+    done = subprocess.run([sys.executable, "-S", "-c", _PEAK_LAUNCHER, *command], capture_output=True, text=True,
+                          env=env)
+    try:
+        peak_kib, code = (int(value) for value in done.stdout.split())
+    except ValueError:
+        raise SystemExit(f"the floor measurement {' '.join(command)!r} printed nothing usable: {done.stderr.strip()}")
+    if code != 0:
+        raise SystemExit(f"the floor measurement {' '.join(command)!r} failed (exit {code})")
+    return peak_kib / 1024.0
 
 
 def _process_cpu_s(pid: int) -> Optional[float]:
@@ -218,20 +241,40 @@ def _process_cpu_s(pid: int) -> Optional[float]:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def _process_peak_kib(pid: int) -> Optional[int]:
+    """Peak resident memory (KiB) of a running process since its exec (``VmHWM``), from /proc.
+
+    Unlike ``ru_maxrss`` from ``wait4``, which keeps the peak of the process forked from this
+    benchmark before its exec (the benchmark's own ~400 MiB of torch and NumPy), this is the
+    trainer's own memory."""
+    try:
+        with open(f"/proc/{pid}/status") as handle:
+            for line in handle:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
 def _sample_cpu(pids: dict[int, list], stop: threading.Event, interval_s: float = 0.05) -> None:
-    """Append (wall time, CPU seconds) of each process to ``pids[pid]`` until ``stop`` is set."""
+    """Append (wall time, CPU seconds, peak KiB) of each process to ``pids[pid]`` until ``stop`` is set."""
     while not stop.is_set():
         for pid, samples in pids.items():
             value = _process_cpu_s(pid)
-            if value is not None:
-                samples.append((time.time(), value))
+            peak = _process_peak_kib(pid)
+            if value is not None and peak is not None:
+                samples.append((time.time(), value, peak))
         stop.wait(interval_s)
 
 
 def _cpu_at_steps(run: ChildRun, samples: list) -> None:
-    """CPU seconds at each step's end, interpolated between the /proc samples (10 ms clock ticks)."""
+    """CPU seconds at each step's end, interpolated between the /proc samples (10 ms clock ticks),
+    and the process's peak memory (its last ``VmHWM`` sample: the peak never falls)."""
+    if samples:
+        run.peak_rss_mib = max(sample[2] for sample in samples) / 1024.0
     if len(samples) >= 2:
-        wall, cpu = np.asarray(samples, dtype=np.float64).T
+        wall, cpu, _ = np.asarray(samples, dtype=np.float64).T
         run.cpu_times = [float(v) for v in np.interp(run.times, wall, cpu)]
 
 

@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -103,3 +105,21 @@ def test_a_floor_is_the_peak_memory_of_the_command_and_grows_with_what_it_touche
     assert touched - idle > 250.0  # the 300 MiB it wrote count, to within what the interpreter shares
     with pytest.raises(SystemExit, match="failed"):
         bench.floor_rss_mib([sys.executable, "-c", "raise SystemExit(3)"], env)
+
+
+def test_a_running_childs_peak_is_its_own_not_the_forking_benchmarks(bench):
+    ballast = bytearray(200 * 2**20)  # this process grows by 200 MiB before it forks the child
+    ballast[::4096] = b"x" * len(ballast[::4096])
+    child = subprocess.Popen([sys.executable, "-S", "-c", "import time; time.sleep(0.6)"])
+    samples: dict[int, list] = {child.pid: []}
+    stop = threading.Event()
+    sampler = threading.Thread(target=bench._sample_cpu, args=(samples, stop, 0.02))
+    sampler.start()
+    child.wait()
+    stop.set()
+    sampler.join()
+    run = bench.ChildRun(name="child", command=[], log=Path("log"), ply=Path("ply"))
+    run.times = [samples[child.pid][-1][0]]
+    bench._cpu_at_steps(run, samples[child.pid])
+    assert 1.0 < run.peak_rss_mib < 100.0  # a bare interpreter, not the ~200 MiB parent
+    del ballast
