@@ -198,7 +198,9 @@ def _fusion_block(tensor: torch.Tensor) -> int:
 def _fusion_forward_block(own, voxel_projection, index, weight, bias1, weight2, bias2, attention_weight,
                           attention_bias, summary):
     """One block of :class:`_FusionCore`'s forward up to the attention-weighted ``summary`` [B, H]
-    (written in place) -> (first, second, attention).
+    (written in place) -> (first, second, attention, gathered): ``gathered`` [K-1, B, H] the
+    sampled voxels' projections, kept for the kernel weights' gradient (gathering them again
+    in the backward cost one more index_select per block).
 
     Layout is entry-major, ``[K, B, H]`` (row k = 0 the Gaussian itself), so that every
     per-entry slice is contiguous and the softmax runs over the leading axis (a softmax
@@ -221,7 +223,7 @@ def _fusion_forward_block(own, voxel_projection, index, weight, bias1, weight2, 
     torch.mul(stack[0], attention[0].unsqueeze(1), out=summary)
     for k in range(1, fused):
         summary.addcmul_(stack[k], attention[k].unsqueeze(1))
-    return first, second, attention
+    return first, second, attention, gathered
 
 
 class _FusionCore(torch.autograd.Function):
@@ -285,7 +287,7 @@ class _FusionCore(torch.autograd.Function):
         for start in range(0, count, ctx.block):
             block = slice(start, start + ctx.block)
             block_weight = weight[:, block]
-            first, second, attention = ctx.blocks[start // ctx.block]
+            first, second, attention, gathered = ctx.blocks[start // ctx.block]
             block_index = index[:, block].reshape(-1)
             rows = attention.shape[1]
             grad_summary = grad_summaries[block]  # [B, H]
@@ -310,7 +312,6 @@ class _FusionCore(torch.autograd.Function):
             grad_sampled = grad_first[1:]  # [K-1, B, H]
             grad_bias1.add_(grad_sampled.reshape(-1, hidden).sum(0))
             if grad_weight is not None:
-                gathered = voxel_projection.index_select(0, block_index).view(fused - 1, rows, hidden)
                 grad_weight[:, block] = (grad_sampled * gathered).sum(2)
             if grad_voxel_projection is not None:
                 add_rows_(grad_voxel_projection, block_index,
