@@ -67,16 +67,18 @@ def _world_normal(normals, row, col, camera_rotation, out):
         out[i] /= length
 
 
+@njit(cache=True, inline="always")
+def _scratch():
+    """Per-thread work arrays of one pixel: (unit quaternion, rotation, along, variance, world normal)."""
+    return np.empty(4), np.empty((3, 3)), np.empty(3), np.empty(3), np.empty(3)
+
+
 @njit(cache=True, parallel=True)
 def thinness_forward(ids, quats, scales, normals, camera_rotation, out):
     """out[H, W] = thickness of pixel (row, col)'s Gaussian ``ids[row, col]`` along its normal (0 where id < 0)."""
     height, width = ids.shape
     for row in prange(height):
-        unit = np.empty(4)
-        rotation = np.empty((3, 3))
-        along = np.empty(3)
-        variance = np.empty(3)
-        normal = np.empty(3)
+        unit, rotation, along, variance, normal = _scratch()
         for col in range(width):
             gaussian = ids[row, col]
             if gaussian < 0:
@@ -94,11 +96,7 @@ def _pixel_gradients(ids, quats, scales, normals, camera_rotation, grad_out, out
     """out[H, W, 7]: each pixel's d loss / d (quaternion [4], scales [3]) of its own Gaussian (0 where none)."""
     height, width = ids.shape
     for row in prange(height):
-        unit = np.empty(4)
-        rotation = np.empty((3, 3))
-        along = np.empty(3)
-        variance = np.empty(3)
-        normal = np.empty(3)
+        unit, rotation, along, variance, normal = _scratch()
         G = np.empty((3, 3))
         for col in range(width):
             gaussian = ids[row, col]
