@@ -167,10 +167,11 @@ FUSION_BLOCK = 4096
 
 def add_rows_(target: torch.Tensor, index: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
     """``target.index_add_(0, index, source)`` for 2D tensors; on the CPU by :func:`.gpdfn_kernels.add_rows`
-    (same sums, added in index order), elsewhere by torch. Returns ``target``."""
+    (the rows added in index order: the same sums on every run), elsewhere by torch. Returns
+    ``target``. For GPDFN's own ids only: the kernel does not check that ``index`` is in range."""
     if target.device.type == "cpu" and target.is_contiguous() and source.dtype == target.dtype \
             and target.dtype in (torch.float32, torch.float64) and index.dtype == torch.int64:
-        kernels.add_rows(target.numpy(), index.contiguous().numpy(), source.contiguous().numpy())
+        kernels.add_rows(target.detach().numpy(), index.contiguous().numpy(), source.detach().contiguous().numpy())
         return target
     return target.index_add_(0, index, source)
 
