@@ -174,22 +174,21 @@ class Thinness(torch.autograd.Function):
     @staticmethod
     def forward(ctx, ids: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, normals: torch.Tensor,
                 camera_rotation: torch.Tensor) -> torch.Tensor:
-        arrays = (ids.contiguous().numpy(), quats.detach().contiguous().numpy(), scales.detach().contiguous().numpy(),
-                  normals.detach().to(quats.dtype).contiguous().numpy(),
-                  camera_rotation.detach().to(quats.dtype).contiguous().numpy())
+        # saved as tensors (not arrays), so autograd notices an in-place change before the backward
+        inputs = (ids.contiguous(), quats.detach().contiguous(), scales.detach().contiguous(),
+                  normals.detach().to(quats.dtype).contiguous(), camera_rotation.detach().to(quats.dtype).contiguous())
         out = torch.empty(ids.shape, dtype=quats.dtype)
-        thinness_forward(*arrays, out.numpy())
-        ctx.arrays = arrays
-        ctx.sizes = (quats.shape, scales.shape)
+        thinness_forward(*(tensor.numpy() for tensor in inputs), out.numpy())
+        ctx.save_for_backward(*inputs)
         return out
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):
-        quat_shape, scale_shape = ctx.sizes
-        dtype = grad_out.dtype
-        grad_quats = torch.zeros(quat_shape, dtype=dtype)
-        grad_scales = torch.zeros(scale_shape, dtype=dtype)
-        thinness_backward(*ctx.arrays, grad_out.contiguous().numpy(), grad_quats.numpy(), grad_scales.numpy())
+        inputs = ctx.saved_tensors
+        grad_quats = torch.zeros(inputs[1].shape, dtype=grad_out.dtype)
+        grad_scales = torch.zeros(inputs[2].shape, dtype=grad_out.dtype)
+        thinness_backward(*(tensor.numpy() for tensor in inputs), grad_out.contiguous().numpy(), grad_quats.numpy(),
+                          grad_scales.numpy())
         return (None, grad_quats if ctx.needs_input_grad[1] else None,
                 grad_scales if ctx.needs_input_grad[2] else None, None, None)
 
