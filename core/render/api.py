@@ -7,7 +7,7 @@ import torch
 
 from ..errors import ConfigError
 from .constants import FAR_PLANE, NEAR_PLANE
-from .sh import evaluate_sh_colors, num_sh_bases
+from .sh import SHCoefficients, evaluate_sh_colors, num_sh_bases
 
 BACKENDS = ("cpu", "reference", "cuda")
 #: The backends whose ``meta`` names each pixel's median-surface Gaussian (``median_ids``;
@@ -19,8 +19,19 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
                   backgrounds, extra, backend, tile_size, near_plane, far_plane):
     if backend not in BACKENDS:
         raise ConfigError(f"unknown rasterizer backend {backend!r}", hint=f"use one of {', '.join(BACKENDS)}")
-    tensors = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
-               "viewmats": viewmats, "Ks": Ks}
+    tensors = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "viewmats": viewmats, "Ks": Ks}
+    if isinstance(colors, SHCoefficients):
+        if sh_degree is None:
+            raise ConfigError("rasterization: colors given as SHCoefficients need sh_degree",
+                              hint="pass sh_degree, or colors as an [N, D] tensor of features")
+        tensors.update({"colors.dc": colors.dc, "colors.rest": colors.rest})
+        count = means.shape[0] if means.dim() == 2 else -1
+        if colors.dc.dim() != 3 or tuple(colors.dc.shape[1:]) != (1, 3) or colors.rest.dim() != 3 \
+                or colors.rest.shape[0] != colors.dc.shape[0] or colors.rest.shape[2] != 3:
+            raise ConfigError(f"rasterization: SHCoefficients have dc {tuple(colors.dc.shape)} and rest "
+                              f"{tuple(colors.rest.shape)}, expected [{count}, 1, 3] and [{count}, K-1, 3]")
+    else:
+        tensors["colors"] = colors
     if backgrounds is not None:
         tensors["backgrounds"] = backgrounds
     if extra is not None:
@@ -47,7 +58,7 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
     else:
         if not 0 <= int(sh_degree) <= 3:
             raise ConfigError(f"rasterization: sh_degree must be 0..3, got {sh_degree}")
-        if colors.dim() != 3 or colors.shape[0] != count or colors.shape[2] != 3 \
+        if len(colors.shape) != 3 or colors.shape[0] != count or colors.shape[2] != 3 \
                 or colors.shape[1] < num_sh_bases(sh_degree):
             raise ConfigError(f"rasterization: SH colors have shape {tuple(colors.shape)}, expected [N, K>="
                               f"{num_sh_bases(sh_degree)}, 3] for sh_degree={sh_degree}")
@@ -80,6 +91,8 @@ def _color_evaluator(means, colors, viewmats, sh_degree, fused: bool = False) ->
     if sh_degree is None:
         return lambda cam: colors
     fused = fused and means.device.type == "cpu" and means.dtype in (torch.float32, torch.float64)
+    if isinstance(colors, SHCoefficients) and not fused:
+        colors = colors.cat()  # once for every camera: the torch expression takes one tensor
 
     def evaluate(cam: int) -> torch.Tensor:
         rotation = viewmats[cam, :3, :3]
@@ -98,7 +111,7 @@ def rasterization(
     quats: torch.Tensor,
     scales: torch.Tensor,
     opacities: torch.Tensor,
-    colors: torch.Tensor,
+    colors: torch.Tensor | SHCoefficients,
     viewmats: torch.Tensor,
     Ks: torch.Tensor,
     width: int,
@@ -122,7 +135,9 @@ def rasterization(
     means: [N, 3] world positions; quats: [N, 4] (w, x, y, z), normalised here;
     scales: [N, 3] activated (positive); opacities: [N] activated in [0, 1];
     colors: [N, D] features, or [N, K, 3] SH coefficients when ``sh_degree`` is given
-    (colour = max(SH(view direction) + 0.5, 0), view direction = mean - camera centre);
+    (colour = max(SH(view direction) + 0.5, 0), view direction = mean - camera centre), or
+    those coefficients as :class:`~.sh.SHCoefficients` (``dc`` [N, 1, 3] and ``rest``
+    [N, K-1, 3], a trainer's two parameters: the ``cpu`` backend then makes no [N, K, 3] copy);
     viewmats: [C, 4, 4] world-to-camera (OpenCV axes: x right, y down, z forward);
     Ks: [C, 3, 3] pixel intrinsics, pixel (i, j) has its centre at (j + 0.5, i + 0.5);
     backgrounds: [C, D] added as (1 - alpha) * background to the colour channels only;

@@ -8,6 +8,7 @@ convention of 3DGS so trained PLY files load unchanged.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 
@@ -24,6 +25,38 @@ _Y3_B = 0.5 * math.sqrt(105.0 / math.pi)
 _Y3_C = 0.25 * math.sqrt(21.0 / (2.0 * math.pi))
 _Y3_D = 0.25 * math.sqrt(7.0 / math.pi)
 _Y3_E = 0.25 * math.sqrt(105.0 / math.pi)
+
+
+@dataclass(frozen=True)
+class SHCoefficients:
+    """SH coefficients as the two tensors a trainer keeps them in: ``dc`` [N, 1, 3] (degree 0)
+    and ``rest`` [N, K-1, 3] (the higher bands), the coefficients of ``torch.cat([dc, rest], 1)``.
+
+    Hand it to :func:`~esgs.core.render.rasterization` as ``colors`` (with ``sh_degree``)
+    instead of that concatenation: the ``cpu`` backend reads both in place and writes the two
+    gradients directly, so no [N, K, 3] copy is made forward or backward (192 + 192 bytes a
+    Gaussian at degree 3, ~150 MB at 400k Gaussians); the other backends concatenate once.
+    """
+
+    dc: torch.Tensor
+    rest: torch.Tensor
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """The shape of the concatenation, [N, K, 3]."""
+        return (int(self.dc.shape[0]), int(self.dc.shape[1]) + int(self.rest.shape[1]), int(self.dc.shape[-1]))
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.dc.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.dc.device
+
+    def cat(self) -> torch.Tensor:
+        """[N, K, 3] all coefficients in one tensor (a copy)."""
+        return torch.cat([self.dc, self.rest], dim=1)
 
 
 def num_sh_bases(degree: int) -> int:
@@ -59,13 +92,17 @@ def sh_basis(degree: int, directions: torch.Tensor) -> torch.Tensor:
     return torch.stack(bases, dim=-1)
 
 
-def evaluate_sh_colors(degree: int, coefficients: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
+def evaluate_sh_colors(degree: int, coefficients: torch.Tensor | SHCoefficients,
+                       directions: torch.Tensor) -> torch.Tensor:
     """RGB colours from SH.
 
-    coefficients: [N, K, 3] with K >= (degree + 1)^2 (extra bands are ignored)
+    coefficients: [N, K, 3] with K >= (degree + 1)^2 (extra bands are ignored), or
+                  :class:`SHCoefficients` (concatenated here)
     directions:   [..., N, 3] view directions (need not be unit length)
     returns:      [..., N, 3] colours, ``max(SH + 0.5, 0)``
     """
+    if isinstance(coefficients, SHCoefficients):
+        coefficients = coefficients.cat()
     count = num_sh_bases(degree)
     unit = directions / directions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     basis = sh_basis(degree, unit)  # [..., N, count]

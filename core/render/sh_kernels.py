@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from .sh import _Y00, _Y1, _Y2_XX_YY, _Y2_XY, _Y2_Z2, _Y3_A, _Y3_B, _Y3_C, _Y3_D, _Y3_E, num_sh_bases
+from .sh import _Y00, _Y1, _Y2_XX_YY, _Y2_XY, _Y2_Z2, _Y3_A, _Y3_B, _Y3_C, _Y3_D, _Y3_E, SHCoefficients, num_sh_bases
 
 _NORM_FLOOR = 1e-12  # as the torch expression: directions / max(|d|, 1e-12)
 
@@ -91,9 +91,20 @@ def _basis_gradient(x, y, z, count, g, out):
     out[2] = gz
 
 
+@njit(cache=True, inline="always")
+def _coefficient(head, tail, n, k, c):
+    """Coefficient k of Gaussian n: from ``head`` [N, H, 3] for k < H, else from ``tail``."""
+    split = head.shape[1]
+    return head[n, k, c] if k < split else tail[n, k - split, c]
+
+
 @njit(cache=True, parallel=True)
-def sh_forward(coefficients, directions, count, out):
-    """out[n, c] = max(sum_k Y_k(unit d_n) coefficients[n, k, c] + 0.5, 0)."""
+def sh_forward(head, tail, directions, count, out):
+    """out[n, c] = max(sum_k Y_k(unit d_n) coefficient[n, k, c] + 0.5, 0).
+
+    The coefficients are the concatenation of ``head`` [N, H, 3] and ``tail`` [N, T, 3] along
+    the basis axis (a trainer's ``sh_dc`` and ``sh_rest``; ``tail`` is empty for one tensor).
+    """
     for n in prange(directions.shape[0]):
         basis = np.empty(16, dtype=np.float64)
         dx, dy, dz = directions[n, 0], directions[n, 1], directions[n, 2]
@@ -102,13 +113,15 @@ def sh_forward(coefficients, directions, count, out):
         for c in range(3):
             value = 0.5
             for k in range(count):
-                value += basis[k] * coefficients[n, k, c]
+                value += basis[k] * _coefficient(head, tail, n, k, c)
             out[n, c] = value if value > 0.0 else 0.0
 
 
 @njit(cache=True, parallel=True)
-def sh_backward(coefficients, directions, count, grad_out, grad_coefficients, grad_directions):
-    """Gradients of :func:`sh_forward` w.r.t. the first ``count`` coefficients and the directions."""
+def sh_backward(head, tail, directions, count, grad_out, grad_head, grad_tail, grad_directions):
+    """Gradients of :func:`sh_forward` w.r.t. the first ``count`` coefficients (into
+    ``grad_head`` and ``grad_tail``, zero-filled by the caller) and the directions."""
+    split = head.shape[1]
     for n in prange(directions.shape[0]):
         basis = np.empty(16, dtype=np.float64)
         grad_basis = np.zeros(16, dtype=np.float64)
@@ -121,11 +134,14 @@ def sh_backward(coefficients, directions, count, grad_out, grad_coefficients, gr
         for c in range(3):
             value = 0.5
             for k in range(count):
-                value += basis[k] * coefficients[n, k, c]
+                value += basis[k] * _coefficient(head, tail, n, k, c)
             g = grad_out[n, c] if value >= 0.0 else 0.0  # clamp_min passes the gradient at the bound
             for k in range(count):
-                grad_coefficients[n, k, c] = basis[k] * g
-                grad_basis[k] += coefficients[n, k, c] * g
+                if k < split:
+                    grad_head[n, k, c] = basis[k] * g
+                else:
+                    grad_tail[n, k - split, c] = basis[k] * g
+                grad_basis[k] += _coefficient(head, tail, n, k, c) * g
         _basis_gradient(x, y, z, count, grad_basis, grad_unit)
         if length > _NORM_FLOOR:  # through u = d / |d|: (g - u (u . g)) / |d|
             along = x * grad_unit[0] + y * grad_unit[1] + z * grad_unit[2]
@@ -139,30 +155,41 @@ def sh_backward(coefficients, directions, count, grad_out, grad_coefficients, gr
 
 
 class SHColors(torch.autograd.Function):
-    """colours [N, 3] from coefficients [N, K, 3] (the first (degree + 1)^2 used) and directions [N, 3]."""
+    """colours [N, 3] from coefficients ``head`` [N, H, 3] and ``tail`` [N, T, 3] (their
+    concatenation; the first (degree + 1)^2 used) and directions [N, 3]."""
 
     @staticmethod
-    def forward(ctx, coefficients: torch.Tensor, directions: torch.Tensor, degree: int) -> torch.Tensor:
+    def forward(ctx, head: torch.Tensor, tail: torch.Tensor, directions: torch.Tensor, degree: int) -> torch.Tensor:
         count = num_sh_bases(degree)
-        coefficients_np = coefficients.detach().numpy()
-        directions_np = directions.detach().contiguous().numpy()
-        out = torch.empty(directions.shape[0], 3, dtype=coefficients.dtype)
-        sh_forward(coefficients_np, directions_np, count, out.numpy())
-        ctx.save_for_backward(coefficients, directions)
+        directions = directions.detach().contiguous()
+        out = torch.empty(directions.shape[0], 3, dtype=head.dtype)
+        sh_forward(head.detach().numpy(), tail.detach().numpy(), directions.numpy(), count, out.numpy())
+        ctx.save_for_backward(head, tail, directions)
         ctx.count = count
         return out
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):
-        coefficients, directions = ctx.saved_tensors
-        grad_coefficients = torch.zeros_like(coefficients) if ctx.needs_input_grad[0] else None
+        head, tail, directions = ctx.saved_tensors
+        # the coefficient gradients are written in place, straight into tensors of their
+        # parameters' shapes (the trainer's sh_dc and sh_rest gradients)
+        grad_head = torch.zeros_like(head, memory_format=torch.contiguous_format)
+        grad_tail = torch.zeros_like(tail, memory_format=torch.contiguous_format)
         grad_directions = torch.empty(directions.shape, dtype=directions.dtype)
-        scratch = grad_coefficients if grad_coefficients is not None else torch.empty_like(coefficients)
-        sh_backward(coefficients.detach().numpy(), directions.detach().contiguous().numpy(), ctx.count,
-                    grad_out.contiguous().numpy(), scratch.numpy(), grad_directions.numpy())
-        return grad_coefficients, grad_directions if ctx.needs_input_grad[1] else None, None
+        sh_backward(head.detach().numpy(), tail.detach().numpy(), directions.numpy(), ctx.count,
+                    grad_out.contiguous().numpy(), grad_head.numpy(), grad_tail.numpy(), grad_directions.numpy())
+        needs = ctx.needs_input_grad
+        return (grad_head if needs[0] else None, grad_tail if needs[1] else None,
+                grad_directions if needs[2] else None, None)
 
 
-def fused_sh_colors(degree: int, coefficients: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
-    """:func:`.sh.evaluate_sh_colors` for CPU tensors with directions [N, 3], in Numba."""
-    return SHColors.apply(coefficients, directions, int(degree))
+def fused_sh_colors(degree: int, coefficients: torch.Tensor | SHCoefficients, directions: torch.Tensor) -> torch.Tensor:
+    """:func:`.sh.evaluate_sh_colors` for CPU tensors with directions [N, 3], in Numba.
+
+    ``coefficients`` [N, K, 3], or :class:`~.sh.SHCoefficients` read in place (no concatenation).
+    """
+    if isinstance(coefficients, SHCoefficients):
+        head, tail = coefficients.dc, coefficients.rest
+    else:
+        head, tail = coefficients, coefficients[:, :0]
+    return SHColors.apply(head, tail, directions, int(degree))

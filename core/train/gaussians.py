@@ -17,6 +17,8 @@ from typing import Optional
 import numpy as np
 import torch
 
+from ..render.sh import SHCoefficients
+
 #: Degree-0 real SH constant: colour = SH_C0 * dc + 0.5 (the rasterizer adds the 0.5).
 SH_C0 = 0.28209479177387814
 
@@ -46,15 +48,18 @@ def inverse_sigmoid(x: torch.Tensor) -> torch.Tensor:
 class RenderParams:
     """Activated parameters handed to the rasterizer. Hooks may replace any field.
 
-    means [N, 3], quats [N, 4] unit wxyz, scales [N, 3], opacities [N], colors [N, K, 3]
-    SH coefficients, ``sh_degree`` the active degree, ``extra`` [N, E] optional channels.
+    means [N, 3], quats [N, 4] unit wxyz, scales [N, 3], opacities [N], colors the SH
+    coefficients: :class:`~esgs.core.render.sh.SHCoefficients` (the model's ``sh_dc`` and
+    ``sh_rest`` as they are, from :meth:`GaussianModel.render_params`) or one [N, K, 3] tensor
+    (a hook's own, e.g. Scaffold-GS's decoded colours); ``sh_degree`` the active degree,
+    ``extra`` [N, E] optional channels.
     """
 
     means: torch.Tensor
     quats: torch.Tensor
     scales: torch.Tensor
     opacities: torch.Tensor
-    colors: torch.Tensor
+    colors: torch.Tensor | SHCoefficients
     sh_degree: int
     extra: Optional[torch.Tensor] = None
 
@@ -173,7 +178,8 @@ class GaussianModel:
     def render_params(self, sh_degree: int) -> RenderParams:
         """Activated parameters (differentiable w.r.t. the raw ones) for the rasterizer."""
         return RenderParams(means=self.params["means"], quats=self.unit_quats(), scales=self.scales(),
-                            opacities=self.opacities(), colors=self.sh_coefficients(), sh_degree=sh_degree)
+                            opacities=self.opacities(), colors=SHCoefficients(self.params["sh_dc"], self.params["sh_rest"]),
+                            sh_degree=sh_degree)
 
     def set_params(self, new: dict[str, torch.nn.Parameter]) -> None:
         self.params.update(new)

@@ -12,6 +12,7 @@ from typing import Any, Optional
 import torch
 
 from ...render.constants import NEAR_PLANE
+from ...render.sh import SHCoefficients
 from ...train.gaussians import GaussianModel, RenderParams
 from ...train.hooks import RunView, StepContext, TrainHook
 from .gpdfn import GPDFN
@@ -77,12 +78,14 @@ def apply_residuals(gaussians: Any, params: Any, residual: dict[str, torch.Tenso
     raw = gaussians.params
     scales = torch.exp(raw["log_scales"] + residual["log_scales"])
     opacities = torch.sigmoid(raw["opacity_logit"].reshape(-1) + residual["opacity_logits"])
-    # out-of-place index_add on the SH axis: one copy of colors [N, 16, 3] (~19 MB at 100k
-    # Gaussians) forward, and the colour gradient passes through untouched backward (clone +
-    # slice update, or a concatenation of slices, each made autograd build full-size zero
-    # tensors for the slice gradients)
-    dc = torch.zeros(1, dtype=torch.long, device=params.colors.device)
-    colors = params.colors.index_add(1, dc, residual["sh_dc"].unsqueeze(1))
+    if isinstance(params.colors, SHCoefficients):  # the model's own: add to the degree-0 tensor only
+        colors = SHCoefficients(params.colors.dc + residual["sh_dc"].unsqueeze(1), params.colors.rest)
+    else:
+        # out-of-place index_add on the SH axis: one copy of colors [N, K, 3] forward, and the
+        # colour gradient passes through untouched backward (clone + slice update, or a
+        # concatenation of slices, each made autograd build full-size zero tensors)
+        dc = torch.zeros(1, dtype=torch.long, device=params.colors.device)
+        colors = params.colors.index_add(1, dc, residual["sh_dc"].unsqueeze(1))
     return replace(params, scales=scales, opacities=opacities, colors=colors)
 
 

@@ -315,7 +315,7 @@ def test_hook_every_k_steps_reuses_detached_residuals_until_the_set_changes():
         for parameter in list(hook.module.parameters()) + list(model.params.values()):
             parameter.grad = None
         fused = hook.before_render(trainer, StepContext(step=number, view=None, sh_degree=1), model.render_params(1))
-        (fused.colors.sum() + fused.opacities.sum() + fused.scales.sum()).backward()
+        (fused.colors.cat().sum() + fused.opacities.sum() + fused.scales.sum()).backward()
         return fused, hook.module.head.weight.grad
 
     first, grad = step(1)  # nothing cached yet: GPDFN runs although 1 is not a multiple of 2
@@ -326,9 +326,9 @@ def test_hook_every_k_steps_reuses_detached_residuals_until_the_set_changes():
     assert grad is not None
     third, grad = step(3)  # cached: GPDFN's residuals of step 2 applied, detached
     assert grad is None
-    torch.testing.assert_close(third.colors, second.colors)
+    torch.testing.assert_close(third.colors.cat(), second.colors.cat())
     torch.testing.assert_close(third.scales, second.scales)
-    assert not torch.equal(second.colors, first.colors)
+    assert not torch.equal(second.colors.cat(), first.colors.cat())
     hook.on_densify(trainer, None)  # the Gaussian set changed: the cache is dropped
     _, grad = step(5)
     assert grad is not None
@@ -376,8 +376,9 @@ def test_hook_residuals_equal_the_module_on_raw_parameters():
     residual = module(raw["means"], raw["log_scales"], raw["quats"], raw["opacity_logit"], raw["sh_dc"].reshape(-1, 3))
     torch.testing.assert_close(fused.scales, torch.exp(raw["log_scales"] + residual["log_scales"]))
     torch.testing.assert_close(fused.opacities, torch.sigmoid(raw["opacity_logit"] + residual["opacity_logits"]))
-    torch.testing.assert_close(fused.colors[:, 0], raw["sh_dc"][:, 0] + residual["sh_dc"])
-    loss = fused.colors.sum() + fused.opacities.sum() + fused.scales.sum()
+    torch.testing.assert_close(fused.colors.dc[:, 0], raw["sh_dc"][:, 0] + residual["sh_dc"])
+    assert fused.colors.rest is raw["sh_rest"]  # the higher bands pass through, not copied
+    loss = fused.colors.cat().sum() + fused.opacities.sum() + fused.scales.sum()
     gradient = torch.autograd.grad(loss, raw["quats"])[0]
     expected = torch.autograd.grad(residual["sh_dc"].sum() + torch.sigmoid(raw["opacity_logit"] + residual["opacity_logits"]).sum()
                                    + torch.exp(raw["log_scales"] + residual["log_scales"]).sum(), raw["quats"])[0]

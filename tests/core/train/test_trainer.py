@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from esgs.core.errors import ConfigError, ESGSError
+from esgs.core.render.sh import SHCoefficients
 from esgs.core.train import LossTerm, TrainHook, train
 from esgs.core.train.checkpoint import list_checkpoints, load_checkpoint
 from esgs.core.train.trainer import Trainer, TrainingDivergedError
@@ -193,7 +194,7 @@ class _GainModule(TrainHook):
     def before_render(self, trainer, context, params):
         self.calls["before_render"] += 1
         gain = self.module.weight.reshape(())
-        params.colors = torch.cat([params.colors[:, :1] * gain * 2.0, params.colors[:, 1:]], dim=1)
+        params.colors = SHCoefficients(params.colors.dc * gain * 2.0, params.colors.rest)
         return params
 
     def after_backward(self, trainer, context):
