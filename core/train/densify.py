@@ -167,19 +167,22 @@ def densify_and_prune(model: GaussianModel, optimizer: TrainOptimizer, state: De
             split_rows["log_scales"] = torch.log(parent_scales / (0.8 * children))
             new_rows = {name: torch.cat([new_rows[name], split_rows[name]], dim=0) for name in params}
         source_index = torch.cat([torch.arange(count, device=grads.device), clone_index, split_index.repeat(children)])
-        model.set_params(optimizer.append(new_rows))
 
-        # the split parents go; then opacity and size pruning over everything
-        total = len(model)
+        # the split parents go; then opacity and size pruning over the old and the new rows,
+        # decided before any parameter is rebuilt so that each is rebuilt once
+        total = int(source_index.numel())
         remove = torch.zeros(total, dtype=torch.bool, device=grads.device)
         remove[split_index] = True
-        remove |= model.opacities() < settings.prune_opacity
+        remove |= torch.sigmoid(torch.cat([params["opacity_logit"].detach(), new_rows["opacity_logit"]])) \
+            < settings.prune_opacity
         if settings.prune_large:
             max_radii = torch.cat([state.max_radii, torch.zeros(total - count, device=grads.device)])
             remove |= max_radii > settings.max_screen_size_px
-            remove |= model.scales().max(dim=1).values > settings.max_world_size * settings.extent
+            log_scales = torch.cat([params["log_scales"].detach(), new_rows["log_scales"]])
+            remove |= torch.exp(log_scales).max(dim=1).values > settings.max_world_size * settings.extent
         keep = ~remove
-        model.set_params(optimizer.select(keep))
+        keep_new = keep[count:]
+        model.set_params(optimizer.keep_and_append(keep[:count], {name: rows[keep_new] for name, rows in new_rows.items()}))
         source_index = source_index[keep]
         state.reset(len(model))
     pruned = int(remove.sum()) - int(split_index.numel())

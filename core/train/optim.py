@@ -180,6 +180,40 @@ class TrainOptimizer:
             result[name] = new
         return result
 
+    def keep_and_append(self, keep: torch.Tensor, rows: dict[str, torch.Tensor]) -> dict[str, torch.nn.Parameter]:
+        """Keep rows ``keep`` ([N] bool) of every per-Gaussian group and append ``rows`` after
+        them: :meth:`append` then :meth:`select`, in one new tensor per parameter and moment.
+
+        Densification both adds and removes rows; doing it in two passes made every
+        parameter and Adam moment twice, and the freed copies left holes in the heap that the
+        next, larger tensors could not reuse (~100 MiB of peak at 400k Gaussians). The new
+        rows' moments start at zero. Returns the new parameters by group name.
+        """
+        missing = set(self.per_gaussian_names()) - set(rows)
+        if missing:
+            raise ValueError(f"keep_and_append is missing rows for {', '.join(sorted(missing))}")
+        kept_index = keep.nonzero().squeeze(1)
+        kept = int(kept_index.numel())
+        result = {}
+        for name in self.per_gaussian_names():
+            old = self.param(name)
+            extra = rows[name].detach().to(old.dtype)
+
+            def rebuild(value: torch.Tensor, tail: Optional[torch.Tensor]) -> torch.Tensor:
+                out = torch.empty((kept + extra.shape[0],) + tuple(value.shape[1:]), dtype=value.dtype,
+                                  device=value.device)
+                torch.index_select(value, 0, kept_index, out=out[:kept])
+                if tail is None:
+                    out[kept:].zero_()
+                else:
+                    out[kept:].copy_(tail)
+                return out
+
+            new = torch.nn.Parameter(rebuild(old.detach(), extra))
+            self._replace(name, new, lambda value: rebuild(value, None))
+            result[name] = new
+        return result
+
     def reset(self, name: str, values: torch.Tensor) -> torch.nn.Parameter:
         """Replace a per-Gaussian group's values and zero its Adam moments (opacity reset)."""
         old = self.param(name)

@@ -68,3 +68,42 @@ def test_schedules_and_checkpoint_group_check():
         other.load_state_dict(optimizer.state_dict())
     with pytest.raises(ValueError):
         optimizer.add_group("means", torch.nn.Parameter(torch.zeros(1)), 1.0)
+
+
+def test_keep_and_append_equals_append_then_select_for_parameters_and_moments():
+    """Densification's one-pass surgery: the same parameters and Adam moments as appending the
+    new rows and then keeping the rows of the old and new that survive, bit for bit."""
+    generator = torch.Generator().manual_seed(5)
+    start = {"means": torch.randn(7, 3, generator=generator), "sh_rest": torch.randn(7, 15, 3, generator=generator),
+             "opacity_logit": torch.randn(7, generator=generator)}
+    extra = {"means": torch.randn(4, 3, generator=generator), "sh_rest": torch.randn(4, 15, 3, generator=generator),
+             "opacity_logit": torch.randn(4, generator=generator)}
+    keep = torch.tensor([True, False, True, True, False, True, True, False, True, True, False])
+    optimizers = []
+    for _ in range(2):
+        optimizer = TrainOptimizer()
+        for name, value in start.items():
+            optimizer.add_group(name, torch.nn.Parameter(value.clone()), 0.1, per_gaussian=True)
+        for seed in range(3):
+            for name in start:
+                optimizer.param(name).grad = _grad(optimizer.param(name), seed)
+            optimizer.step()
+        optimizers.append(optimizer)
+    two_pass, one_pass = optimizers
+    two_pass.append(extra)
+    reference = two_pass.select(keep)
+    result = one_pass.keep_and_append(keep[:7], {name: value[keep[7:]] for name, value in extra.items()})
+    for name in start:
+        assert result[name].shape == reference[name].shape and result[name].is_contiguous()
+        assert torch.equal(result[name].detach(), reference[name].detach())
+        for moment in ("exp_avg", "exp_avg_sq"):
+            assert torch.equal(one_pass.adam.state[result[name]][moment], two_pass.adam.state[reference[name]][moment])
+    # and the next step is the same
+    for optimizer, params in ((one_pass, result), (two_pass, reference)):
+        for name in start:
+            params[name].grad = _grad(params[name], 9)
+        optimizer.step()
+    for name in start:
+        assert torch.equal(result[name].detach(), reference[name].detach())
+    with pytest.raises(ValueError, match="missing rows for sh_rest"):
+        one_pass.keep_and_append(torch.ones(8, dtype=torch.bool), {"means": extra["means"], "opacity_logit": extra["opacity_logit"]})
