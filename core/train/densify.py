@@ -182,7 +182,9 @@ def densify_and_prune(model: GaussianModel, optimizer: TrainOptimizer, state: De
             remove |= torch.exp(log_scales).max(dim=1).values > settings.max_world_size * settings.extent
         keep = ~remove
         keep_new = keep[count:]
-        model.set_params(optimizer.keep_and_append(keep[:count], {name: rows[keep_new] for name, rows in new_rows.items()}))
+        kept_rows = {name: rows[keep_new] for name, rows in new_rows.items()}
+        del new_rows, params  # the model's dict takes each new parameter as it is built
+        optimizer.keep_and_append(keep[:count], kept_rows, into=model.params)
         source_index = source_index[keep]
         state.reset(len(model))
     pruned = int(remove.sum()) - int(split_index.numel())

@@ -53,7 +53,9 @@ class StepContext:
     degree; ``render_depth``/``render_normals``: channels to render (set by the active
     loss terms, hooks may switch them on); after rendering ``output`` holds the
     :class:`~.rendering.RenderOutput`, after the loss ``loss`` (tensor) and
-    ``loss_values`` (per term, unweighted).
+    ``loss_values`` (per term, unweighted). Once ``after_backward`` has run, ``output`` is
+    dropped and ``loss`` detached, so that the step's graph and buffers (and, through the
+    graph, parameters that densification replaces) are freed before the optimizer steps.
     """
 
     step: int

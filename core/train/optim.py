@@ -139,12 +139,17 @@ class TrainOptimizer:
         state = self.adam.state.pop(old, None)
         group["params"][0] = new_param
         if state is not None and transform_state is not None:
+            rows = old.shape[0]
+            del old
             new_state = {}
-            for key, value in state.items():
-                if isinstance(value, torch.Tensor) and value.dim() > 0 and value.shape[0] == old.shape[0]:
+            # each old moment is let go as soon as its successor exists: one moment's copy at a time
+            for key in list(state):
+                value = state.pop(key)
+                if isinstance(value, torch.Tensor) and value.dim() > 0 and value.shape[0] == rows:
                     new_state[key] = transform_state(value)
                 else:
                     new_state[key] = value
+                del value
             self.adam.state[new_param] = new_state
 
     def select(self, keep: torch.Tensor) -> dict[str, torch.nn.Parameter]:
@@ -180,14 +185,17 @@ class TrainOptimizer:
             result[name] = new
         return result
 
-    def keep_and_append(self, keep: torch.Tensor, rows: dict[str, torch.Tensor]) -> dict[str, torch.nn.Parameter]:
+    def keep_and_append(self, keep: torch.Tensor, rows: dict[str, torch.Tensor],
+                        into: Optional[dict[str, torch.nn.Parameter]] = None) -> dict[str, torch.nn.Parameter]:
         """Keep rows ``keep`` ([N] bool) of every per-Gaussian group and append ``rows`` after
         them: :meth:`append` then :meth:`select`, in one new tensor per parameter and moment.
 
         Densification both adds and removes rows; doing it in two passes made every
         parameter and Adam moment twice, and the freed copies left holes in the heap that the
-        next, larger tensors could not reuse (~100 MiB of peak at 400k Gaussians). The new
-        rows' moments start at zero. Returns the new parameters by group name.
+        next, larger tensors could not reuse. The new rows' moments start at zero. Returns the
+        new parameters by group name; ``into`` (the model's parameter dict) gets each one as
+        soon as it is built, so the old tensor is freed before the next group is copied
+        (otherwise the whole old model lives until the last group is done).
         """
         missing = set(self.per_gaussian_names()) - set(rows)
         if missing:
@@ -210,8 +218,11 @@ class TrainOptimizer:
                 return out
 
             new = torch.nn.Parameter(rebuild(old.detach(), extra))
+            del old
             self._replace(name, new, lambda value: rebuild(value, None))
             result[name] = new
+            if into is not None:
+                into[name] = new
         return result
 
     def reset(self, name: str, values: torch.Tensor) -> torch.nn.Parameter:

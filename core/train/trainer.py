@@ -501,7 +501,40 @@ class Trainer:
 
     # --- one step ------------------------------------------------------------------
     def train_step(self, step: int) -> StepContext:
-        """Run training step ``step`` (1-based) and return its context."""
+        """Run training step ``step`` (1-based) and return its context.
+
+        The returned context keeps the loss as a detached tensor and no render output: the
+        step's graph and buffers are gone before the optimizer step and densification.
+        """
+        context, psnr, loss_value = self._gradients(step)
+        self.optimizer.step()
+        self.optimizer.zero_grad()
+        if self.grayscale:
+            self._make_grey()
+
+        for report in self.strategy.step_post_optimizer(step):
+            for hook in self.hooks:
+                hook.on_densify(self, report)
+        # a non-finite parameter shows up in the next loss when the Gaussian is in view; the full
+        # scan (costly at 100k+ Gaussians) runs periodically and before every checkpoint
+        if (step % 50 == 0 or step == self.config.iterations or self._checkpoint_due(step)) \
+                and not self.gaussians.all_finite():
+            bad = [name for name, p in self.gaussians.params.items() if not bool(torch.isfinite(p).all())]
+            self._diverged(f"Gaussian parameters {', '.join(bad)} are not finite after step {step}")
+
+        self.loss_ema = loss_value if self.loss_ema is None else 0.4 * loss_value + 0.6 * self.loss_ema
+        self.psnr_ema = psnr if self.psnr_ema is None else 0.4 * psnr + 0.6 * self.psnr_ema
+        context.extras["psnr"] = psnr
+        return context
+
+    def _gradients(self, step: int) -> tuple[StepContext, float, float]:
+        """Render, compute the loss and its gradients for step ``step`` -> (context, PSNR, loss).
+
+        A method of its own so that everything the step built (the render, the loss graph,
+        whose leaf accumulators hold the parameters) is released when it returns: kept until
+        the end of the step, it lived through densification, which replaces every parameter,
+        and through the next step's render (~200 MiB of peak at 400k Gaussians).
+        """
         self.step = step
         config = self.config
         view = self.data.train[self.sampler.next()]
@@ -540,26 +573,8 @@ class Trainer:
             image = image.detach().clamp(0.0, 1.0)
             mse = float((image - target).pow(2).mean())
         psnr = -10.0 * math.log10(max(mse, 1e-12))
-        self.optimizer.step()
-        self.optimizer.zero_grad()
-        if self.grayscale:
-            self._make_grey()
-
-        for report in self.strategy.step_post_optimizer(step):
-            for hook in self.hooks:
-                hook.on_densify(self, report)
-        # a non-finite parameter shows up in the next loss when the Gaussian is in view; the full
-        # scan (costly at 100k+ Gaussians) runs periodically and before every checkpoint
-        if (step % 50 == 0 or step == config.iterations or self._checkpoint_due(step)) \
-                and not self.gaussians.all_finite():
-            bad = [name for name, p in self.gaussians.params.items() if not bool(torch.isfinite(p).all())]
-            self._diverged(f"Gaussian parameters {', '.join(bad)} are not finite after step {step}")
-
-        loss_value = parts.total_value
-        self.loss_ema = loss_value if self.loss_ema is None else 0.4 * loss_value + 0.6 * self.loss_ema
-        self.psnr_ema = psnr if self.psnr_ema is None else 0.4 * psnr + 0.6 * self.psnr_ema
-        context.extras["psnr"] = psnr
-        return context
+        context.loss, context.output = loss.detach(), None
+        return context, psnr, parts.total_value
 
     def _backward(self, step: int, parts: LossParts, output: Any) -> None:
         """Differentiate the step's loss; with ``densify_gradient = "photometric"`` and terms that

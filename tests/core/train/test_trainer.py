@@ -338,3 +338,29 @@ def test_grey_images_train_grey_gaussians(fast_config, tiny_scene, tmp_path):
     assert colour_spread(grey) < 1e-6  # auto: every image is grey
     assert colour_spread(grey, grayscale="off") > 1e-4  # learning colours drifts off grey
     assert colour_spread(tiny_scene) > 1e-4  # colour images keep their colours
+
+
+def test_a_step_frees_its_graph_and_the_parameters_densification_replaced(fast_config):
+    """Nothing of a step outlives it: the returned context holds a detached loss and no render,
+    and the parameters densification replaced are freed (the graph's leaf accumulators held
+    them until the next step had rendered, a whole copy of the model at the peak)."""
+    import gc
+    import weakref
+
+    trainer = Trainer(fast_config(iterations=200))
+    trainer.setup()
+    schedule = trainer.strategy.schedule
+    step = next(s for s in range(1, 200) if schedule.is_densify_step(s))
+    for number in range(1, step):
+        trainer.train_step(number)
+    old = {name: weakref.ref(param) for name, param in trainer.gaussians.params.items()}
+    count = len(trainer.gaussians)
+    context = trainer.train_step(step)
+    assert len(trainer.gaussians) != count, "the step must densify for this test to say anything"
+    assert context.output is None and context.loss.grad_fn is None and context.loss.item() > 0.0
+    gc.disable()  # freed by reference counting alone, not by a later collection
+    try:
+        alive = [name for name, ref in old.items() if ref() is not None]
+    finally:
+        gc.enable()
+    assert alive == [], f"parameters replaced by densification still alive: {alive}"
