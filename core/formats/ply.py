@@ -135,13 +135,17 @@ def _property_names(num_rest: int) -> list[str]:
     )
 
 
-def write_gaussians_ply(path: str | Path, gaussians: GaussianPly) -> None:
+def write_gaussians_ply(path: str | Path, gaussians: GaussianPly, *, rows_per_write: int = 65_536) -> None:
     """Write ``gaussians`` as a standard 3DGS PLY (binary_little_endian 1.0), atomically.
+
+    ``rows_per_write``: Gaussians converted and written at a time (memory, not the file, depends on it).
 
     All properties are float32 in the canonical 3DGS order (see the module docstring),
     ``f_rest`` channel-major. The file appears at ``path`` only once it is complete.
     """
     path = Path(path)
+    if int(rows_per_write) < 1:
+        raise ValueError(f"rows_per_write must be at least 1, got {rows_per_write}")
     n = len(gaussians)
     num_rest = gaussians.sh_rest.shape[1]
     names = _property_names(num_rest)
@@ -150,25 +154,22 @@ def write_gaussians_ply(path: str | Path, gaussians: GaussianPly) -> None:
     header += f"element vertex {n}\n"
     header += "".join(f"property float {name}\n" for name in names)
     header += "end_header\n"
-    # sh_rest [N, K-1, 3] -> [N, 3, K-1]: all red coefficients first, then green, then blue
-    rest = np.transpose(gaussians.sh_rest, (0, 2, 1)).reshape(n, 3 * num_rest)
-    table = np.concatenate(
-        [
-            gaussians.means,
-            gaussians.normals,
-            gaussians.sh_dc,
-            rest,
-            gaussians.opacity_logit[:, None],
-            gaussians.log_scales,
-            gaussians.quats_wxyz,
-        ],
-        axis=1,
-    ).astype("<f4", copy=False)
-    assert table.shape == (n, len(names))
+    columns = [gaussians.means, gaussians.normals, gaussians.sh_dc, None, gaussians.opacity_logit[:, None],
+               gaussians.log_scales, gaussians.quats_wxyz]
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as handle:
             handle.write(header.encode("ascii"))
-            handle.write(np.ascontiguousarray(table).tobytes())
+            # the table a block of rows at a time: a whole [N, 62] table and its bytes were two
+            # copies of the model at the end of every run (~0.5 KB a Gaussian, the run's peak)
+            for start in range(0, n, rows_per_write):
+                rows = slice(start, start + rows_per_write)
+                # sh_rest [N, K-1, 3] -> [N, 3, K-1]: all red coefficients first, then green, then blue
+                rest = np.transpose(gaussians.sh_rest[rows], (0, 2, 1)).reshape(min(rows_per_write, n - start),
+                                                                                3 * num_rest)
+                block = np.concatenate([rest if column is None else column[rows] for column in columns],
+                                       axis=1).astype("<f4", copy=False)
+                assert block.shape[1] == len(names)
+                handle.write(np.ascontiguousarray(block).data)
             handle.flush()
             os.fsync(handle.fileno())
 

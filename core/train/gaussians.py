@@ -201,7 +201,8 @@ class GaussianModel:
         from ..formats.ply import GaussianPly
 
         def array(name: str) -> np.ndarray:
-            return self.params[name].detach().cpu().numpy().astype(np.float32)
+            # float32 parameters are shared, not copied: the PLY writer converts a block at a time
+            return self.params[name].detach().cpu().numpy().astype(np.float32, copy=False)
 
         count = len(self)
         return GaussianPly(

@@ -144,6 +144,22 @@ def test_round_trip_is_bit_exact(tmp_path, degree):
     assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no temporary file left behind
 
 
+def test_the_file_does_not_depend_on_how_many_rows_are_written_at_a_time(tmp_path):
+    """The writer converts a block of rows at a time (memory): every block size writes the same bytes."""
+    gaussians = _random_gaussians(257, 3, seed=7)
+    files = []
+    for rows in (1, 7, 256, 257, 100_000):
+        path = tmp_path / f"rows{rows}.ply"
+        write_gaussians_ply(path, gaussians, rows_per_write=rows)
+        files.append(path.read_bytes())
+    assert all(data == files[0] for data in files[1:])
+    back = read_gaussians_ply(tmp_path / "rows7.ply")
+    np.testing.assert_array_equal(back.sh_rest, gaussians.sh_rest.astype(np.float32))
+    with pytest.raises(ValueError, match="rows_per_write"):
+        write_gaussians_ply(tmp_path / "zero.ply", gaussians, rows_per_write=0)
+    assert not (tmp_path / "zero.ply").exists()
+
+
 def test_writer_uses_canonical_layout(tmp_path):
     """Header order and byte layout as the 3DGS description gives them, checked by hand."""
     gaussians = _random_gaussians(2, 3, seed=9)
