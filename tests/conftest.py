@@ -5,7 +5,10 @@ without it they skip with a reason; with ``CI=true`` a missing dataset is a fail
 """
 from __future__ import annotations
 
+import contextlib
+import importlib.util
 import os
+import sys
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before anything imports torch
@@ -35,3 +38,18 @@ def require_shared(*parts: str) -> Path:
 @pytest.fixture
 def shared_data() -> Path:
     return require_shared()
+
+
+@contextlib.contextmanager
+def benchmark_script(name: str):
+    """The module of ``benchmarks/<name>.py`` (a script, not a package: loaded from its path),
+    registered in ``sys.modules`` while in use (its dataclasses look their module up there)."""
+    path = REPO_ROOT / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    try:
+        spec.loader.exec_module(module)
+        yield module
+    finally:
+        sys.modules.pop(spec.name, None)

@@ -1,7 +1,6 @@
 """The OpenSplat comparison script's own helpers (the comparison itself needs the OpenSplat binary)."""
 from __future__ import annotations
 
-import importlib.util
 import os
 import subprocess
 import sys
@@ -11,22 +10,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.conftest import benchmark_script
+
 from esgs.core.colmap.model import Image
 from esgs.core.colmap.parse import read_images_binary
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_vs_opensplat.py"
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_vs_opensplat", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    try:
-        spec.loader.exec_module(module)
+    with benchmark_script("bench_vs_opensplat") as module:
         yield module
-    finally:
-        sys.modules.pop(spec.name, None)
 
 
 def test_skips_with_a_message_when_the_binary_is_missing(bench, tmp_path, capsys):

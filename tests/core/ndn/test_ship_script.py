@@ -2,28 +2,21 @@
 output line follow the data folder's manifest and the weights' depth state, not a fixed text."""
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
+from tests.conftest import benchmark_script
+
 from esgs.core.ndn.data import plan_scenes
 
-SCRIPT = Path(__file__).resolve().parents[3] / "benchmarks" / "ship_ndn.py"
 
 
 @pytest.fixture(scope="module")
 def ship():
-    spec = importlib.util.spec_from_file_location("ship_ndn", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    try:
-        spec.loader.exec_module(module)
+    with benchmark_script("ship_ndn") as module:
         yield module
-    finally:
-        sys.modules.pop(spec.name, None)
 
 
 def _data_folder(tmp_path: Path, presets: tuple[str, ...], heldout_presets: tuple[str, ...]) -> Path:
