@@ -25,11 +25,6 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
             raise ConfigError("rasterization: colors given as SHCoefficients need sh_degree",
                               hint="pass sh_degree, or colors as an [N, D] tensor of features")
         tensors.update({"colors.dc": colors.dc, "colors.rest": colors.rest})
-        count = means.shape[0] if means.dim() == 2 else -1
-        if colors.dc.dim() != 3 or tuple(colors.dc.shape[1:]) != (1, 3) or colors.rest.dim() != 3 \
-                or colors.rest.shape[0] != colors.dc.shape[0] or colors.rest.shape[2] != 3:
-            raise ConfigError(f"rasterization: SHCoefficients have dc {tuple(colors.dc.shape)} and rest "
-                              f"{tuple(colors.rest.shape)}, expected [{count}, 1, 3] and [{count}, K-1, 3]")
     else:
         tensors["colors"] = colors
     if backgrounds is not None:
@@ -58,6 +53,11 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
     else:
         if not 0 <= int(sh_degree) <= 3:
             raise ConfigError(f"rasterization: sh_degree must be 0..3, got {sh_degree}")
+        if isinstance(colors, SHCoefficients) and (
+                colors.dc.dim() != 3 or tuple(colors.dc.shape[1:]) != (1, 3) or colors.rest.dim() != 3
+                or colors.rest.shape[0] != colors.dc.shape[0] or colors.rest.shape[2] != 3):
+            raise ConfigError(f"rasterization: SHCoefficients have dc {tuple(colors.dc.shape)} and rest "
+                              f"{tuple(colors.rest.shape)}, expected [{count}, 1, 3] and [{count}, K-1, 3]")
         if len(colors.shape) != 3 or colors.shape[0] != count or colors.shape[2] != 3 \
                 or colors.shape[1] < num_sh_bases(sh_degree):
             raise ConfigError(f"rasterization: SH colors have shape {tuple(colors.shape)}, expected [N, K>="

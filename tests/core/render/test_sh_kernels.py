@@ -149,6 +149,9 @@ def test_rasterization_refuses_split_coefficients_of_the_wrong_shape_or_without_
     with pytest.raises(ConfigError, match="need sh_degree"):
         rasterization(means, quats, scales, opacities, SHCoefficients(colors[:, :1], colors[:, 1:]), viewmat, K,
                       40, 30)
+    with pytest.raises(ConfigError, match="colors.dc must be a torch.Tensor"):
+        rasterization(means, quats, scales, opacities, SHCoefficients(colors[:, :1].numpy(), colors[:, 1:]),
+                      viewmat, K, 40, 30, sh_degree=3)
     with pytest.raises(ConfigError, match="share one dtype"):
         rasterization(means, quats, scales, opacities, SHCoefficients(colors[:, :1].double(), colors[:, 1:]),
                       viewmat, K, 40, 30, sh_degree=3)
