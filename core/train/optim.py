@@ -168,22 +168,10 @@ class TrainOptimizer:
 
     def append(self, rows: dict[str, torch.Tensor]) -> dict[str, torch.nn.Parameter]:
         """Append new rows to every per-Gaussian group; their Adam moments start at zero."""
-        missing = set(self.per_gaussian_names()) - set(rows)
-        if missing:
-            raise ValueError(f"append is missing rows for {', '.join(sorted(missing))}")
-        result = {}
-        for name in self.per_gaussian_names():
-            old = self.param(name)
-            extra = rows[name].detach().to(old.dtype)
-            new = torch.nn.Parameter(torch.cat([old.detach(), extra], dim=0).contiguous())
-
-            def grow(value: torch.Tensor, count: int = extra.shape[0]) -> torch.Tensor:
-                zeros = torch.zeros((count,) + tuple(value.shape[1:]), dtype=value.dtype, device=value.device)
-                return torch.cat([value, zeros], dim=0).contiguous()
-
-            self._replace(name, new, grow)
-            result[name] = new
-        return result
+        names = self.per_gaussian_names()
+        count = self.param(names[0]).shape[0] if names else 0
+        keep = torch.ones(count, dtype=torch.bool, device=self.param(names[0]).device if names else None)
+        return self.keep_and_append(keep, rows)
 
     def keep_and_append(self, keep: torch.Tensor, rows: dict[str, torch.Tensor],
                         into: Optional[dict[str, torch.nn.Parameter]] = None) -> dict[str, torch.nn.Parameter]:
@@ -199,7 +187,7 @@ class TrainOptimizer:
         """
         missing = set(self.per_gaussian_names()) - set(rows)
         if missing:
-            raise ValueError(f"keep_and_append is missing rows for {', '.join(sorted(missing))}")
+            raise ValueError(f"append is missing rows for {', '.join(sorted(missing))}")
         kept_index = keep.nonzero().squeeze(1)
         kept = int(kept_index.numel())
         result = {}

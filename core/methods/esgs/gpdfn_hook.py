@@ -78,14 +78,11 @@ def apply_residuals(gaussians: Any, params: Any, residual: dict[str, torch.Tenso
     raw = gaussians.params
     scales = torch.exp(raw["log_scales"] + residual["log_scales"])
     opacities = torch.sigmoid(raw["opacity_logit"].reshape(-1) + residual["opacity_logits"])
-    if isinstance(params.colors, SHCoefficients):  # the model's own: add to the degree-0 tensor only
-        colors = SHCoefficients(params.colors.dc + residual["sh_dc"].unsqueeze(1), params.colors.rest)
-    else:
-        # out-of-place index_add on the SH axis: one copy of colors [N, K, 3] forward, and the
-        # colour gradient passes through untouched backward (clone + slice update, or a
-        # concatenation of slices, each made autograd build full-size zero tensors)
-        dc = torch.zeros(1, dtype=torch.long, device=params.colors.device)
-        colors = params.colors.index_add(1, dc, residual["sh_dc"].unsqueeze(1))
+    colors = params.colors
+    if not isinstance(colors, SHCoefficients):  # one [N, K, 3] tensor: its two parts, as views
+        colors = SHCoefficients(colors[:, :1], colors[:, 1:])
+    # the residual goes to the degree-0 coefficients alone; the higher bands pass through uncopied
+    colors = SHCoefficients(colors.dc + residual["sh_dc"].unsqueeze(1), colors.rest)
     return replace(params, scales=scales, opacities=opacities, colors=colors)
 
 
