@@ -29,7 +29,8 @@ across a voxel face), so the reuse is exact.
 
 Cost (see docs/esgs.md): the first pointwise convolution is linear, so it is applied once per
 voxel and gathered for the sampled rows; the rest of the fused stack has a hand-written
-backward (:class:`_FusionCore`) that avoids the slow paths of the generic one.
+backward (:class:`_FusionCore`, on the CPU Numba kernels) that avoids the slow paths of the
+generic one.
 """
 from __future__ import annotations
 
@@ -40,6 +41,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from . import gpdfn_fusion_kernels as fusion_kernels
 from . import gpdfn_kernels as kernels
 from .gpdfn_settings import GPDFNConfig
 
@@ -191,6 +193,15 @@ class _RowSums(torch.autograd.Function):
         return grad.index_select(0, inverse), None, None
 
 
+def _fusion_kernels_apply(tensor: torch.Tensor) -> bool:
+    """Whether :class:`_FusionCore` runs on ``tensor`` with the Numba kernels (CPU, float32/64)."""
+    return tensor.device.type == "cpu" and tensor.dtype in (torch.float32, torch.float64)
+
+
+def _numpy(tensor: torch.Tensor) -> np.ndarray:
+    return tensor.detach().contiguous().numpy()
+
+
 def _fusion_block(tensor: torch.Tensor) -> int:
     """Gaussians per block of :class:`_FusionCore` for tensors on ``tensor``'s device."""
     return FUSION_BLOCK if tensor.device.type == "cpu" else max(int(tensor.shape[0]), 1)
@@ -235,11 +246,14 @@ class _FusionCore(torch.autograd.Function):
     Gaussian itself) as ``own [N, H]`` and entries 1..K-1 (the sampled voxels) as
     ``weight * voxel_projection[index] + bias1``. The first layer is linear, so applying it
     to the V voxel features once and gathering costs far less than applying it to N (K - 1)
-    gathered rows. The Gaussians go through in blocks of :data:`FUSION_BLOCK` (each block's
-    temporaries stay in the CPU cache); the forward keeps each block's activations when a
-    gradient is needed and the backward differentiates block by block by hand (recomputing
-    them instead measured ~5-10 % slower). The linear head runs once on the summaries of all
-    blocks. Weight gradients are summed block by block in a fixed order: deterministic.
+    gathered rows. On the CPU (float32/64) the stack runs in the Numba kernels of
+    :mod:`.gpdfn_fusion_kernels`, one Gaussian's stack at a time, keeping nothing between the
+    forward and the backward but the inputs (the backward recomputes each stack). Elsewhere the
+    Gaussians go through in torch blocks of :data:`FUSION_BLOCK` (each block's temporaries stay
+    in the CPU cache; on a GPU one block); the forward keeps each block's activations when a
+    gradient is needed and the backward differentiates block by block by hand. The linear head
+    runs once on the summaries of all Gaussians. Weight gradients are summed chunk by chunk /
+    block by block in a fixed order: deterministic.
 
     Inputs: own [N, H] (first layer of the Gaussian's own entry, bias included),
     voxel_projection [V, H], index [K-1, N] int64 (clamped to valid ids), weight [K-1, N]
@@ -253,6 +267,14 @@ class _FusionCore(torch.autograd.Function):
                 head_weight, head_bias):
         count, hidden = own.shape
         parameters = (bias1, weight2, bias2, attention_weight, attention_bias, head_weight, head_bias)
+        ctx.kernels = _fusion_kernels_apply(own)
+        if ctx.kernels:
+            # the whole stack per Gaussian in Numba (gpdfn_fusion_kernels): nothing kept but the inputs
+            summaries = torch.from_numpy(fusion_kernels.fusion_forward(
+                *(_numpy(t) for t in (own, voxel_projection, index, weight, bias1, weight2, bias2,
+                                      attention_weight, attention_bias.reshape(1))), fusion_kernels.CHUNK))
+            ctx.save_for_backward(own, voxel_projection, index, weight, summaries, *parameters)
+            return torch.addmm(head_bias, summaries, head_weight.t())
         # the attention-weighted summaries of all blocks in one tensor, so the linear head is one
         # matrix product (and its gradients two) instead of one per block
         summaries = own.new_empty(count, hidden)
@@ -285,6 +307,17 @@ class _FusionCore(torch.autograd.Function):
         grad_head_weight.addmm_(grad_result.t(), summaries)
         grad_head_bias.add_(grad_result.sum(0))
         grad_summaries = grad_result @ head_weight  # [N, H]
+        if ctx.kernels:
+            (grad_own, grad_weight_all, grad_rows, *kernel_grads) = fusion_kernels.fusion_backward(
+                _numpy(grad_summaries), *(_numpy(t) for t in (own, voxel_projection, index, weight, bias1, weight2,
+                                                              bias2, attention_weight, attention_bias.reshape(1))),
+                fusion_kernels.CHUNK)
+            for grad, value in zip(grads[:5], kernel_grads):
+                grad.copy_(torch.from_numpy(value).view_as(grad))
+            if grad_voxel_projection is not None:
+                add_rows_(grad_voxel_projection, index.reshape(-1), torch.from_numpy(grad_rows).view(-1, hidden))
+            return (torch.from_numpy(grad_own), grad_voxel_projection, None,
+                    torch.from_numpy(grad_weight_all) if grad_weight is not None else None, *grads)
         for start in range(0, count, ctx.block):
             block = slice(start, start + ctx.block)
             block_weight = weight[:, block]

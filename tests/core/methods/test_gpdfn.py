@@ -124,6 +124,7 @@ def test_gpu_layout_gives_the_cpu_layouts_outputs_and_gradients(monkeypatch):
     monkeypatch.setattr(VoxelTable, "build", staticmethod(
         lambda means, size, previous=None, use_torch=None: build(means, size, previous, use_torch=True)))
     monkeypatch.setattr(gpdfn, "_fusion_block", lambda tensor: int(tensor.shape[0]))
+    monkeypatch.setattr(gpdfn, "_fusion_kernels_apply", lambda tensor: False)  # no Numba off the CPU
     module._table = None
     gpu, gpu_gradients = _outputs_and_gradients(module, params, module)
     assert module._table.sorted_keys is not None
@@ -171,8 +172,13 @@ def _outputs_and_gradients(function, params, module):
 
 @pytest.mark.parametrize("fused_k", [2, 3, 5])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_fast_path_equals_the_plain_autograd_statement(fused_k, dtype, monkeypatch):
-    monkeypatch.setattr(gpdfn, "FUSION_BLOCK", 128)  # 400 Gaussians: four blocks, the last one partial
+@pytest.mark.parametrize("core", ["numba kernels", "torch blocks"])
+def test_fast_path_equals_the_plain_autograd_statement(fused_k, dtype, core, monkeypatch):
+    # 400 Gaussians: four blocks / chunks, the last one partial
+    monkeypatch.setattr(gpdfn, "FUSION_BLOCK", 128)
+    monkeypatch.setattr(gpdfn.fusion_kernels, "CHUNK", 128)
+    if core == "torch blocks":
+        monkeypatch.setattr(gpdfn, "_fusion_kernels_apply", lambda tensor: False)
     torch.manual_seed(fused_k)
     params = {name: value.to(dtype) for name, value in _gaussians(count=400).items()}
     module = GPDFN(GPDFNConfig(fused_k=fused_k)).to(dtype)
@@ -222,9 +228,72 @@ def test_fusion_core_backward_against_finite_differences(monkeypatch):
     inputs = (random(count, hidden), random(voxels, hidden), index, weight, random(hidden), random(hidden, hidden),
               random(hidden), random(hidden), random(()), random(outputs, hidden), random(outputs))
     assert torch.autograd.gradcheck(_FusionCore.apply, inputs, eps=1e-6, atol=1e-7)
-    # several blocks (the backward recomputes and sums block by block)
+    # several chunks of the Numba kernels (the backward recomputes each chunk's stack and sums
+    # the shared weights' gradients chunk by chunk), then the torch blocks of other devices
+    monkeypatch.setattr(gpdfn.fusion_kernels, "CHUNK", 2)
+    assert torch.autograd.gradcheck(_FusionCore.apply, inputs, eps=1e-6, atol=1e-7)
+    monkeypatch.setattr(gpdfn, "_fusion_kernels_apply", lambda tensor: False)
     monkeypatch.setattr(gpdfn, "FUSION_BLOCK", 2)
     assert torch.autograd.gradcheck(_FusionCore.apply, inputs, eps=1e-6, atol=1e-7)
+
+
+def _fusion_core_inputs(count=3000, neighbours=2, hidden=16, voxels=700, dtype=torch.float32, seed=5):
+    generator = torch.Generator().manual_seed(seed)
+
+    def random(*shape, scale=1.0):
+        return (scale * torch.randn(*shape, generator=generator, dtype=dtype)).requires_grad_()
+
+    index = torch.randint(0, voxels, (neighbours, count), generator=generator)
+    weight = torch.rand(neighbours, count, generator=generator, dtype=dtype)
+    weight[:, ::7] = 0  # empty voxels read with weight 0
+    return (random(count, hidden), random(voxels, hidden), index, weight.requires_grad_(), random(hidden, scale=0.1),
+            random(hidden, hidden, scale=0.3), random(hidden, scale=0.1), random(hidden), random(()),
+            random(7, hidden), random(7))
+
+
+def _core_gradients(inputs, upstream):
+    result = _FusionCore.apply(*inputs)
+    wanted = [tensor for tensor in inputs if tensor.requires_grad]
+    return result, torch.autograd.grad(result, wanted, upstream)
+
+
+@pytest.mark.parametrize("neighbours", [1, 2, 4])
+def test_fusion_kernels_equal_the_torch_blocks_in_float32(neighbours, monkeypatch):
+    # the training precision at a realistic width, many chunks with a partial last one
+    inputs = _fusion_core_inputs(neighbours=neighbours)
+    upstream = torch.randn(3000, 7, generator=torch.Generator().manual_seed(9))
+    monkeypatch.setattr(gpdfn.fusion_kernels, "CHUNK", 256)
+    kernels, kernel_gradients = _core_gradients(inputs, upstream)
+    monkeypatch.setattr(gpdfn, "_fusion_kernels_apply", lambda tensor: False)
+    blocks, block_gradients = _core_gradients(inputs, upstream)
+    torch.testing.assert_close(kernels, blocks, rtol=1e-5, atol=1e-5)
+    names = ("own", "voxel_projection", "weight", "bias1", "weight2", "bias2", "attention_weight",
+             "attention_bias", "head_weight", "head_bias")
+    for name, a, b in zip(names, kernel_gradients, block_gradients):
+        if name == "attention_bias":  # a shift of every score: the softmax ignores it, rounding noise only
+            assert abs(float(a)) < 1e-3 and abs(float(b)) < 1e-3
+            continue
+        scale = float(b.abs().max()) or 1.0
+        torch.testing.assert_close(a / scale, b / scale, rtol=1e-4, atol=2e-5, msg=f"gradient of {name}")
+    assert float(kernel_gradients[0].abs().max()) > 0 and float(kernel_gradients[1].abs().max()) > 0
+
+
+def test_fusion_kernels_give_the_same_bits_on_one_or_two_threads():
+    numba = pytest.importorskip("numba")
+    inputs = _fusion_core_inputs()
+    upstream = torch.randn(3000, 7, generator=torch.Generator().manual_seed(9))
+    before = numba.get_num_threads()
+    try:
+        runs = []
+        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+            numba.set_num_threads(threads)
+            runs.append(_core_gradients(inputs, upstream))
+    finally:
+        numba.set_num_threads(before)
+    (first, first_gradients), (second, second_gradients) = runs
+    assert torch.equal(first, second)
+    for a, b in zip(first_gradients, second_gradients):
+        assert torch.equal(a, b)
 
 
 def test_voxel_table_is_reused_only_while_no_gaussian_changes_voxel():
