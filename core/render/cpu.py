@@ -192,14 +192,18 @@ class _Project(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, cameras):
         viewmats, Ks, settings = cameras
-        # The kernels compute in float64 anyway; giving them float64 storage too means one
-        # compiled version instead of two (this kernel pair is the slowest to compile).
-        arrays = [t.detach().to(torch.float64).contiguous().numpy() for t in (means, quats, scales, opacities)]
+        # The kernels compute in float64 whatever the storage (every load is converted, every
+        # store rounded once, as .to() would), so they read the Gaussians and write their outputs
+        # in the model's own dtype: float64 copies of the inputs, kept to the backward, and of
+        # the outputs cost ~0.2 KB per Gaussian at the step's peak (docs/training.md, "Memory").
+        # The price: a second compiled version of this kernel pair for float32 (cached).
+        storage = means.dtype
+        arrays = [t.detach().to(storage).contiguous().numpy() for t in (means, quats, scales, opacities)]
         views = viewmats.detach().to(torch.float64).contiguous().numpy()
         intrinsics = Ks.detach().to(torch.float64).contiguous().numpy()
         count, cams = means.shape[0], views.shape[0]
-        dtype = np.float64
-        ctx.dtype = means.dtype
+        dtype = arrays[0].dtype
+        ctx.dtype = storage
         means2d = np.empty((cams, count, 2), dtype=dtype)
         conics = np.empty((cams, count, 3), dtype=dtype)
         effective = np.empty((cams, count), dtype=dtype)
@@ -209,9 +213,8 @@ class _Project(torch.autograd.Function):
         cov_diagonal = np.empty((cams, count, 2), dtype=dtype)
         projection_kernels.project_forward(*arrays, views, intrinsics, *settings, means2d, conics, effective,
                                            depths, normals, valid, cov_diagonal)
-        ctx.arrays = arrays
+        ctx.arrays = arrays  # views of the inputs when they are contiguous: no copy
         ctx.cameras = (views, intrinsics, settings)
-        storage = means.dtype
         valid_t, cov_t = torch.from_numpy(valid), torch.from_numpy(cov_diagonal).to(storage)
         ctx.mark_non_differentiable(valid_t, cov_t)
         return (torch.from_numpy(means2d).to(storage), torch.from_numpy(conics).to(storage),
@@ -223,7 +226,7 @@ class _Project(torch.autograd.Function):
         arrays = ctx.arrays
         views, intrinsics, settings = ctx.cameras
         count, cams = arrays[0].shape[0], views.shape[0]
-        dtype = np.float64
+        dtype = arrays[0].dtype  # the storage of the forward (see there)
 
         def prepared(gradient, shape):
             if gradient is None:

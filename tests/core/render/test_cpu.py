@@ -248,3 +248,41 @@ def test_gradient_descent_recovers_a_perturbed_scene():
         losses.append(loss.item())
     assert all(map(lambda value: value == value, losses))  # no NaN
     assert losses[-1] < 0.5 * losses[0]
+
+
+@pytest.mark.parametrize("antialiased", [False, True])
+def test_float32_projection_storage_is_the_float64_storage_rounded_bit_for_bit(antialiased):
+    # The projection kernels compute in float64 whatever their arrays hold; a float32 model's
+    # Gaussians go in and its outputs and gradients come out in float32 (no float64 copies).
+    # That must be exactly the old float64 storage rounded once, forward and backward.
+    import numpy as np
+
+    from esgs.core.render import cpu, projection_kernels
+    from esgs.core.render import constants as K
+
+    scene = random_scene(400, seed=21, width=48, height=36, cameras=2, dtype=torch.float32)
+    scene["means"][:25, 1] = -3.0  # behind the cameras (they look along +y): culled
+    scene["means"][25:40, 0] = 40.0  # far outside the image
+    inputs = [scene[name].clone().requires_grad_() for name in ("means", "quats", "scales", "opacities")]
+    settings = (48, 36, 0.01, 1e10, float(0.3 if antialiased else K.CLASSIC_DILATION), antialiased,
+                float(K.JACOBIAN_MARGIN), True)
+    outputs = cpu._Project.apply(*inputs, (scene["viewmats"], scene["Ks"], settings))
+    generator = torch.Generator().manual_seed(3)
+    upstream = [torch.randn(out.shape, generator=generator) for out in outputs[:5]]
+    gradients = torch.autograd.grad(outputs[:5], inputs, upstream)
+
+    wide = [t.detach().double().numpy() for t in inputs]
+    views, Ks = scene["viewmats"].double().numpy(), scene["Ks"].double().numpy()
+    cams, count = views.shape[0], 400
+    shapes = [(cams, count, 2), (cams, count, 3), (cams, count), (cams, count), (cams, count, 3)]
+    expected = [np.zeros(shape) for shape in shapes] + [np.empty((cams, count), np.bool_), np.empty((cams, count, 2))]
+    projection_kernels.project_forward(*wide, views, Ks, *settings, *expected)
+    assert expected[5].any() and not expected[5].all()  # some Gaussians culled, some kept
+    for out, reference in zip(outputs, expected):
+        assert torch.equal(out, torch.from_numpy(reference).to(out.dtype))
+    expected_grads = [np.empty((count, 3)), np.empty((count, 4)), np.empty((count, 3)), np.empty(count)]
+    projection_kernels.project_backward(*wide, views, Ks, *settings,
+                                        *(g.double().numpy() for g in upstream), *expected_grads)
+    for gradient, reference in zip(gradients, expected_grads):
+        assert gradient.dtype == torch.float32
+        assert torch.equal(gradient, torch.from_numpy(reference).float())
