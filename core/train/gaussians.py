@@ -188,9 +188,16 @@ class GaussianModel:
         return all(bool(torch.isfinite(p).all()) for p in self.params.values())
 
     # --- persistence ---------------------------------------------------------------
-    def state_dict(self) -> dict:
-        return {"max_sh_degree": self.max_sh_degree,
-                "params": {name: p.detach().cpu().clone() for name, p in self.params.items()}}
+    def state_dict(self, copy: bool = True) -> dict:
+        """The SH degree and every parameter (detached, on the CPU). ``copy``: cloned, so the
+        state outlives later training steps (a model copy: ``from_state_dict(state_dict())``);
+        ``copy=False`` shares the CPU parameters' memory, for a state written out at once (a
+        checkpoint: a clone there cost one more copy of the model near the run's peak)."""
+        def value(parameter: torch.Tensor) -> torch.Tensor:
+            tensor = parameter.detach().cpu()
+            return tensor.clone() if copy and tensor.data_ptr() == parameter.data_ptr() else tensor
+
+        return {"max_sh_degree": self.max_sh_degree, "params": {name: value(p) for name, p in self.params.items()}}
 
     @staticmethod
     def from_state_dict(state: dict) -> "GaussianModel":

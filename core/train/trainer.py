@@ -416,7 +416,8 @@ class Trainer:
             "format": CHECKPOINT_FORMAT,
             "step": self.step,
             "config": config_to_dict(self.config),
-            "gaussians": self.gaussians.state_dict(),
+            # shared, not cloned: torch.save writes it before the next step changes anything
+            "gaussians": self.gaussians.state_dict(copy=False),
             "optimizer": self.optimizer.state_dict(),
             "densify": self.strategy.state_dict(),
             "sampler": self.sampler.state_dict(),

@@ -364,3 +364,31 @@ def test_a_step_frees_its_graph_and_the_parameters_densification_replaced(fast_c
     finally:
         gc.enable()
     assert alive == [], f"parameters replaced by densification still alive: {alive}"
+
+
+def test_a_checkpoint_shares_the_parameters_and_a_model_copy_does_not(fast_config):
+    """A checkpoint's state is written at once, so it shares the parameters' memory (a clone
+    was one more copy of the model at a checkpoint near the run's peak); the file is the same,
+    and a model copy made from ``state_dict()`` (the export of GPDFN and Mip-Splatting) is still
+    independent of training."""
+    from esgs.core.train.gaussians import GaussianModel
+
+    trainer = Trainer(fast_config(iterations=20))
+    trainer.setup()
+    for number in range(1, 4):
+        trainer.train_step(number)
+    params = trainer.gaussians.params
+    state = trainer._state()["gaussians"]
+    for name, param in params.items():
+        assert state["params"][name].data_ptr() == param.data_ptr(), name
+    path = trainer.save_checkpoint()
+    saved = load_checkpoint(path)["gaussians"]["params"]
+    for name, param in params.items():
+        assert torch.equal(saved[name], param.detach()), name
+
+    copied = GaussianModel.from_state_dict(trainer.gaussians.state_dict())
+    before = {name: value.detach().clone() for name, value in copied.params.items()}
+    trainer.train_step(4)
+    for name, value in copied.params.items():
+        assert value.data_ptr() != params[name].data_ptr(), name
+        assert torch.equal(value.detach(), before[name]), f"the copy's {name} changed with training"
