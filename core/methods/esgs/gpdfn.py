@@ -298,8 +298,6 @@ class _FusionCore(torch.autograd.Function):
         count, hidden = own.shape
         fused = index.shape[0] + 1
         grad_result = grad_result.contiguous()
-        grad_own = torch.empty_like(own)
-        grad_weight = torch.empty_like(weight) if ctx.needs_input_grad[3] else None
         grad_voxel_projection = torch.zeros_like(voxel_projection) if ctx.needs_input_grad[1] else None
         grads = [torch.zeros_like(p) for p in parameters]
         grad_bias1, grad_weight2, grad_bias2, grad_attention_weight, grad_attention_bias, grad_head_weight, \
@@ -308,7 +306,7 @@ class _FusionCore(torch.autograd.Function):
         grad_head_bias.add_(grad_result.sum(0))
         grad_summaries = grad_result @ head_weight  # [N, H]
         if ctx.kernels:
-            (grad_own, grad_weight_all, grad_rows, *kernel_grads) = fusion_kernels.fusion_backward(
+            (grad_own, grad_weight, grad_rows, *kernel_grads) = fusion_kernels.fusion_backward(
                 _numpy(grad_summaries), *(_numpy(t) for t in (own, voxel_projection, index, weight, bias1, weight2,
                                                               bias2, attention_weight, attention_bias.reshape(1))),
                 fusion_kernels.CHUNK)
@@ -317,7 +315,9 @@ class _FusionCore(torch.autograd.Function):
             if grad_voxel_projection is not None:
                 add_rows_(grad_voxel_projection, index.reshape(-1), torch.from_numpy(grad_rows).view(-1, hidden))
             return (torch.from_numpy(grad_own), grad_voxel_projection, None,
-                    torch.from_numpy(grad_weight_all) if grad_weight is not None else None, *grads)
+                    torch.from_numpy(grad_weight) if ctx.needs_input_grad[3] else None, *grads)
+        grad_own = torch.empty_like(own)
+        grad_weight = torch.empty_like(weight) if ctx.needs_input_grad[3] else None
         for start in range(0, count, ctx.block):
             block = slice(start, start + ctx.block)
             block_weight = weight[:, block]

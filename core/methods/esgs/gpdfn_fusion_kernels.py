@@ -33,11 +33,14 @@ CHUNK = 64
 
 
 @njit(cache=True, inline="always", fastmath=True)
-def _stack(start, rows, own, projection, index, weight, bias1, weight2, bias2, attention_weight, attention_bias,
+def _stack(c, own, projection, index, weight, bias1, weight2, bias2, attention_weight, attention_bias,
            first, second, probability):
     """Fill ``first``/``second`` [K, H, B] (the activations after each ReLU) and ``probability``
-    [K, B] (the softmax of the entries' scores) for Gaussians ``start .. start + rows - 1``."""
-    fused, hidden, _ = first.shape
+    [K, B] (the softmax of the entries' scores) for the Gaussians of chunk ``c`` (B = the chunk
+    size, the scratch's last axis); returns (start, rows): its first Gaussian and how many it has."""
+    fused, hidden, chunk = first.shape
+    start = c * chunk
+    rows = min(own.shape[0], start + chunk) - start
     for b in range(rows):
         n = start + b
         for j in range(hidden):
@@ -76,6 +79,7 @@ def _stack(start, rows, own, projection, index, weight, bias1, weight2, bias2, a
             total += probability[k, b]
         for k in range(fused):
             probability[k, b] /= total
+    return start, rows
 
 
 @njit(cache=True, parallel=True, fastmath=True)
@@ -96,10 +100,8 @@ def fusion_forward(own, projection, index, weight, bias1, weight2, bias2, attent
         first = np.empty((fused, hidden, chunk), own.dtype)
         second = np.empty((fused, hidden, chunk), own.dtype)
         probability = np.empty((fused, chunk), own.dtype)
-        start = c * chunk
-        rows = min(count, start + chunk) - start
-        _stack(start, rows, own, projection, index, weight, bias1, weight2, bias2, attention_weight,
-               attention_bias, first, second, probability)
+        start, rows = _stack(c, own, projection, index, weight, bias1, weight2, bias2, attention_weight,
+                             attention_bias, first, second, probability)
         for b in range(rows):
             for i in range(hidden):
                 value = probability[0, b] * second[0, i, b]
@@ -155,10 +157,8 @@ def fusion_backward(grad_summaries, own, projection, index, weight, bias1, weigh
             sum_attention_weight[i] = 0
             for j in range(hidden):
                 sum_weight2[i, j] = 0
-        start = c * chunk
-        rows = min(count, start + chunk) - start
-        _stack(start, rows, own, projection, index, weight, bias1, weight2, bias2, attention_weight,
-               attention_bias, first, second, probability)
+        start, rows = _stack(c, own, projection, index, weight, bias1, weight2, bias2, attention_weight,
+                             attention_bias, first, second, probability)
         for b in range(rows):
             for i in range(hidden):
                 upstream[i, b] = grad_summaries[start + b, i]
