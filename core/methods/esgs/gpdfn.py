@@ -43,6 +43,7 @@ from torch import nn
 
 from . import gpdfn_fusion_kernels as fusion_kernels
 from . import gpdfn_kernels as kernels
+from . import gpdfn_sampling_kernels as sampling_kernels
 from .gpdfn_settings import GPDFNConfig
 
 FEATURE_DIM = 14  # position 3, log-scale 3, quaternion 4, opacity 1, SH DC 3
@@ -353,6 +354,64 @@ class _FusionCore(torch.autograd.Function):
         return (grad_own, grad_voxel_projection, None, grad_weight, *grads)
 
 
+def _sampling_kernels_apply(tensor: torch.Tensor, table: VoxelTable) -> bool:
+    """Whether :class:`_Sampling` runs on ``tensor`` (CPU, float32/64, the Numba hash table)."""
+    return _fusion_kernels_apply(tensor) and table.slots is not None
+
+
+class _Sampling(torch.autograd.Function):
+    """The per-Gaussian sampling of :meth:`GPDFN.forward` in the Numba kernels of
+    :mod:`.gpdfn_sampling_kernels` (CPU): the fused Gaussians' features, offset head, sample
+    points, voxel reads and kernel weights, and their own first-layer values. Same maths as the
+    torch statement in the forward (the path elsewhere). Inputs: the Gaussians' means, log_scales,
+    unit quats [N, 4], opacity_logits [N], sh_dc [N, 3]; the offset head's weight and bias, the
+    base offsets, the first layer's weight [H, 15] and bias; rows [M] int64; the voxel table and
+    its centroids [V, 3] (constants); voxel side and largest shift (floats). Outputs: own [M, H],
+    index [K-1, M] int64, weight [K-1, M]. Kept for the backward: the offset head's tanh
+    [3(K-1), M] and the samples' offsets to their centroids [K-1, 3, M] (~50 bytes per fused
+    Gaussian at K = 3), so the backward neither takes a tanh nor reads the voxel table again.
+    """
+
+    @staticmethod
+    def forward(ctx, means, log_scales, quats, opacity_logits, sh_dc, offset_weight, offset_bias, base_offsets,
+                first_weight, first_bias, rows, table, centroids, voxel, max_shift):
+        dtype = np.float64 if means.dtype == torch.float64 else np.float32
+        # the scalars as the torch statement rounds them (in the positions' dtype)
+        scalars = (dtype(voxel), dtype(float(torch.log(torch.tensor(voxel, dtype=means.dtype)))))
+        shift_scale = dtype(max_shift * voxel)
+        gaussians = tuple(_numpy(t) for t in (means, log_scales, quats, opacity_logits, sh_dc))
+        rows_array, coordinates = _numpy(rows), table.coordinates.numpy()
+        own, pre = sampling_kernels.sampling_layers(
+            *gaussians, rows_array, coordinates, _numpy(offset_weight), _numpy(offset_bias), _numpy(first_weight),
+            _numpy(first_bias), *scalars, sampling_kernels.CHUNK)
+        shift = torch.from_numpy(pre).tanh_()
+        index, squared, delta = sampling_kernels.sampling_reads(
+            gaussians[0], rows_array, table.slots, _numpy(centroids), _numpy(base_offsets), shift.numpy(),
+            scalars[0], shift_scale, sampling_kernels.CHUNK)
+        index_t = torch.from_numpy(index)
+        weight = torch.from_numpy(squared).mul_(-0.5).exp_()  # 0 where the voxel is empty (squared = inf)
+        ctx.mark_non_differentiable(index_t)
+        ctx.save_for_backward(means, log_scales, quats, opacity_logits, sh_dc, offset_weight, first_weight, rows,
+                              weight, shift, torch.from_numpy(delta))
+        ctx.coordinates, ctx.scalars = table.coordinates, (*scalars, shift_scale)
+        return torch.from_numpy(own), index_t, weight
+
+    @staticmethod
+    def backward(ctx, grad_own, grad_index, grad_weight):
+        (means, log_scales, quats, opacity_logits, sh_dc, offset_weight, first_weight, rows, weight, shift,
+         delta) = ctx.saved_tensors
+        if grad_own is None:
+            grad_own = torch.zeros(rows.shape[0], first_weight.shape[0], dtype=means.dtype)
+        if grad_weight is None:
+            grad_weight = torch.zeros_like(weight)
+        grads = sampling_kernels.sampling_backward(
+            *(_numpy(t) for t in (grad_own, grad_weight, weight, delta, shift, means, log_scales, quats,
+                                  opacity_logits, sh_dc, rows)),
+            ctx.coordinates.numpy(), _numpy(offset_weight), _numpy(first_weight), *ctx.scalars,
+            sampling_kernels.CHUNK)
+        return (*(torch.from_numpy(g) for g in grads), None, None, None, None, None)
+
+
 class GPDFN(nn.Module):
     """Neighbour fusion of Gaussian parameters into rendering-parameter residuals."""
 
@@ -447,8 +506,10 @@ class GPDFN(nn.Module):
         if self.voxel_size <= 0:
             self.voxel_size = automatic_voxel_size(means)
         table = self.voxel_table(means)
+        if not unit_quats:
+            quats = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         features = self.gaussian_features(means, log_scales, quats, opacity_logits, sh_dc, table.coordinates,
-                                          unit_quats)
+                                          unit_quats=True)
         voxels = table.counts.shape[0]
         per_voxel = table.counts.unsqueeze(1)
         voxel_features = _RowSums.apply(features, table.inverse, voxels) / per_voxel
@@ -458,26 +519,35 @@ class GPDFN(nn.Module):
         if rows is not None and rows.numel() == 0:
             zeros = means.new_zeros
             return {"sh_dc": zeros(full_count, 3), "opacity_logits": zeros(full_count), "log_scales": zeros(full_count, 3)}
-        if rows is not None:
-            # the per-Gaussian work (sampling, fusion and their backward) for the chosen rows only
-            features, means = features.index_select(0, rows), means.index_select(0, rows)
-            count = int(rows.shape[0])
-        # mean + voxel_size * (base_offset + max_shift * tanh(offset_head(features))), in two passes
-        # entry-major [K-1, N, 3], the fusion core's layout (see _fusion_forward_block)
-        shift = torch.tanh(self.offset_head(features)).view(count, neighbours, 3).transpose(0, 1)
-        base = means.unsqueeze(0) + self.base_offsets.unsqueeze(1) * self.voxel_size
-        sample_points = torch.add(base, shift, alpha=self.config.gpdfn_max_shift_voxels * self.voxel_size).reshape(-1, 3)
-        index, weight = self.sample_voxels(sample_points, table, centroids)
         # first pointwise convolution over the [features, weight channel] rows: the own row has
         # weight channel 1; a sampled row is weight * [voxel feature, 1], so its first layer is
         # weight * (voxel projection) + bias, with the projection computed once per voxel
         first = self.embed[0]
         feature_weight, channel_weight = first.weight[:, :-1], first.weight[:, -1]
-        own = torch.addmm(first.bias + channel_weight, features, feature_weight.t())
         voxel_projection = torch.addmm(channel_weight, voxel_features, feature_weight.t())
+        if _sampling_kernels_apply(means, table):
+            fused_rows = rows if rows is not None else torch.arange(count, device=means.device)
+            count = int(fused_rows.shape[0])
+            own, index, weight = _Sampling.apply(
+                means, log_scales, quats, opacity_logits, sh_dc, self.offset_head.weight, self.offset_head.bias,
+                self.base_offsets, first.weight, first.bias, fused_rows, table, centroids, self.voxel_size,
+                self.config.gpdfn_max_shift_voxels)
+        else:
+            if rows is not None:
+                # the per-Gaussian work (sampling, fusion and their backward) for the chosen rows only
+                features, means = features.index_select(0, rows), means.index_select(0, rows)
+                count = int(rows.shape[0])
+            # mean + voxel_size * (base_offset + max_shift * tanh(offset_head(features))), in two passes
+            # entry-major [K-1, N, 3], the fusion core's layout (see _fusion_forward_block)
+            shift = torch.tanh(self.offset_head(features)).view(count, neighbours, 3).transpose(0, 1)
+            base = means.unsqueeze(0) + self.base_offsets.unsqueeze(1) * self.voxel_size
+            sample_points = torch.add(base, shift,
+                                      alpha=self.config.gpdfn_max_shift_voxels * self.voxel_size).reshape(-1, 3)
+            index, weight = self.sample_voxels(sample_points, table, centroids)
+            index, weight = index.view(neighbours, count), weight.view(neighbours, count)
+            own = torch.addmm(first.bias + channel_weight, features, feature_weight.t())
         second = self.embed[2]
-        residual = _FusionCore.apply(own, voxel_projection, index.view(neighbours, count),
-                                     weight.view(neighbours, count), first.bias, second.weight, second.bias,
+        residual = _FusionCore.apply(own, voxel_projection, index, weight, first.bias, second.weight, second.bias,
                                      self.attention.weight[0], self.attention.bias[0], self.head.weight,
                                      self.head.bias)
         if rows is not None:

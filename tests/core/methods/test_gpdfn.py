@@ -177,8 +177,10 @@ def test_fast_path_equals_the_plain_autograd_statement(fused_k, dtype, core, mon
     # 400 Gaussians: four blocks / chunks, the last one partial
     monkeypatch.setattr(gpdfn, "FUSION_BLOCK", 128)
     monkeypatch.setattr(gpdfn.fusion_kernels, "CHUNK", 128)
+    monkeypatch.setattr(gpdfn.sampling_kernels, "CHUNK", 128)
     if core == "torch blocks":
         monkeypatch.setattr(gpdfn, "_fusion_kernels_apply", lambda tensor: False)
+        monkeypatch.setattr(gpdfn, "_sampling_kernels_apply", lambda tensor, table: False)
     torch.manual_seed(fused_k)
     params = {name: value.to(dtype) for name, value in _gaussians(count=400).items()}
     module = GPDFN(GPDFNConfig(fused_k=fused_k)).to(dtype)
@@ -293,6 +295,123 @@ def test_fusion_kernels_give_the_same_bits_on_one_or_two_threads():
     (first, first_gradients), (second, second_gradients) = runs
     assert torch.equal(first, second)
     for a, b in zip(first_gradients, second_gradients):
+        assert torch.equal(a, b)
+
+
+def _sampling_problem(count=3000, fused_k=3, dtype=torch.float32, seed=3):
+    """A GPDFN module with random weights, Gaussians on a wavy sheet, its voxel table and centroids,
+    and a sorted subset of rows (the sampling's inputs, as GPDFN.forward builds them)."""
+    torch.manual_seed(seed)
+    params = {name: value.to(dtype) for name, value in _gaussians(count=count, seed=seed).items()}
+    params["quats"] = torch.nn.functional.normalize(params["quats"], dim=-1)
+    module = GPDFN(GPDFNConfig(fused_k=fused_k, gpdfn_voxel_size=0.08)).to(dtype)
+    for parameter in module.parameters():
+        torch.nn.init.normal_(parameter, std=0.5)
+    table = module.voxel_table(params["means"])
+    per_voxel = table.counts.unsqueeze(1)
+    centroids = gpdfn.add_rows_(params["means"].new_zeros(len(table.counts), 3), table.inverse,
+                                params["means"]) / per_voxel
+    rows = torch.sort(torch.randperm(count, generator=torch.Generator().manual_seed(seed))[: count * 2 // 3]).values
+    return module, params, table, centroids, rows
+
+
+def _sampling_statement(module, params, table, centroids, rows):
+    """The torch statement of the sampling (GPDFN.forward's path off the CPU) -> own, index, weight."""
+    features = module.gaussian_features(params["means"], params["log_scales"], params["quats"],
+                                        params["opacity_logits"], params["sh_dc"], table.coordinates, unit_quats=True)
+    features, means = features.index_select(0, rows), params["means"].index_select(0, rows)
+    neighbours, count = module.config.fused_k - 1, int(rows.shape[0])
+    shift = torch.tanh(module.offset_head(features)).view(count, neighbours, 3).transpose(0, 1)
+    base = means.unsqueeze(0) + module.base_offsets.unsqueeze(1) * module.voxel_size
+    points = torch.add(base, shift, alpha=module.config.gpdfn_max_shift_voxels * module.voxel_size).reshape(-1, 3)
+    index, weight = module.sample_voxels(points, table, centroids)
+    first = module.embed[0]
+    own = torch.addmm(first.bias + first.weight[:, -1], features, first.weight[:, :-1].t())
+    return own, index.view(neighbours, count), weight.view(neighbours, count)
+
+
+def _sampling_kernels(module, params, table, centroids, rows):
+    return gpdfn._Sampling.apply(params["means"], params["log_scales"], params["quats"], params["opacity_logits"],
+                                 params["sh_dc"], module.offset_head.weight, module.offset_head.bias,
+                                 module.base_offsets, module.embed[0].weight, module.embed[0].bias, rows, table,
+                                 centroids, module.voxel_size, module.config.gpdfn_max_shift_voxels)
+
+
+def _sampling_gradients(function, module, params, table, centroids, rows):
+    inputs = {name: value.clone().requires_grad_() for name, value in params.items()}
+    own, index, weight = function(module, inputs, table, centroids, rows)
+    generator = torch.Generator().manual_seed(11)
+    loss = (own * torch.randn(own.shape, generator=generator, dtype=own.dtype)).sum() \
+        + (weight * torch.randn(weight.shape, generator=generator, dtype=weight.dtype)).sum()
+    wanted = list(inputs.values()) + [module.offset_head.weight, module.offset_head.bias, module.base_offsets,
+                                      module.embed[0].weight, module.embed[0].bias]
+    return (own, index, weight), torch.autograd.grad(loss, wanted)
+
+
+@pytest.mark.parametrize("fused_k", [2, 3, 5])
+def test_sampling_kernels_equal_the_torch_statement_in_float32(fused_k, monkeypatch):
+    # the training precision, many chunks with a partial last one, a subset of rows, empty voxels read
+    monkeypatch.setattr(gpdfn.sampling_kernels, "CHUNK", 256)
+    problem = _sampling_problem(fused_k=fused_k)
+    (own, index, weight), gradients = _sampling_gradients(
+        lambda *a: _sampling_kernels(*a), *problem)
+    (own_t, index_t, weight_t), gradients_t = _sampling_gradients(
+        lambda *a: _sampling_statement(*a), *problem)
+    empty = weight_t == 0
+    assert 0.01 < float(empty.double().mean()) < 0.9  # both cases are exercised
+    # a sample point within rounding of a voxel face may land in the neighbour: none should here
+    assert torch.equal(index, index_t)
+    torch.testing.assert_close(own, own_t, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(weight, weight_t, rtol=1e-5, atol=1e-6)
+    names = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "offset_weight", "offset_bias",
+             "base_offsets", "first_weight", "first_bias")
+    module, params, table, centroids, rows = problem
+    others = torch.ones(len(params["means"]), dtype=torch.bool)
+    others[rows] = False
+    for name, a, b in zip(names, gradients, gradients_t):
+        scale = float(b.abs().max())
+        assert scale > 0, name
+        torch.testing.assert_close(a / scale, b / scale, rtol=1e-4, atol=2e-5, msg=f"gradient of {name}")
+        if name in names[:5]:
+            assert float(a[others].abs().max()) == 0.0  # rows not fused get nothing from the sampling
+
+
+def test_sampling_kernels_pass_gradcheck_across_chunks(monkeypatch):
+    monkeypatch.setattr(gpdfn.sampling_kernels, "CHUNK", 2)
+    module, params, table, centroids, rows = _sampling_problem(count=12, dtype=torch.float64, seed=4)
+    module.voxel_size = 0.5  # coarse voxels: most samples read an occupied one
+    table = module.voxel_table(params["means"])
+    centroids = gpdfn.add_rows_(params["means"].new_zeros(len(table.counts), 3), table.inverse,
+                                params["means"]) / table.counts.unsqueeze(1)
+    weights = (module.offset_head.weight, module.offset_head.bias, module.base_offsets, module.embed[0].weight,
+               module.embed[0].bias)
+
+    def sampled(means, log_scales, quats, opacity, sh_dc, *layer):
+        own, _, weight = gpdfn._Sampling.apply(means, log_scales, quats, opacity, sh_dc, *layer, rows, table,
+                                               centroids, module.voxel_size, 1.0)
+        return own, weight
+
+    inputs = tuple(params[name].detach().clone().requires_grad_() for name in
+                   ("means", "log_scales", "quats", "opacity_logits", "sh_dc"))
+    inputs += tuple(w.detach().clone().requires_grad_() for w in weights)
+    assert float(sampled(*inputs)[1].detach().min()) >= 0 and float(sampled(*inputs)[1].detach().max()) > 0
+    # eps small enough that no centre nor sample point crosses a voxel face
+    assert torch.autograd.gradcheck(sampled, inputs, eps=1e-7, atol=1e-6)
+
+
+def test_sampling_kernels_give_the_same_bits_on_one_or_two_threads():
+    numba = pytest.importorskip("numba")
+    problem = _sampling_problem()
+    before = numba.get_num_threads()
+    try:
+        runs = []
+        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+            numba.set_num_threads(threads)
+            runs.append(_sampling_gradients(lambda *a: _sampling_kernels(*a), *problem))
+    finally:
+        numba.set_num_threads(before)
+    (first, first_gradients), (second, second_gradients) = runs
+    for a, b in zip(first + first_gradients, second + second_gradients):
         assert torch.equal(a, b)
 
 
