@@ -359,6 +359,32 @@ def _sampling_kernels_apply(tensor: torch.Tensor, table: VoxelTable) -> bool:
     return _fusion_kernels_apply(tensor) and table.slots is not None
 
 
+class _VoxelMeans(torch.autograd.Function):
+    """Each voxel's mean feature vector [V, 14] (differentiable) and centroid [V, 3] (constant) from
+    every Gaussian's parameters, in the Numba kernels of :mod:`.gpdfn_sampling_kernels` (CPU): the
+    torch statement builds every Gaussian's features ([N, 14], a concatenation and its backward's
+    copies) and sums them by voxel. Inputs: means, log_scales, unit quats, opacity_logits [N],
+    sh_dc [N, 3]; the voxel table (constant); the voxel side (float)."""
+
+    @staticmethod
+    def forward(ctx, means, log_scales, quats, opacity_logits, sh_dc, table, voxel):
+        dtype = np.float64 if means.dtype == torch.float64 else np.float32
+        scalars = (dtype(voxel), dtype(float(torch.log(torch.tensor(voxel, dtype=means.dtype)))))
+        features, centroids = sampling_kernels.voxel_means(
+            *(_numpy(t) for t in (means, log_scales, quats, opacity_logits, sh_dc)), table.coordinates.numpy(),
+            _numpy(table.inverse), _numpy(table.counts), *scalars)
+        centroids_t = torch.from_numpy(centroids)
+        ctx.mark_non_differentiable(centroids_t)
+        ctx.table, ctx.voxel = table, scalars[0]
+        return torch.from_numpy(features), centroids_t
+
+    @staticmethod
+    def backward(ctx, grad_features, grad_centroids):
+        grads = sampling_kernels.voxel_means_backward(_numpy(grad_features), _numpy(ctx.table.inverse),
+                                                      _numpy(ctx.table.counts), ctx.voxel)
+        return (*(torch.from_numpy(g) for g in grads), None, None)
+
+
 class _Sampling(torch.autograd.Function):
     """The per-Gaussian sampling of :meth:`GPDFN.forward` in the Numba kernels of
     :mod:`.gpdfn_sampling_kernels` (CPU): the fused Gaussians' features, offset head, sample
@@ -508,12 +534,17 @@ class GPDFN(nn.Module):
         table = self.voxel_table(means)
         if not unit_quats:
             quats = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        features = self.gaussian_features(means, log_scales, quats, opacity_logits, sh_dc, table.coordinates,
-                                          unit_quats=True)
-        voxels = table.counts.shape[0]
-        per_voxel = table.counts.unsqueeze(1)
-        voxel_features = _RowSums.apply(features, table.inverse, voxels) / per_voxel
-        centroids = add_rows_(means.new_zeros(voxels, 3), table.inverse, means.detach()) / per_voxel
+        kernels = _sampling_kernels_apply(means, table)
+        if kernels:  # the voxels' mean features straight from the parameters (no [N, 14] features)
+            voxel_features, centroids = _VoxelMeans.apply(means, log_scales, quats, opacity_logits, sh_dc, table,
+                                                          self.voxel_size)
+        else:
+            features = self.gaussian_features(means, log_scales, quats, opacity_logits, sh_dc, table.coordinates,
+                                              unit_quats=True)
+            voxels = table.counts.shape[0]
+            per_voxel = table.counts.unsqueeze(1)
+            voxel_features = _RowSums.apply(features, table.inverse, voxels) / per_voxel
+            centroids = add_rows_(means.new_zeros(voxels, 3), table.inverse, means.detach()) / per_voxel
         neighbours = self.config.fused_k - 1
         full_count = count
         if rows is not None and rows.numel() == 0:
@@ -525,7 +556,7 @@ class GPDFN(nn.Module):
         first = self.embed[0]
         feature_weight, channel_weight = first.weight[:, :-1], first.weight[:, -1]
         voxel_projection = torch.addmm(channel_weight, voxel_features, feature_weight.t())
-        if _sampling_kernels_apply(means, table):
+        if kernels:
             fused_rows = rows if rows is not None else torch.arange(count, device=means.device)
             count = int(fused_rows.shape[0])
             own, index, weight = _Sampling.apply(

@@ -290,3 +290,58 @@ def sampling_backward(grad_own, grad_weight, weight, delta, shift, means, log_sc
         grad_first_bias[h] = grad_first_weight[h, FEATURES]
     return (grad_means, grad_log_scales, grad_quats, grad_opacity, grad_dc, grad_offset_weight, grad_offset_bias,
             grad_base, grad_first_weight, grad_first_bias)
+
+
+@njit(cache=True)
+def voxel_means(means, log_scales, quats, opacity, dc, coordinates, inverse, counts, voxel, log_voxel):
+    """Each voxel's mean feature vector and centroid, from every Gaussian's parameters.
+
+    The arrays as :func:`sampling_layers` (every Gaussian), inverse [N] int64 (voxel ids),
+    counts [V] (Gaussians per voxel, float). Returns (features [V, 14], centroids [V, 3]).
+    Serial, in Gaussian order: the same sums on every run (the torch path's ``add_rows_`` order).
+    """
+    voxels = counts.shape[0]
+    dtype = means.dtype
+    features = np.zeros((voxels, FEATURES), dtype)
+    centroids = np.zeros((voxels, 3), dtype)
+    for n in range(means.shape[0]):
+        v = inverse[n]
+        for a in range(3):
+            features[v, a] += means[n, a] / voxel - coordinates[n, a] - 0.5
+            features[v, 3 + a] += log_scales[n, a] - log_voxel
+            features[v, 11 + a] += dc[n, a]
+            centroids[v, a] += means[n, a]
+        for a in range(4):
+            features[v, 6 + a] += quats[n, a]
+        features[v, 10] += opacity[n]
+    for v in range(voxels):
+        for i in range(FEATURES):
+            features[v, i] /= counts[v]
+        for a in range(3):
+            centroids[v, a] /= counts[v]
+    return features, centroids
+
+
+@njit(cache=True, parallel=True)
+def voxel_means_backward(grad_features, inverse, counts, voxel):
+    """Gradients of :func:`voxel_means`' features given grad_features [V, 14] (the centroids are
+    constants) -> (grad_means [N, 3], grad_log_scales [N, 3], grad_quats [N, 4], grad_opacity [N],
+    grad_dc [N, 3]): each Gaussian gets its voxel's gradient over the voxel's count."""
+    total = inverse.shape[0]
+    dtype = grad_features.dtype
+    grad_means = np.empty((total, 3), dtype)
+    grad_log_scales = np.empty((total, 3), dtype)
+    grad_quats = np.empty((total, 4), dtype)
+    grad_opacity = np.empty(total, dtype)
+    grad_dc = np.empty((total, 3), dtype)
+    for n in prange(total):
+        v = inverse[n]
+        share = counts[v]
+        for a in range(3):
+            grad_means[n, a] = grad_features[v, a] / share / voxel
+            grad_log_scales[n, a] = grad_features[v, 3 + a] / share
+            grad_dc[n, a] = grad_features[v, 11 + a] / share
+        for a in range(4):
+            grad_quats[n, a] = grad_features[v, 6 + a] / share
+        grad_opacity[n] = grad_features[v, 10] / share
+    return grad_means, grad_log_scales, grad_quats, grad_opacity, grad_dc

@@ -376,6 +376,25 @@ def test_sampling_kernels_equal_the_torch_statement_in_float32(fused_k, monkeypa
             assert float(a[others].abs().max()) == 0.0  # rows not fused get nothing from the sampling
 
 
+def test_voxel_means_kernel_equals_the_torch_statement_in_float32():
+    module, params, table, centroids, _ = _sampling_problem()
+    inputs = {name: value.clone().requires_grad_() for name, value in params.items()}
+    order = ("means", "log_scales", "quats", "opacity_logits", "sh_dc")
+    features, kernel_centroids = gpdfn._VoxelMeans.apply(*(inputs[name] for name in order), table, module.voxel_size)
+    statement = module.gaussian_features(*(inputs[name] for name in order), table.coordinates, unit_quats=True)
+    statement = statement.new_zeros(len(table.counts), 14).index_add(0, table.inverse, statement) \
+        / table.counts.unsqueeze(1)
+    assert 1.2 < len(params["means"]) / len(table.counts) < 20  # voxels shared by several Gaussians
+    torch.testing.assert_close(features, statement, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(kernel_centroids, centroids, rtol=1e-6, atol=1e-7)
+    assert not kernel_centroids.requires_grad
+    upstream = torch.randn(features.shape, generator=torch.Generator().manual_seed(5))
+    kernel_gradients = torch.autograd.grad(features, [inputs[name] for name in order], upstream)
+    statement_gradients = torch.autograd.grad(statement, [inputs[name] for name in order], upstream)
+    for name, a, b in zip(order, kernel_gradients, statement_gradients):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=f"gradient of {name}")
+
+
 def test_sampling_kernels_pass_gradcheck_across_chunks(monkeypatch):
     monkeypatch.setattr(gpdfn.sampling_kernels, "CHUNK", 2)
     module, params, table, centroids, rows = _sampling_problem(count=12, dtype=torch.float64, seed=4)
