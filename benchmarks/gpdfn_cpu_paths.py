@@ -18,7 +18,6 @@ Speed is measured here, never asserted in tests.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -109,10 +108,10 @@ def main(argv: list[str] | None = None) -> int:
                   "gaussians": args.gaussians, "width": args.width, "threads": args.threads, "steps": args.steps,
                   "repeats": args.repeats, "load_average_start": load_start, "load_average_end": os.getloadavg(),
                   "arms": summary}
+        from esgs.core.io_utils import atomic_write_json
+
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        tmp = args.json.with_suffix(".tmp")
-        tmp.write_text(json.dumps(record, indent=2))
-        tmp.replace(args.json)
+        atomic_write_json(args.json, record)
     return 0
 
 

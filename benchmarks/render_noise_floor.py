@@ -20,7 +20,6 @@ seed 0); the arguments before it are passed to the scene generator unchanged. Ru
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 from pathlib import Path
@@ -95,10 +94,10 @@ def main(argv: list[str] | None = None) -> int:
                   "command": "python benchmarks/render_noise_floor.py " + " ".join(argv if argv is not None else sys.argv[1:]),
                   "scene": str(args.scene), "second_render": str(args.out), "noise_seed": args.noise_seed,
                   "groups": groups, "views": rows}
+        from esgs.core.io_utils import atomic_write_json
+
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        tmp = args.json.with_suffix(".tmp")
-        tmp.write_text(json.dumps(record, indent=2))
-        tmp.replace(args.json)
+        atomic_write_json(args.json, record)
     return 0
 
 

@@ -30,7 +30,9 @@ across a voxel face), so the reuse is exact.
 Cost (see docs/esgs.md): the first pointwise convolution is linear, so it is applied once per
 voxel and gathered for the sampled rows; the rest of the fused stack has a hand-written
 backward (:class:`_FusionCore`, on the CPU Numba kernels) that avoids the slow paths of the
-generic one.
+generic one. On the CPU the voxels' mean features and each fused Gaussian's sampling (features,
+offset head, voxel reads, own first layer) are Numba kernels too (:class:`_VoxelMeans`,
+:class:`_Sampling`); elsewhere the same maths runs as torch statements (:meth:`GPDFN._sample`).
 """
 from __future__ import annotations
 
@@ -510,6 +512,39 @@ class GPDFN(nn.Module):
         weight = torch.exp(-0.5 * (offset * offset).sum(dim=1)) * present.to(points.dtype)
         return index, weight
 
+    def _voxel_averages(self, gaussians: tuple[torch.Tensor, ...], table: VoxelTable, kernels: bool
+                        ) -> tuple[torch.Tensor, torch.Tensor, Optional[torch.Tensor]]:
+        """(voxel_features [V, 14], centroids [V, 3] detached, every Gaussian's features [N, 14] or
+        None): the voxels' means; ``kernels``: from the parameters in Numba (no per-Gaussian
+        features), else through the features in torch. ``gaussians``: means, log_scales, unit
+        quats, opacity_logits, sh_dc."""
+        if kernels:
+            return (*_VoxelMeans.apply(*gaussians, table, self.voxel_size), None)
+        features = self.gaussian_features(*gaussians, table.coordinates, unit_quats=True)
+        per_voxel = table.counts.unsqueeze(1)
+        voxel_features = _RowSums.apply(features, table.inverse, table.counts.shape[0]) / per_voxel
+        centroids = add_rows_(gaussians[0].new_zeros(table.counts.shape[0], 3), table.inverse,
+                             gaussians[0].detach()) / per_voxel
+        return voxel_features, centroids, features
+
+    def _sample(self, means: torch.Tensor, features: torch.Tensor, rows: Optional[torch.Tensor], table: VoxelTable,
+                centroids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The torch statement of the sampling (the path off the CPU; :class:`_Sampling` on it):
+        (own [M, H], index [K-1, M], weight [K-1, M]) of ``rows`` (every Gaussian when None)."""
+        if rows is not None:
+            # the per-Gaussian work (sampling, fusion and their backward) for the chosen rows only
+            features, means = features.index_select(0, rows), means.index_select(0, rows)
+        count, neighbours = means.shape[0], self.config.fused_k - 1
+        # mean + voxel_size * (base_offset + max_shift * tanh(offset_head(features))), in two passes
+        # entry-major [K-1, N, 3], the fusion core's layout (see _fusion_forward_block)
+        shift = torch.tanh(self.offset_head(features)).view(count, neighbours, 3).transpose(0, 1)
+        base = means.unsqueeze(0) + self.base_offsets.unsqueeze(1) * self.voxel_size
+        sample_points = torch.add(base, shift, alpha=self.config.gpdfn_max_shift_voxels * self.voxel_size).reshape(-1, 3)
+        index, weight = self.sample_voxels(sample_points, table, centroids)
+        first = self.embed[0]
+        own = torch.addmm(first.bias + first.weight[:, -1], features, first.weight[:, :-1].t())
+        return own, index.view(neighbours, count), weight.view(neighbours, count)
+
     def forward(self, means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
                 opacity_logits: torch.Tensor, sh_dc: torch.Tensor, unit_quats: bool = False,
                 rows: Optional[torch.Tensor] = None) -> dict[str, torch.Tensor]:
@@ -534,18 +569,9 @@ class GPDFN(nn.Module):
         table = self.voxel_table(means)
         if not unit_quats:
             quats = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        gaussians = (means, log_scales, quats, opacity_logits, sh_dc)
         kernels = _sampling_kernels_apply(means, table)
-        if kernels:  # the voxels' mean features straight from the parameters (no [N, 14] features)
-            voxel_features, centroids = _VoxelMeans.apply(means, log_scales, quats, opacity_logits, sh_dc, table,
-                                                          self.voxel_size)
-        else:
-            features = self.gaussian_features(means, log_scales, quats, opacity_logits, sh_dc, table.coordinates,
-                                              unit_quats=True)
-            voxels = table.counts.shape[0]
-            per_voxel = table.counts.unsqueeze(1)
-            voxel_features = _RowSums.apply(features, table.inverse, voxels) / per_voxel
-            centroids = add_rows_(means.new_zeros(voxels, 3), table.inverse, means.detach()) / per_voxel
-        neighbours = self.config.fused_k - 1
+        voxel_features, centroids, features = self._voxel_averages(gaussians, table, kernels)
         full_count = count
         if rows is not None and rows.numel() == 0:
             zeros = means.new_zeros
@@ -554,29 +580,14 @@ class GPDFN(nn.Module):
         # weight channel 1; a sampled row is weight * [voxel feature, 1], so its first layer is
         # weight * (voxel projection) + bias, with the projection computed once per voxel
         first = self.embed[0]
-        feature_weight, channel_weight = first.weight[:, :-1], first.weight[:, -1]
-        voxel_projection = torch.addmm(channel_weight, voxel_features, feature_weight.t())
+        voxel_projection = torch.addmm(first.weight[:, -1], voxel_features, first.weight[:, :-1].t())
         if kernels:
             fused_rows = rows if rows is not None else torch.arange(count, device=means.device)
-            count = int(fused_rows.shape[0])
             own, index, weight = _Sampling.apply(
-                means, log_scales, quats, opacity_logits, sh_dc, self.offset_head.weight, self.offset_head.bias,
-                self.base_offsets, first.weight, first.bias, fused_rows, table, centroids, self.voxel_size,
-                self.config.gpdfn_max_shift_voxels)
+                *gaussians, self.offset_head.weight, self.offset_head.bias, self.base_offsets, first.weight,
+                first.bias, fused_rows, table, centroids, self.voxel_size, self.config.gpdfn_max_shift_voxels)
         else:
-            if rows is not None:
-                # the per-Gaussian work (sampling, fusion and their backward) for the chosen rows only
-                features, means = features.index_select(0, rows), means.index_select(0, rows)
-                count = int(rows.shape[0])
-            # mean + voxel_size * (base_offset + max_shift * tanh(offset_head(features))), in two passes
-            # entry-major [K-1, N, 3], the fusion core's layout (see _fusion_forward_block)
-            shift = torch.tanh(self.offset_head(features)).view(count, neighbours, 3).transpose(0, 1)
-            base = means.unsqueeze(0) + self.base_offsets.unsqueeze(1) * self.voxel_size
-            sample_points = torch.add(base, shift,
-                                      alpha=self.config.gpdfn_max_shift_voxels * self.voxel_size).reshape(-1, 3)
-            index, weight = self.sample_voxels(sample_points, table, centroids)
-            index, weight = index.view(neighbours, count), weight.view(neighbours, count)
-            own = torch.addmm(first.bias + channel_weight, features, feature_weight.t())
+            own, index, weight = self._sample(means, features, rows, table, centroids)
         second = self.embed[2]
         residual = _FusionCore.apply(own, voxel_projection, index, weight, first.bias, second.weight, second.bias,
                                      self.attention.weight[0], self.attention.bias[0], self.head.weight,

@@ -71,6 +71,24 @@ def _find(x, y, z, voxel, slots, bits):
         slot = (slot + 1) & (size - 1)
 
 
+@njit(cache=True, inline="always")
+def _linear_backward(rows_in_chunk, upstream, features, weight, grad_features, grad_weight, grad_bias, zero):
+    """Backward of ``outputs = weight[:, :14] @ features + bias`` over a chunk: adds into
+    ``grad_features`` [14, B] and the chunk's weight [O, 14] and bias [O] sums; upstream [O, B]."""
+    for o in range(upstream.shape[0]):
+        along = zero
+        for b in range(rows_in_chunk):
+            along += upstream[o, b]
+        grad_bias[o] += along
+        for i in range(FEATURES):
+            coefficient = weight[o, i]
+            along = zero
+            for b in range(rows_in_chunk):
+                along += upstream[o, b] * features[i, b]
+                grad_features[i, b] += coefficient * upstream[o, b]
+            grad_weight[o, i] += along
+
+
 #: LLVM's fast-math flags the kernels use: reassociation (so the sums along a chunk vectorise),
 #: contraction into FMAs, no signed zeros, reciprocals; not "no NaN / no infinity", since an
 #: empty voxel's squared distance is infinite on purpose.
@@ -219,18 +237,8 @@ def sampling_backward(grad_own, grad_weight, weight, delta, shift, means, log_sc
             for h in range(hidden):
                 upstream[h, b] = grad_own[start + b, h]
         # own = W[:, :14] features + W[:, 14] + bias
-        for h in range(hidden):
-            along = zero
-            for b in range(size):
-                along += upstream[h, b]
-            part_first_weight[c, h, FEATURES] += along
-            for i in range(FEATURES):
-                coefficient = first_weight[h, i]
-                along = zero
-                for b in range(size):
-                    along += upstream[h, b] * features[i, b]
-                    grad_features[i, b] += coefficient * upstream[h, b]
-                part_first_weight[c, h, i] += along
+        _linear_backward(size, upstream, features, first_weight, grad_features, part_first_weight[c, :, :FEATURES],
+                         part_first_weight[c, :, FEATURES], zero)
         # point = (mean + base voxel) + tanh(pre) shift_scale; weight = exp(-|delta|^2 / 2), delta = (point - centroid) / voxel
         for a in range(3):
             for b in range(size):
@@ -247,18 +255,8 @@ def sampling_backward(grad_own, grad_weight, weight, delta, shift, means, log_sc
                     value = shift[3 * k + a, m]
                     grad_pre[3 * k + a, b] = gradient * shift_scale * (1 - value * value)
                 part_base[c, k, a] += along * voxel
-        for j in range(outputs):
-            along = zero
-            for b in range(size):
-                along += grad_pre[j, b]
-            part_offset_bias[c, j] += along
-            for i in range(FEATURES):
-                coefficient = offset_weight[j, i]
-                along = zero
-                for b in range(size):
-                    along += grad_pre[j, b] * features[i, b]
-                    grad_features[i, b] += coefficient * grad_pre[j, b]
-                part_offset_weight[c, j, i] += along
+        _linear_backward(size, grad_pre, features, offset_weight, grad_features, part_offset_weight[c],
+                         part_offset_bias[c], zero)
         for b in range(size):
             n = rows[start + b]
             for a in range(3):

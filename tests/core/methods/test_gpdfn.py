@@ -316,18 +316,10 @@ def _sampling_problem(count=3000, fused_k=3, dtype=torch.float32, seed=3):
 
 
 def _sampling_statement(module, params, table, centroids, rows):
-    """The torch statement of the sampling (GPDFN.forward's path off the CPU) -> own, index, weight."""
+    """The torch statement of the sampling (GPDFN._sample, the path off the CPU) -> own, index, weight."""
     features = module.gaussian_features(params["means"], params["log_scales"], params["quats"],
                                         params["opacity_logits"], params["sh_dc"], table.coordinates, unit_quats=True)
-    features, means = features.index_select(0, rows), params["means"].index_select(0, rows)
-    neighbours, count = module.config.fused_k - 1, int(rows.shape[0])
-    shift = torch.tanh(module.offset_head(features)).view(count, neighbours, 3).transpose(0, 1)
-    base = means.unsqueeze(0) + module.base_offsets.unsqueeze(1) * module.voxel_size
-    points = torch.add(base, shift, alpha=module.config.gpdfn_max_shift_voxels * module.voxel_size).reshape(-1, 3)
-    index, weight = module.sample_voxels(points, table, centroids)
-    first = module.embed[0]
-    own = torch.addmm(first.bias + first.weight[:, -1], features, first.weight[:, :-1].t())
-    return own, index.view(neighbours, count), weight.view(neighbours, count)
+    return module._sample(params["means"], features, rows, table, centroids)
 
 
 def _sampling_kernels(module, params, table, centroids, rows):
