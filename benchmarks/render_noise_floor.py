@@ -50,15 +50,18 @@ def compare(first: Path, second: Path) -> list[dict]:
     """Per view: PSNR of ``first``'s image against ``second``'s and whether its mask marks sky."""
     import cv2
 
+    from esgs.core.formats.scene_dir import SceneDir
+
+    first_dir, second_dir = SceneDir(first), SceneDir(second)
     rows = []
-    for image in sorted((first / "images").glob("*.png")):
-        other = second / "images" / image.name
+    for image in sorted(first_dir.images.glob("*.png")):
+        other = second_dir.image(image.name)
         if not other.exists():
             raise SystemExit(f"{other} is missing: render both scenes with the same arguments")
         a = cv2.imread(str(image)).astype(np.float64) / 255.0
         b = cv2.imread(str(other)).astype(np.float64) / 255.0
         mse = float(((a - b) ** 2).mean())
-        mask_path = first / "priors" / "gt" / "mask" / image.name
+        mask_path = first_dir.mask_map("gt", image.name)
         sky = False
         if mask_path.exists():  # 0 = sky / no surface in the ground-truth masks
             sky = bool((cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE) == 0).any())
@@ -73,7 +76,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="folder of the second render")
     parser.add_argument("--json", type=Path, default=None)
     args, scene_arguments = parser.parse_known_args(argv)
-    if not (args.out / "images").exists():
+    from esgs.core.formats.scene_dir import SceneDir
+
+    if not SceneDir(args.out).images.exists():
         render_with_noise_seed(scene_arguments, args.out, args.noise_seed)
     rows = compare(args.scene, args.out)
     if any(row["psnr_db"] is None for row in rows):
