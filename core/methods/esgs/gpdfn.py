@@ -361,6 +361,13 @@ def _sampling_kernels_apply(tensor: torch.Tensor, table: VoxelTable) -> bool:
     return _fusion_kernels_apply(tensor) and table.slots is not None
 
 
+def _voxel_scalars(means: torch.Tensor, voxel: float) -> tuple[np.floating, np.floating]:
+    """(voxel, log(voxel)) as NumPy scalars of the positions' dtype, rounded as the torch statement
+    rounds them, for the kernels of :mod:`.gpdfn_sampling_kernels`."""
+    dtype = np.float64 if means.dtype == torch.float64 else np.float32
+    return dtype(voxel), dtype(float(torch.log(torch.tensor(voxel, dtype=means.dtype))))
+
+
 class _VoxelMeans(torch.autograd.Function):
     """Each voxel's mean feature vector [V, 14] (differentiable) and centroid [V, 3] (constant) from
     every Gaussian's parameters, in the Numba kernels of :mod:`.gpdfn_sampling_kernels` (CPU): the
@@ -370,8 +377,7 @@ class _VoxelMeans(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means, log_scales, quats, opacity_logits, sh_dc, table, voxel):
-        dtype = np.float64 if means.dtype == torch.float64 else np.float32
-        scalars = (dtype(voxel), dtype(float(torch.log(torch.tensor(voxel, dtype=means.dtype)))))
+        scalars = _voxel_scalars(means, voxel)
         features, centroids = sampling_kernels.voxel_means(
             *(_numpy(t) for t in (means, log_scales, quats, opacity_logits, sh_dc)), table.coordinates.numpy(),
             _numpy(table.inverse), _numpy(table.counts), *scalars)
@@ -403,10 +409,8 @@ class _Sampling(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, log_scales, quats, opacity_logits, sh_dc, offset_weight, offset_bias, base_offsets,
                 first_weight, first_bias, rows, table, centroids, voxel, max_shift):
-        dtype = np.float64 if means.dtype == torch.float64 else np.float32
-        # the scalars as the torch statement rounds them (in the positions' dtype)
-        scalars = (dtype(voxel), dtype(float(torch.log(torch.tensor(voxel, dtype=means.dtype)))))
-        shift_scale = dtype(max_shift * voxel)
+        scalars = _voxel_scalars(means, voxel)
+        shift_scale = type(scalars[0])(max_shift * voxel)
         gaussians = tuple(_numpy(t) for t in (means, log_scales, quats, opacity_logits, sh_dc))
         rows_array, coordinates = _numpy(rows), table.coordinates.numpy()
         own, pre = sampling_kernels.sampling_layers(

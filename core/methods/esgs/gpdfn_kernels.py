@@ -110,29 +110,38 @@ def build_table(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return slots, inverse
 
 
+@njit(cache=True, inline="always")
+def probe_bits(slots: np.ndarray) -> int:
+    """log2 of the hash table's size (``slots`` [S, 2], S a power of two)."""
+    bits = 0
+    while (1 << bits) < slots.shape[0]:
+        bits += 1
+    return bits
+
+
+@njit(cache=True, inline="always")
+def find(x, y, z, voxel_size, slots: np.ndarray, bits: int) -> int:
+    """Voxel id of the point (x, y, z) in the hash table ``slots``, -1 where the voxel is empty."""
+    key = pack_key(int(math.floor(x / voxel_size)), int(math.floor(y / voxel_size)), int(math.floor(z / voxel_size)))
+    size = slots.shape[0]
+    slot = _slot(key, bits)
+    while True:
+        stored = slots[slot, 0]
+        if stored == key:
+            return slots[slot, 1]
+        if stored == _EMPTY:
+            return _EMPTY
+        slot = (slot + 1) & (size - 1)
+
+
 @njit(cache=True, parallel=True)
 def lookup(points: np.ndarray, voxel_size, slots: np.ndarray) -> np.ndarray:
     """Voxel id of each point [M, 3] -> [M] int64 (-1 where the voxel is empty)."""
-    size = slots.shape[0]
-    bits = 0
-    while (1 << bits) < size:
-        bits += 1
+    bits = probe_bits(slots)
     count = points.shape[0]
     result = np.empty(count, dtype=np.int64)
     for n in prange(count):
-        key = pack_key(int(math.floor(points[n, 0] / voxel_size)), int(math.floor(points[n, 1] / voxel_size)),
-                       int(math.floor(points[n, 2] / voxel_size)))
-        slot = _slot(key, bits)
-        found = _EMPTY
-        while True:
-            stored = slots[slot, 0]
-            if stored == key:
-                found = slots[slot, 1]
-                break
-            if stored == _EMPTY:
-                break
-            slot = (slot + 1) & (size - 1)
-        result[n] = found
+        result[n] = find(points[n, 0], points[n, 1], points[n, 2], voxel_size, slots, bits)
     return result
 
 
