@@ -17,7 +17,13 @@ every inner loop runs along the chunk's Gaussians (long, contiguous: vectorised)
 Determinism: the Gaussians go in fixed chunks of ``chunk`` rows (independent of the thread
 count); each chunk sums its share of the shared weights' gradients in row order, and the chunks'
 partial sums are added in chunk order; the rows' gradients for the voxel projections are
-scattered serially afterwards. So every run, on any number of threads, gives the same bits.
+scattered serially afterwards. Every sum along the chunk runs in a loop that stores nothing:
+LLVM versions a vectorised loop that stores with a scalar copy, taken when a run-time check
+cannot rule out overlapping arrays (so by where the scratch lands in memory), and under
+fast-math a sum rounds differently in the two copies (vector lanes against one running total;
+this broke the sampling kernels' thread test once, see :mod:`.gpdfn_sampling_kernels`). The
+loops that store are element-wise, the same arithmetic in either copy. So every run, on any
+number of threads, gives the same bits.
 """
 from __future__ import annotations
 
@@ -198,10 +204,12 @@ def fusion_backward(grad_summaries, own, projection, index, weight, bias1, weigh
             for i in range(hidden):
                 for j in range(hidden):
                     coefficient = weight2[i, j]
+                    for b in range(rows):
+                        grad_first[j, b] += coefficient * grad_second[i, b]
+                    # a sum in a loop of its own that stores nothing (see the module's note)
                     sum_weight = grad_score[0] * 0
                     for b in range(rows):
                         sum_weight += grad_second[i, b] * first[k, j, b]
-                        grad_first[j, b] += coefficient * grad_second[i, b]
                     sum_weight2[i, j] += sum_weight
             for j in range(hidden):
                 for b in range(rows):
@@ -220,10 +228,11 @@ def fusion_backward(grad_summaries, own, projection, index, weight, bias1, weigh
                     n = start + b
                     row = index[k - 1, n]
                     w = weight[k - 1, n]
+                    for j in range(hidden):
+                        grad_rows[k - 1, n, j] = grad_first[j, b] * w
                     along_projection = grad_score[0] * 0
                     for j in range(hidden):
                         along_projection += grad_first[j, b] * projection[row, j]
-                        grad_rows[k - 1, n, j] = grad_first[j, b] * w
                     grad_weight[k - 1, n] = along_projection
         part_bias1[c] = sum_bias1
         part_weight2[c] = sum_weight2

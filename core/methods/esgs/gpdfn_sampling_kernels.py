@@ -48,30 +48,35 @@ def _features(start, rows_in_chunk, rows, means, log_scales, quats, opacity, dc,
 
 
 @njit(cache=True, inline="always")
-def _linear_backward(rows_in_chunk, upstream, features, weight, grad_features, grad_weight, grad_bias, zero):
+def _linear_backward(rows_in_chunk, upstream, rows_of_features, weight, grad_features, grad_weight, grad_bias):
     """Backward of ``outputs = weight[:, :14] @ features + bias`` over a chunk: adds into
-    ``grad_features`` [14, B] and the chunk's weight [O, 14] and bias [O] sums; upstream [O, B]."""
+    ``grad_features`` [14, B] and the chunk's weight [O, 14] and bias [O] sums; upstream [O, B];
+    ``rows_of_features`` [B, 14] is the chunk's features Gaussian-major, so that the weights'
+    sums run over the Gaussians in order while the loop along the 14 features vectorises."""
     for o in range(upstream.shape[0]):
-        along = zero
-        for b in range(rows_in_chunk):
-            along += upstream[o, b]
-        grad_bias[o] += along
         for i in range(FEATURES):
             coefficient = weight[o, i]
-            along = zero
             for b in range(rows_in_chunk):
-                along += upstream[o, b] * features[i, b]
                 grad_features[i, b] += coefficient * upstream[o, b]
-            grad_weight[o, i] += along
+    for b in range(rows_in_chunk):
+        for o in range(upstream.shape[0]):
+            value = upstream[o, b]
+            grad_bias[o] += value
+            for i in range(FEATURES):
+                grad_weight[o, i] += value * rows_of_features[b, i]
 
 
-#: LLVM's fast-math flags the kernels use: reassociation (so the sums along a chunk vectorise),
-#: contraction into FMAs, no signed zeros, reciprocals; not "no NaN / no infinity", since an
-#: empty voxel's squared distance is infinite on purpose.
-_FAST = {"reassoc", "contract", "nsz", "arcp"}
+# No fast-math flags in these kernels. LLVM versions a vectorised loop that stores with a scalar
+# copy, taken when a run-time check cannot rule out overlapping arrays, so by where the scratch
+# buffers land in memory; with reassociation (a sum in vector lanes against one running total)
+# or reciprocals the two copies round differently, and a gradient changed in its last bits from
+# one call to the next (CI caught it once; a few processes in ten here). In strict IEEE
+# arithmetic both copies give the same bits and every sum runs in a fixed order; measured at
+# 200k fused Gaussians, the fast-math flags bought nothing once the weights' sums run along the
+# features (``_linear_backward``).
 
 
-@njit(cache=True, parallel=True, fastmath=_FAST)
+@njit(cache=True, parallel=True)
 def sampling_layers(means, log_scales, quats, opacity, dc, rows, coordinates, offset_weight, offset_bias,
                     first_weight, first_bias, voxel, log_voxel, chunk):
     """The fused Gaussians' own first-layer values and offset-head pre-activations.
@@ -168,7 +173,7 @@ def sampling_reads(means, rows, slots, centroids, base_offsets, shift, voxel, sh
     return index, squared, delta
 
 
-@njit(cache=True, parallel=True, fastmath=_FAST)
+@njit(cache=True, parallel=True)
 def sampling_backward(grad_own, grad_weight, weight, delta, shift, means, log_scales, quats, opacity, dc, rows,
                       coordinates, offset_weight, first_weight, voxel, log_voxel, shift_scale, chunk):
     """Gradients of the sampling given grad_own [M, H] and grad_weight [K-1, M].
@@ -196,7 +201,8 @@ def sampling_backward(grad_own, grad_weight, weight, delta, shift, means, log_sc
     part_offset_weight = np.zeros((chunks, outputs, FEATURES), dtype)
     part_offset_bias = np.zeros((chunks, outputs), dtype)
     part_base = np.zeros((chunks, neighbours, 3), dtype)
-    part_first_weight = np.zeros((chunks, hidden, FEATURES + 1), dtype)
+    part_first_weight = np.zeros((chunks, hidden, FEATURES), dtype)
+    part_first_bias = np.zeros((chunks, hidden), dtype)
     for c in prange(chunks):
         start = c * chunk
         size = min(count, start + chunk) - start
@@ -205,7 +211,12 @@ def sampling_backward(grad_own, grad_weight, weight, delta, shift, means, log_sc
         grad_features = np.empty((FEATURES, chunk), dtype)
         grad_pre = np.empty((outputs, chunk), dtype)
         grad_position = np.empty((3, chunk), dtype)  # the sample points' gradient reaching the means
+        along = np.empty(chunk, dtype)  # one sample coordinate's gradient per Gaussian, summed in order below
+        rows_of_features = np.empty((chunk, FEATURES), dtype)
         _features(start, size, rows, means, log_scales, quats, opacity, dc, coordinates, voxel, log_voxel, features)
+        for b in range(size):
+            for i in range(FEATURES):
+                rows_of_features[b, i] = features[i, b]
         for i in range(FEATURES):
             for b in range(size):
                 grad_features[i, b] = 0
@@ -213,26 +224,28 @@ def sampling_backward(grad_own, grad_weight, weight, delta, shift, means, log_sc
             for h in range(hidden):
                 upstream[h, b] = grad_own[start + b, h]
         # own = W[:, :14] features + W[:, 14] + bias
-        _linear_backward(size, upstream, features, first_weight, grad_features, part_first_weight[c, :, :FEATURES],
-                         part_first_weight[c, :, FEATURES], zero)
+        _linear_backward(size, upstream, rows_of_features, first_weight, grad_features, part_first_weight[c],
+                         part_first_bias[c])
         # point = (mean + base voxel) + tanh(pre) shift_scale; weight = exp(-|delta|^2 / 2), delta = (point - centroid) / voxel
         for a in range(3):
             for b in range(size):
                 grad_position[a, b] = 0
         for k in range(neighbours):
             for a in range(3):
-                along = zero
                 for b in range(size):
                     m = start + b
                     # (an empty voxel has weight 0 and delta 0: no gradient)
                     gradient = -grad_weight[k, m] * weight[k, m] * delta[k, a, m] / voxel
                     grad_position[a, b] += gradient
-                    along += gradient
+                    along[b] = gradient
                     value = shift[3 * k + a, m]
                     grad_pre[3 * k + a, b] = gradient * shift_scale * (1 - value * value)
-                part_base[c, k, a] += along * voxel
-        _linear_backward(size, grad_pre, features, offset_weight, grad_features, part_offset_weight[c],
-                         part_offset_bias[c], zero)
+                summed = zero
+                for b in range(size):
+                    summed += along[b]
+                part_base[c, k, a] += summed * voxel
+        _linear_backward(size, grad_pre, rows_of_features, offset_weight, grad_features, part_offset_weight[c],
+                         part_offset_bias[c])
         for b in range(size):
             n = rows[start + b]
             for a in range(3):
@@ -258,10 +271,11 @@ def sampling_backward(grad_own, grad_weight, weight, delta, shift, means, log_sc
             for a in range(3):
                 grad_base[k, a] += part_base[c, k, a]
         for h in range(hidden):
-            for i in range(FEATURES + 1):
+            grad_first_bias[h] += part_first_bias[c, h]
+            for i in range(FEATURES):
                 grad_first_weight[h, i] += part_first_weight[c, h, i]
     for h in range(hidden):
-        grad_first_bias[h] = grad_first_weight[h, FEATURES]
+        grad_first_weight[h, FEATURES] = grad_first_bias[h]  # the weight channel's input is 1
     return (grad_means, grad_log_scales, grad_quats, grad_opacity, grad_dc, grad_offset_weight, grad_offset_bias,
             grad_base, grad_first_weight, grad_first_bias)
 
