@@ -287,15 +287,18 @@ def test_fusion_kernels_give_the_same_bits_on_one_or_two_threads():
     before = numba.get_num_threads()
     try:
         runs = []
-        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+        # several calls: the scratch lands elsewhere in memory each time (see the sampling
+        # kernels' tests: where it lands chose between two differently rounded loop copies)
+        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)) * 3:
             numba.set_num_threads(threads)
             runs.append(_core_gradients(inputs, upstream))
     finally:
         numba.set_num_threads(before)
-    (first, first_gradients), (second, second_gradients) = runs
-    assert torch.equal(first, second)
-    for a, b in zip(first_gradients, second_gradients):
-        assert torch.equal(a, b)
+    (first, first_gradients), *others = runs
+    for second, second_gradients in others:
+        assert torch.equal(first, second)
+        for a, b in zip(first_gradients, second_gradients):
+            assert torch.equal(a, b)
 
 
 def _sampling_problem(count=3000, fused_k=3, dtype=torch.float32, seed=3):
