@@ -81,9 +81,12 @@ def main(argv: list[str] | None = None) -> int:
             for _ in range(args.warmup):
                 trainer.train_step(step)
                 step += 1
+        names = list(switches)
         for repeat in range(args.repeats):
-            for name, apply in switches.items():
-                apply()
+            # each repeat starts with the next arm: no arm always runs first (or after the same one)
+            shift = repeat % len(names)
+            for name in names[shift:] + names[:shift]:
+                switches[name]()
                 start = time.perf_counter()
                 for _ in range(args.steps):
                     trainer.train_step(step)

@@ -44,6 +44,34 @@ def render_with_noise_seed(scene_arguments: list[str], out: Path, noise_seed: in
         terrain_scene.apply_render_settings = apply
     if code != 0:
         raise SystemExit(f"scene generator failed with exit code {code}")
+    _record_noise_seed(out, noise_seed)
+
+
+def _record_noise_seed(out: Path, noise_seed: int) -> None:
+    """Add the Cycles noise seed to the render's provenance (``scene.json``), so a later run that
+    reuses the folder can tell whether it holds the seed it asks for."""
+    import json
+
+    from esgs.core.formats.scene_dir import SceneDir
+    from esgs.core.io_utils import atomic_write_json
+
+    path = SceneDir(out).provenance
+    record = json.loads(path.read_text()) if path.is_file() else {}
+    record["cycles_noise_seed"] = noise_seed
+    atomic_write_json(path, record)
+
+
+def check_reused_render(out: Path, noise_seed: int) -> None:
+    """Refuse to reuse ``out`` unless its provenance records ``noise_seed``."""
+    import json
+
+    from esgs.core.formats.scene_dir import SceneDir
+
+    path = SceneDir(out).provenance
+    recorded = json.loads(path.read_text()).get("cycles_noise_seed") if path.is_file() else None
+    if recorded != noise_seed:
+        raise SystemExit(f"{out} holds a render with Cycles noise seed {recorded} (from {path}), not "
+                         f"{noise_seed}: pass another --out to render afresh, or --noise-seed {recorded} to reuse it")
 
 
 def compare(first: Path, second: Path) -> list[dict]:
@@ -80,6 +108,8 @@ def main(argv: list[str] | None = None) -> int:
 
     if not SceneDir(args.out).images.exists():
         render_with_noise_seed(scene_arguments, args.out, args.noise_seed)
+    else:
+        check_reused_render(args.out, args.noise_seed)
     rows = compare(args.scene, args.out)
     if any(row["psnr_db"] is None for row in rows):
         raise SystemExit("identical images: the noise seed did not reach the renderer")

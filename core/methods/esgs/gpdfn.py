@@ -397,9 +397,10 @@ class _Sampling(torch.autograd.Function):
     """The per-Gaussian sampling of :meth:`GPDFN.forward` in the Numba kernels of
     :mod:`.gpdfn_sampling_kernels` (CPU): the fused Gaussians' features, offset head, sample
     points, voxel reads and kernel weights, and their own first-layer values. Same maths as the
-    torch statement in the forward (the path elsewhere). Inputs: the Gaussians' means, log_scales,
-    unit quats [N, 4], opacity_logits [N], sh_dc [N, 3]; the offset head's weight and bias, the
-    base offsets, the first layer's weight [H, 15] and bias; rows [M] int64; the voxel table and
+    torch statement in :meth:`GPDFN._sample` (the path elsewhere). Inputs: the Gaussians' means,
+    log_scales, unit quats [N, 4], opacity_logits [N], sh_dc [N, 3]; the offset head's weight and
+    bias, the base offsets, the first layer's weight [H, 15] and bias; rows [M] int64 (sorted and
+    unique: the backward writes each row's gradient once, it does not add them); the voxel table and
     its centroids [V, 3] (constants); voxel side and largest shift (floats). Outputs: own [M, H],
     index [K-1, M] int64, weight [K-1, M]. Kept for the backward: the offset head's tanh
     [3(K-1), M] and the samples' offsets to their centroids [K-1, 3, M] (~50 bytes per fused
@@ -409,6 +410,8 @@ class _Sampling(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, log_scales, quats, opacity_logits, sh_dc, offset_weight, offset_bias, base_offsets,
                 first_weight, first_bias, rows, table, centroids, voxel, max_shift):
+        if rows.numel() > 1 and not bool((rows[1:] > rows[:-1]).all()):
+            raise ValueError("GPDFN's sampling kernels need sorted, unique rows (each row's gradient is written once)")
         scalars = _voxel_scalars(means, voxel)
         shift_scale = type(scalars[0])(max_shift * voxel)
         gaussians = tuple(_numpy(t) for t in (means, log_scales, quats, opacity_logits, sh_dc))
@@ -432,10 +435,7 @@ class _Sampling(torch.autograd.Function):
     def backward(ctx, grad_own, grad_index, grad_weight):
         (means, log_scales, quats, opacity_logits, sh_dc, offset_weight, first_weight, rows, weight, shift,
          delta) = ctx.saved_tensors
-        if grad_own is None:
-            grad_own = torch.zeros(rows.shape[0], first_weight.shape[0], dtype=means.dtype)
-        if grad_weight is None:
-            grad_weight = torch.zeros_like(weight)
+        # (autograd materialises an unused output's gradient as zeros: neither comes as None)
         grads = sampling_kernels.sampling_backward(
             *(_numpy(t) for t in (grad_own, grad_weight, weight, delta, shift, means, log_scales, quats,
                                   opacity_logits, sh_dc, rows)),

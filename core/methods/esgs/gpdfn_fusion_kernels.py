@@ -32,6 +32,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from .gpdfn_kernels import of_dtype
+
 #: Gaussians per chunk: the unit of parallel work and of the weights' partial gradient sums
 #: (a chunk's scratch, ~3 x 16 x 64 values per array, stays in the CPU cache; 64, 256 and 1024
 #: measured within ~25 % of each other at 70k Gaussians, 64 the fastest).
@@ -47,17 +49,18 @@ def _stack(c, own, projection, index, weight, bias1, weight2, bias2, attention_w
     fused, hidden, chunk = first.shape
     start = c * chunk
     rows = min(own.shape[0], start + chunk) - start
+    zero = of_dtype(own, 0)  # (a literal 0 would make ``value if value > 0 else 0`` a float64)
     for b in range(rows):
         n = start + b
         for j in range(hidden):
             value = own[n, j]
-            first[0, j, b] = value if value > 0 else 0
+            first[0, j, b] = value if value > 0 else zero
         for k in range(1, fused):
             row = index[k - 1, n]
             w = weight[k - 1, n]
             for j in range(hidden):
                 value = w * projection[row, j] + bias1[j]
-                first[k, j, b] = value if value > 0 else 0
+                first[k, j, b] = value if value > 0 else zero
     for k in range(fused):
         for i in range(hidden):
             for b in range(rows):
@@ -72,16 +75,17 @@ def _stack(c, own, projection, index, weight, bias1, weight2, bias2, attention_w
             coefficient = attention_weight[i]
             for b in range(rows):
                 value = second[k, i, b]
-                value = value if value > 0 else 0
+                value = value if value > 0 else zero
                 second[k, i, b] = value
                 probability[k, b] += coefficient * value
     for b in range(rows):
         largest = probability[0, b]
         for k in range(1, fused):
             largest = max(largest, probability[k, b])
-        total = probability[0, b] * 0
         for k in range(fused):
             probability[k, b] = math.exp(probability[k, b] - largest)
+        total = zero  # summed in a loop that stores nothing (see the module's note)
+        for k in range(fused):
             total += probability[k, b]
         for k in range(fused):
             probability[k, b] /= total
@@ -130,6 +134,7 @@ def fusion_backward(grad_summaries, own, projection, index, weight, bias1, weigh
     neighbours = index.shape[0]
     fused = neighbours + 1
     dtype = own.dtype
+    zero = of_dtype(own, 0)
     grad_own = np.empty_like(own)
     grad_weight = np.empty((neighbours, count), dtype)
     grad_rows = np.empty((neighbours, count, hidden), dtype)
@@ -181,7 +186,7 @@ def fusion_backward(grad_summaries, own, projection, index, weight, bias1, weigh
                 for other in range(1, fused):
                     mean_along += probability[other, b] * along[other, b]
                 grad_score[b] = probability[k, b] * (along[k, b] - mean_along)
-            total = grad_score[0] * 0
+            total = zero
             for b in range(rows):
                 total += grad_score[b]
             sum_attention_bias[0] += total
@@ -190,9 +195,9 @@ def fusion_backward(grad_summaries, own, projection, index, weight, bias1, weigh
                 for b in range(rows):
                     # d h_k = p_k g + d score_k * attention_weight, through the second ReLU
                     gradient = probability[k, b] * upstream[i, b] + grad_score[b] * coefficient
-                    grad_second[i, b] = gradient if second[k, i, b] > 0 else 0
-                sum_weight = grad_score[0] * 0
-                sum_bias = grad_score[0] * 0
+                    grad_second[i, b] = gradient if second[k, i, b] > 0 else zero
+                sum_weight = zero
+                sum_bias = zero
                 for b in range(rows):
                     sum_weight += grad_score[b] * second[k, i, b]
                     sum_bias += grad_second[i, b]
@@ -207,20 +212,20 @@ def fusion_backward(grad_summaries, own, projection, index, weight, bias1, weigh
                     for b in range(rows):
                         grad_first[j, b] += coefficient * grad_second[i, b]
                     # a sum in a loop of its own that stores nothing (see the module's note)
-                    sum_weight = grad_score[0] * 0
+                    sum_weight = zero
                     for b in range(rows):
                         sum_weight += grad_second[i, b] * first[k, j, b]
                     sum_weight2[i, j] += sum_weight
             for j in range(hidden):
                 for b in range(rows):
-                    grad_first[j, b] = grad_first[j, b] if first[k, j, b] > 0 else 0
+                    grad_first[j, b] = grad_first[j, b] if first[k, j, b] > 0 else zero
             if k == 0:
                 for b in range(rows):
                     for j in range(hidden):
                         grad_own[start + b, j] = grad_first[j, b]
             else:
                 for j in range(hidden):
-                    total = grad_score[0] * 0
+                    total = zero
                     for b in range(rows):
                         total += grad_first[j, b]
                     sum_bias1[j] += total
@@ -230,7 +235,7 @@ def fusion_backward(grad_summaries, own, projection, index, weight, bias1, weigh
                     w = weight[k - 1, n]
                     for j in range(hidden):
                         grad_rows[k - 1, n, j] = grad_first[j, b] * w
-                    along_projection = grad_score[0] * 0
+                    along_projection = zero
                     for j in range(hidden):
                         along_projection += grad_first[j, b] * projection[row, j]
                     grad_weight[k - 1, n] = along_projection
@@ -247,8 +252,11 @@ def fusion_backward(grad_summaries, own, projection, index, weight, bias1, weigh
     # in chunk order: the same sums on every thread count. Plain loops: an array expression
     # (``grad_bias1 += part_bias1[c]``) would be a parallel region of its own, launched once per
     # chunk (on Numba's TBB layer ~0.5 ms a launch: 20x the whole kernel)
+    total = zero
     for c in range(chunks):
-        grad_attention_bias[0] += part_attention_bias[c]
+        total += part_attention_bias[c]
+    grad_attention_bias[0] = total
+    for c in range(chunks):
         for i in range(hidden):
             grad_bias1[i] += part_bias1[c, i]
             grad_bias2[i] += part_bias2[c, i]

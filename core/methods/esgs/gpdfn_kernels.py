@@ -16,12 +16,32 @@ import math
 
 import numpy as np
 from numba import njit, prange
+from numba.extending import overload
 
 _OFFSET = 1 << 20
 _MASK = (1 << 21) - 1
 _EMPTY = -1
 # Fibonacci hashing: 0x9E3779B97F4A7C15 as a signed int64 (the multiplication wraps)
 _HASH_MULTIPLIER = 0x9E3779B97F4A7C15 - (1 << 64)
+
+
+def of_dtype(array: np.ndarray, value):
+    """``value`` as a scalar of ``array``'s dtype (in the kernels: a typed zero, one or half).
+
+    Numba types a literal or an int64 array element as int64 or float64, and float32 arithmetic
+    with either is promoted to float64 (numpy's rules): a float32 kernel's ``x * 0``, ``1 - x``
+    or ``x - coordinate - 0.5`` ran in float64, so its sums and vector loops at half the width.
+    """
+    return array.dtype.type(value)
+
+
+@overload(of_dtype, inline="always")
+def _of_dtype_in_kernels(array, value):
+    kind = array.dtype
+
+    def cast(array, value):
+        return kind(value)
+    return cast
 
 
 @njit(cache=True, inline="always")

@@ -11,8 +11,9 @@ Here each chunk of Gaussians goes through all of it in a few KB of scratch and w
 the fusion core reads (the own first-layer values, the voxel ids and kernel weights); the backward
 recomputes the chunk and writes the parameters' gradients of its rows.
 
-Same maths as the torch statement in :meth:`.gpdfn.GPDFN.forward` (which stays the path on other
-devices and the tests' reference), in the inputs' dtype. Layout and determinism as
+Same maths as the torch statements in :meth:`.gpdfn.GPDFN._voxel_averages` and
+:meth:`.gpdfn.GPDFN._sample` (which stay the path on other devices and the tests' reference), in
+the inputs' dtype (every constant is cast to it: :func:`.gpdfn_kernels.of_dtype`). Layout and determinism as
 :mod:`.gpdfn_fusion_kernels`: chunks of fixed size in parallel, each chunk's activations
 feature-major (inner loops along the chunk's Gaussians), the shared weights' gradients summed per
 chunk and then in chunk order, so any thread count gives the same bits.
@@ -23,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .gpdfn_kernels import find, probe_bits
+from .gpdfn_kernels import find, of_dtype, probe_bits
 
 #: Features per Gaussian: position in its voxel 3, log-scale relative to the voxel 3, unit
 #: quaternion 4, opacity logit 1, SH DC colour 3 (the order of ``GPDFN.gaussian_features``).
@@ -36,10 +37,11 @@ CHUNK = 256
 def _features(start, rows_in_chunk, rows, means, log_scales, quats, opacity, dc, coordinates, voxel, log_voxel,
               features):
     """Fill ``features`` [14, B] with the parameter vectors of the chunk's Gaussians."""
+    half = of_dtype(means, 0.5)
     for b in range(rows_in_chunk):
         n = rows[start + b]
         for a in range(3):
-            features[a, b] = means[n, a] / voxel - coordinates[n, a] - 0.5
+            features[a, b] = means[n, a] / voxel - of_dtype(means, coordinates[n, a]) - half
             features[3 + a, b] = log_scales[n, a] - log_voxel
             features[11 + a, b] = dc[n, a]
         for a in range(4):
@@ -103,8 +105,8 @@ def sampling_layers(means, log_scales, quats, opacity, dc, rows, coordinates, of
         projected = np.empty((hidden, chunk), dtype)
         _features(start, size, rows, means, log_scales, quats, opacity, dc, coordinates, voxel, log_voxel, features)
         # one accumulator per Gaussian summed over the 14 features, vectorised along the chunk: one
-        # store per output, not one per multiply-add (the loops that stored every partial sum
-        # measured slower here: ~41 against ~25 ms at 229k rows, on a loaded machine)
+        # store per output, not one per multiply-add (loops that stored every partial sum measured
+        # slower in the fast-math build these kernels once had; not measured again since)
         for h in range(hidden):
             bias = first_bias[h] + first_weight[h, FEATURES]
             for b in range(size):
@@ -191,7 +193,7 @@ def sampling_backward(grad_own, grad_weight, weight, delta, shift, means, log_sc
     outputs = 3 * neighbours
     hidden = first_weight.shape[0]
     dtype = means.dtype
-    zero = shift_scale * 0  # a zero of the dtype
+    zero, one = of_dtype(means, 0), of_dtype(means, 1)
     grad_means = np.zeros((total, 3), dtype)
     grad_log_scales = np.zeros((total, 3), dtype)
     grad_quats = np.zeros((total, 4), dtype)
@@ -206,17 +208,15 @@ def sampling_backward(grad_own, grad_weight, weight, delta, shift, means, log_sc
     for c in prange(chunks):
         start = c * chunk
         size = min(count, start + chunk) - start
-        features = np.empty((FEATURES, chunk), dtype)
         upstream = np.empty((hidden, chunk), dtype)
         grad_features = np.empty((FEATURES, chunk), dtype)
         grad_pre = np.empty((outputs, chunk), dtype)
         grad_position = np.empty((3, chunk), dtype)  # the sample points' gradient reaching the means
         along = np.empty(chunk, dtype)  # one sample coordinate's gradient per Gaussian, summed in order below
         rows_of_features = np.empty((chunk, FEATURES), dtype)
-        _features(start, size, rows, means, log_scales, quats, opacity, dc, coordinates, voxel, log_voxel, features)
-        for b in range(size):
-            for i in range(FEATURES):
-                rows_of_features[b, i] = features[i, b]
+        # (the transpose: _features fills the Gaussian-major rows directly)
+        _features(start, size, rows, means, log_scales, quats, opacity, dc, coordinates, voxel, log_voxel,
+                  rows_of_features.T)
         for i in range(FEATURES):
             for b in range(size):
                 grad_features[i, b] = 0
@@ -239,7 +239,7 @@ def sampling_backward(grad_own, grad_weight, weight, delta, shift, means, log_sc
                     grad_position[a, b] += gradient
                     along[b] = gradient
                     value = shift[3 * k + a, m]
-                    grad_pre[3 * k + a, b] = gradient * shift_scale * (1 - value * value)
+                    grad_pre[3 * k + a, b] = gradient * shift_scale * (one - value * value)
                 summed = zero
                 for b in range(size):
                     summed += along[b]
@@ -292,10 +292,11 @@ def voxel_means(means, log_scales, quats, opacity, dc, coordinates, inverse, cou
     dtype = means.dtype
     features = np.zeros((voxels, FEATURES), dtype)
     centroids = np.zeros((voxels, 3), dtype)
+    half = of_dtype(means, 0.5)
     for n in range(means.shape[0]):
         v = inverse[n]
         for a in range(3):
-            features[v, a] += means[n, a] / voxel - coordinates[n, a] - 0.5
+            features[v, a] += means[n, a] / voxel - of_dtype(means, coordinates[n, a]) - half
             features[v, 3 + a] += log_scales[n, a] - log_voxel
             features[v, 11 + a] += dc[n, a]
             centroids[v, a] += means[n, a]

@@ -280,16 +280,24 @@ def test_fusion_kernels_equal_the_torch_blocks_in_float32(neighbours, monkeypatc
     assert float(kernel_gradients[0].abs().max()) > 0 and float(kernel_gradients[1].abs().max()) > 0
 
 
-def test_fusion_kernels_give_the_same_bits_on_one_or_two_threads():
+def _thread_counts(numba) -> tuple[int, ...]:
+    """One and two Numba threads, alternating over six calls (several calls: the scratch lands
+    elsewhere in memory each time, and where it landed once chose between two differently
+    rounded copies of a loop)."""
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("needs two Numba threads (NUMBA_NUM_THREADS is 1 here)")
+    return (1, 2) * 3
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_fusion_kernels_give_the_same_bits_on_one_or_two_threads(dtype):
     numba = pytest.importorskip("numba")
-    inputs = _fusion_core_inputs()
-    upstream = torch.randn(3000, 7, generator=torch.Generator().manual_seed(9))
+    inputs = _fusion_core_inputs(dtype=dtype)
+    upstream = torch.randn(3000, 7, generator=torch.Generator().manual_seed(9), dtype=dtype)
     before = numba.get_num_threads()
     try:
         runs = []
-        # several calls: the scratch lands elsewhere in memory each time (see the sampling
-        # kernels' tests: where it lands chose between two differently rounded loop copies)
-        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)) * 3:
+        for threads in _thread_counts(numba):
             numba.set_num_threads(threads)
             runs.append(_core_gradients(inputs, upstream))
     finally:
@@ -371,6 +379,14 @@ def test_sampling_kernels_equal_the_torch_statement_in_float32(fused_k, monkeypa
             assert float(a[others].abs().max()) == 0.0  # rows not fused get nothing from the sampling
 
 
+def test_sampling_kernels_refuse_rows_that_are_not_sorted_and_unique():
+    # the backward writes each row's gradient once: a repeated row would keep one of its gradients
+    module, params, table, centroids, rows = _sampling_problem(count=200)
+    for bad in (torch.cat([rows[:5], rows[4:5]]), rows.flip(0)):
+        with pytest.raises(ValueError, match="sorted, unique rows"):
+            _sampling_kernels(module, params, table, centroids, bad)
+
+
 def test_voxel_means_kernel_equals_the_torch_statement_in_float32():
     module, params, table, centroids, _ = _sampling_problem()
     inputs = {name: value.clone().requires_grad_() for name, value in params.items()}
@@ -391,8 +407,9 @@ def test_voxel_means_kernel_equals_the_torch_statement_in_float32():
 
 
 def test_sampling_kernels_pass_gradcheck_across_chunks(monkeypatch):
-    monkeypatch.setattr(gpdfn.sampling_kernels, "CHUNK", 2)
+    monkeypatch.setattr(gpdfn.sampling_kernels, "CHUNK", 3)
     module, params, table, centroids, rows = _sampling_problem(count=12, dtype=torch.float64, seed=4)
+    assert len(rows) % 3 != 0  # a partial last chunk
     module.voxel_size = 0.5  # coarse voxels: most samples read an occupied one
     table = module.voxel_table(params["means"])
     centroids = gpdfn.add_rows_(params["means"].new_zeros(len(table.counts), 3), table.inverse,
@@ -413,14 +430,14 @@ def test_sampling_kernels_pass_gradcheck_across_chunks(monkeypatch):
     assert torch.autograd.gradcheck(sampled, inputs, eps=1e-7, atol=1e-6)
 
 
-def test_sampling_kernels_give_the_same_bits_on_one_or_two_threads():
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_sampling_kernels_give_the_same_bits_on_one_or_two_threads(dtype):
     numba = pytest.importorskip("numba")
-    problem = _sampling_problem()
+    problem = _sampling_problem(dtype=dtype)
     before = numba.get_num_threads()
     try:
         runs = []
-        # several calls: the scratch lands elsewhere in memory each time (see the next test)
-        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)) * 3:
+        for threads in _thread_counts(numba):
             numba.set_num_threads(threads)
             runs.append(_sampling_gradients(lambda *a: _sampling_kernels(*a), *problem))
     finally:
@@ -435,7 +452,12 @@ def test_sampling_kernels_are_compiled_without_fast_math():
     # Under fast-math a vectorised loop and the scalar copy LLVM falls back to when its run-time
     # overlap check fails (which depends on where the scratch lands) round sums differently: the
     # bits of a gradient then changed between calls (caught once by the test above, in CI)
-    for kernel in (gpdfn.sampling_kernels.sampling_layers, gpdfn.sampling_kernels.sampling_backward):
+    from numba.core.registry import CPUDispatcher
+
+    kernels = [value for value in vars(gpdfn.sampling_kernels).values() if isinstance(value, CPUDispatcher)]
+    assert {"sampling_layers", "sampling_reads", "sampling_backward", "voxel_means",
+            "voxel_means_backward"} <= {kernel.__name__ for kernel in kernels}
+    for kernel in kernels:
         assert not kernel.targetoptions.get("fastmath"), kernel.__name__
 
 
