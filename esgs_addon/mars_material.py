@@ -9,7 +9,11 @@ ground truth.
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import bpy
+
+from ..core.terrain.sky import MARS_SKY, SkyPalette
 
 #: Name of the per-vertex float attribute (0 = bedrock, 1 = loose sand) on the terrain mesh.
 SAND_ATTRIBUTE = "esgs_sand"
@@ -226,7 +230,8 @@ def make_rock_material(name: str = "ESGS Mars rock") -> bpy.types.Material:
     return material
 
 
-def make_sky_world(name: str, *, sky: bool, sun_elevation_deg: float = 30.0) -> bpy.types.World:
+def make_sky_world(name: str, *, sky: bool, sun_elevation_deg: float = 30.0,
+                   palette: Optional[SkyPalette] = None) -> bpy.types.World:
     """World shader: a Mars sky gradient with a dusty horizon; black to the camera when ``sky`` is False.
 
     With ``sky`` False the world still lights the scene (the dusty Martian sky is a strong
@@ -235,7 +240,8 @@ def make_sky_world(name: str, *, sky: bool, sun_elevation_deg: float = 30.0) -> 
     horizon, darker brown towards the zenith, and a ground-coloured band below the horizon
     so views that look past the terrain's edge see a plausible distant plain. These pixels
     have no surface, so they are masked out of the priors (mask 0). The sky's strength
-    follows the sun's elevation so a low sun gives a dimmer sky.
+    follows the sun's elevation so a low sun gives a dimmer sky. ``palette``: the gradient's
+    colours (:mod:`esgs.core.terrain.sky`; default the fixed Mars sky).
     """
     import math
 
@@ -255,15 +261,18 @@ def make_sky_world(name: str, *, sky: bool, sun_elevation_deg: float = 30.0) -> 
     # elevation z in [-1, 1] -> ramp position in [0, 1]; horizon at 0.5
     to_ramp = _map_range(nodes, links, direction.outputs["Z"], -1.0, 1.0)
     ramp = nodes.new("ShaderNodeValToRGB")
+    palette = palette or MARS_SKY
+    palette.validate()
     elements = ramp.color_ramp.elements
-    elements[0].position, elements[0].color = 0.0, (0.16, 0.08, 0.04, 1.0)  # distant ground
-    elements[1].position, elements[1].color = 1.0, (0.20, 0.12, 0.07, 1.0)  # zenith
-    for position, color in ((0.495, (0.30, 0.16, 0.08, 1.0)),  # ground just below the horizon
-                            (0.505, (0.72, 0.50, 0.32, 1.0)),  # bright dusty horizon
-                            (0.62, (0.45, 0.28, 0.16, 1.0))):
+    elements[0].position, elements[0].color = 0.0, (*palette.nadir, 1.0)  # distant ground
+    elements[1].position, elements[1].color = 1.0, (*palette.zenith, 1.0)
+    for position, color in ((0.495, palette.ground),  # ground just below the horizon
+                            (0.505, palette.horizon),  # bright dusty horizon
+                            (palette.haze_height, palette.haze)):
         element = elements.new(position)
-        element.color = color
+        element.color = (*color, 1.0)
     links.new(to_ramp, ramp.inputs["Fac"])
     links.new(ramp.outputs["Color"], background.inputs["Color"])
-    background.inputs["Strength"].default_value = 0.15 + 0.35 * max(0.0, math.sin(math.radians(sun_elevation_deg)))
+    background.inputs["Strength"].default_value = palette.strength * (
+        0.15 + 0.35 * max(0.0, math.sin(math.radians(sun_elevation_deg))))
     return world

@@ -29,6 +29,7 @@ from mathutils import Matrix, Vector
 from ..core.config import config_to_dict
 from ..core.errors import ConfigError
 from ..core.progress import ProgressEvent
+from ..core.terrain.sky import sky_palette
 from .mars_material import SAND_ATTRIBUTE, make_rock_material, make_sky_world, make_terrain_material
 
 #: Version of the scene generator; bump when the same config would give different output.
@@ -269,7 +270,8 @@ def build_terrain_scene(config: Any, *, scene: bpy.types.Scene | None = None,
         created.add(bpy.data.lights, sun.data)
         sun[PROP_ROLE] = "sun"
         world = created.add(bpy.data.worlds, make_sky_world("ESGS Mars sky", sky=config.sky,
-                                                              sun_elevation_deg=config.sun_elevation_deg))
+                                                              sun_elevation_deg=config.sun_elevation_deg,
+                                                              palette=sky_palette(config.sky_palette, config.seed)))
         cameras = []
         for pose in poses:
             camera = camera_object_from_opencv(pose.name, pose.K, pose.world_to_camera, pose.width, pose.height,

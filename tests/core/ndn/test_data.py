@@ -102,19 +102,21 @@ def test_build_data_resumes_and_checks_its_settings(scene, tmp_path, monkeypatch
     out = tmp_path / "data"
     triples = scene_triples(scene, 32, 2)
     write_shard(out / "shards" / "train_dune_field_1.npz", triples, {})  # left by an interrupted build
-    rendered = []
+    rendered, palettes = [], []
 
     def fake_render(preset, seed, *, out, **settings):
         # stands in for the Blender scene render: copy the fixture scene to out
         import shutil
 
         rendered.append((preset, seed))
+        palettes.append(settings["sky_palette"])
         shutil.copytree(scene, out)
         return out
 
     monkeypatch.setattr(data_module, "render_scene", fake_render)
     manifest = data_module.build_dataset(out, 2, heldout=1, presets=("dune_field", "rocky_slope"), working_size=32,
-                                         multiple=2)
+                                         multiple=2, sky_palette="varied")
+    assert palettes == ["varied", "varied"] and manifest["sky_palette"] == "varied"
     assert rendered == [("rocky_slope", 1), ("dune_field", HELDOUT_SEED_OFFSET)]  # the existing shard is skipped
     assert sorted(p.name for p in (out / "shards").iterdir()) == [
         "heldout_dune_field_100000.npz", "train_dune_field_1.npz", "train_rocky_slope_1.npz"]
