@@ -7,6 +7,8 @@ brighter towards the sun). ``"varied"`` draws each scene's palette from its seed
 dusty butterscotch to neutral grey (a quarter fully grey, as Navcam's single band), brightness,
 how the horizon haze fades towards the zenith, and the haze's height. ``"mars"`` is the fixed
 palette (every preset's default: the scenes users render and the studies' scenes are unchanged).
+The world also lights the scene, so a grey sky greys the shadows a little too (about one 8-bit
+level on the terrain of a ``rover_horizon`` scene), as a real overcast sky would.
 
 The palette is plain data so that ``core`` owns it; ``esgs_addon.mars_material.make_sky_world``
 turns it into shader nodes.
