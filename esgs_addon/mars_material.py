@@ -13,7 +13,7 @@ from typing import Optional
 
 import bpy
 
-from ..core.terrain.sky import MARS_SKY, SkyPalette
+from ..core.terrain.palette import MARS_PALETTE, ScenePalette
 
 #: Name of the per-vertex float attribute (0 = bedrock, 1 = loose sand) on the terrain mesh.
 SAND_ATTRIBUTE = "esgs_sand"
@@ -133,11 +133,23 @@ def _new_material(name: str) -> tuple[bpy.types.Material, bpy.types.Nodes, bpy.t
     return material, nodes, links, shader
 
 
-def make_terrain_material(name: str = "ESGS Mars terrain") -> bpy.types.Material:
+def _saturated(nodes, links, color, saturation: float):
+    """``color`` with its saturation scaled by ``saturation`` (1: the socket itself, no node, so
+    the default look renders exactly as before)."""
+    if saturation == 1.0:
+        return color
+    node = nodes.new("ShaderNodeHueSaturation")
+    node.inputs["Saturation"].default_value = float(saturation)
+    links.new(color, node.inputs["Color"])
+    return node.outputs["Color"]
+
+
+def make_terrain_material(name: str = "ESGS Mars terrain", *, saturation: float = 1.0) -> bpy.types.Material:
     """Regolith material: sand vs bedrock from the ``esgs_sand`` vertex attribute, noise variation, dust.
 
     Texture coordinates are object-space (metres for the terrain, which is not scaled), so
-    the pattern keeps its size whatever the terrain resolution.
+    the pattern keeps its size whatever the terrain resolution. ``saturation``: the albedo's
+    (0 grey; a scene palette's ``surface_saturation``).
     """
     material, nodes, links, shader = _new_material(name)
     coordinates = nodes.new("ShaderNodeTexCoord").outputs["Object"]
@@ -164,7 +176,7 @@ def make_terrain_material(name: str = "ESGS Mars terrain") -> bpy.types.Material
     textured = _modulate(nodes, links, albedo, grain, 0.5, 1.45)
     pebbled = _add_pebbles(nodes, links, coordinates, textured, scale=9.0, fraction=0.4, radius=0.2)
     pebbled = _add_pebbles(nodes, links, coordinates, pebbled, scale=2.5, fraction=0.12, radius=0.16)
-    links.new(pebbled, shader.inputs["Base Color"])
+    links.new(_saturated(nodes, links, pebbled, saturation), shader.inputs["Base Color"])
     return material
 
 
@@ -209,8 +221,9 @@ def _add_pebbles(nodes: bpy.types.Nodes, links: bpy.types.NodeLinks, coordinates
     return _mix_color(nodes, links, amount, albedo, shade.outputs["Color"])
 
 
-def make_rock_material(name: str = "ESGS Mars rock") -> bpy.types.Material:
-    """Dark basaltic rock with mottled albedo and dust on its upward-facing parts."""
+def make_rock_material(name: str = "ESGS Mars rock", *, saturation: float = 1.0) -> bpy.types.Material:
+    """Dark basaltic rock with mottled albedo and dust on its upward-facing parts (``saturation``
+    as :func:`make_terrain_material`)."""
     material, nodes, links, shader = _new_material(name)
     shader.inputs["Roughness"].default_value = 0.8
     coordinates = nodes.new("ShaderNodeTexCoord").outputs["Object"]
@@ -226,12 +239,13 @@ def make_rock_material(name: str = "ESGS Mars rock") -> bpy.types.Material:
     # fine speckle (vesicles, crystals) keeps close-up rock faces textured; coordinates are
     # the unit prototype's, so ~40 per rock diameter
     speckle = _noise(nodes, links, coordinates, scale=40.0, detail=1.0)
-    links.new(_modulate(nodes, links, albedo, speckle, 0.6, 1.4), shader.inputs["Base Color"])
+    links.new(_saturated(nodes, links, _modulate(nodes, links, albedo, speckle, 0.6, 1.4), saturation),
+              shader.inputs["Base Color"])
     return material
 
 
 def make_sky_world(name: str, *, sky: bool, sun_elevation_deg: float = 30.0,
-                   palette: Optional[SkyPalette] = None) -> bpy.types.World:
+                   palette: Optional[ScenePalette] = None) -> bpy.types.World:
     """World shader: a Mars sky gradient with a dusty horizon; black to the camera when ``sky`` is False.
 
     With ``sky`` False the world still lights the scene (the dusty Martian sky is a strong
@@ -241,7 +255,7 @@ def make_sky_world(name: str, *, sky: bool, sun_elevation_deg: float = 30.0,
     so views that look past the terrain's edge see a plausible distant plain. These pixels
     have no surface, so they are masked out of the priors (mask 0). The sky's strength
     follows the sun's elevation so a low sun gives a dimmer sky. ``palette``: the gradient's
-    colours (:mod:`esgs.core.terrain.sky`; default the fixed Mars sky).
+    colours (:mod:`esgs.core.terrain.palette`; default the fixed Mars sky).
     """
     import math
 
@@ -261,7 +275,7 @@ def make_sky_world(name: str, *, sky: bool, sun_elevation_deg: float = 30.0,
     # elevation z in [-1, 1] -> ramp position in [0, 1]; horizon at 0.5
     to_ramp = _map_range(nodes, links, direction.outputs["Z"], -1.0, 1.0)
     ramp = nodes.new("ShaderNodeValToRGB")
-    palette = palette or MARS_SKY
+    palette = palette or MARS_PALETTE
     palette.validate()
     elements = ramp.color_ramp.elements
     elements[0].position, elements[0].color = 0.0, (*palette.nadir, 1.0)  # distant ground

@@ -29,7 +29,7 @@ from mathutils import Matrix, Vector
 from ..core.config import config_to_dict
 from ..core.errors import ConfigError
 from ..core.progress import ProgressEvent
-from ..core.terrain.sky import sky_palette
+from ..core.terrain.palette import scene_palette
 from .mars_material import SAND_ATTRIBUTE, make_rock_material, make_sky_world, make_terrain_material
 
 #: Version of the scene generator; bump when the same config would give different output.
@@ -256,14 +256,16 @@ def build_terrain_scene(config: Any, *, scene: bpy.types.Scene | None = None,
         terrain_mesh = created.add(bpy.data.meshes, mesh_from_arrays("ESGS terrain", vertices, triangles, smooth=True))
         sand = terrain_mesh.attributes.new(SAND_ATTRIBUTE, "FLOAT", "POINT")
         sand.data.foreach_set("value", np.asarray(terrain.sand_mask, dtype=np.float32).ravel())
-        terrain_material = created.add(bpy.data.materials, make_terrain_material())
+        palette = scene_palette(config.palette, config.seed)
+        terrain_material = created.add(bpy.data.materials, make_terrain_material(saturation=palette.surface_saturation))
         terrain_mesh.materials.append(terrain_material)
         terrain_object = created.add(bpy.data.objects, bpy.data.objects.new("ESGS terrain", terrain_mesh))
         terrain_object[PROP_ROLE] = "terrain"
         collection.objects.link(terrain_object)
 
         report(ProgressEvent(2, total, "scene", message=f"placing {len(terrain.rocks)} rocks"))
-        rock_objects, rock_meshes = _add_rocks(terrain.rocks, config.seed, collection, created)
+        rock_objects, rock_meshes = _add_rocks(terrain.rocks, config.seed, collection, created,
+                                               saturation=palette.surface_saturation)
 
         report(ProgressEvent(3, total, "scene", message="sun, sky and cameras"))
         sun = created.add(bpy.data.objects, add_sun("ESGS sun", config.sun_direction(), collection))
@@ -271,7 +273,7 @@ def build_terrain_scene(config: Any, *, scene: bpy.types.Scene | None = None,
         sun[PROP_ROLE] = "sun"
         world = created.add(bpy.data.worlds, make_sky_world("ESGS Mars sky", sky=config.sky,
                                                               sun_elevation_deg=config.sun_elevation_deg,
-                                                              palette=sky_palette(config.sky_palette, config.seed)))
+                                                              palette=palette))
         cameras = []
         for pose in poses:
             camera = camera_object_from_opencv(pose.name, pose.K, pose.world_to_camera, pose.width, pose.height,
@@ -308,7 +310,7 @@ def build_terrain_scene(config: Any, *, scene: bpy.types.Scene | None = None,
 
 
 def _add_rocks(rocks: np.ndarray, seed: int, collection: bpy.types.Collection,
-               created: _Created) -> tuple[list[bpy.types.Object], list[bpy.types.Mesh]]:
+               created: _Created, *, saturation: float = 1.0) -> tuple[list[bpy.types.Object], list[bpy.types.Mesh]]:
     """Linked duplicates of a few prototype meshes, one per row of ``rocks`` [M, 7].
 
     Columns: x, y, z_base (height of the rock's base, already below the ground for the
@@ -319,7 +321,7 @@ def _add_rocks(rocks: np.ndarray, seed: int, collection: bpy.types.Collection,
         return [], []
     # prototypes depend on the scene seed only, so the same seed gives the same rocks
     rng = np.random.default_rng([int(seed), 0x526F636B])
-    material = created.add(bpy.data.materials, make_rock_material())
+    material = created.add(bpy.data.materials, make_rock_material(saturation=saturation))
     shape_index = rocks[:, 6].astype(np.int64) % ROCK_PROTOTYPES
     level = (rocks[:, 3] >= LARGE_ROCK_DIAMETER_M).astype(np.int64)
     used = set(zip(shape_index.tolist(), level.tolist()))

@@ -171,16 +171,16 @@ class NDNDataConfig:
     sfm_points: bool = field(default=True, metadata={
         "help": "triangulate each scene's images with its known poses and store the points' depth in the shard "
                 "(the evidence an evidence-conditioned network reads; ~2 s per 8-view scene)"})
-    sky_palette: str = field(default="mars", metadata={
-        "help": "sky colours of the scenes with sky: mars (the generator's fixed gradient) or varied (drawn from "
-                "each scene's seed: butterscotch to grey, brightness, haze), so the sky head does not learn one "
-                "gradient", "choices": ("mars", "varied")})
+    palette: str = field(default="mars", metadata={
+        "help": "the scenes' look: mars (the generator's fixed sky and ground colours) or varied (drawn from each "
+                "scene's seed: sky butterscotch to grey, brightness, haze; ground saturation), so the sky head "
+                "does not learn one pairing of sky and ground", "choices": ("mars", "varied")})
 
     def validate(self) -> None:
-        from ..terrain.sky import SKY_PALETTES
+        from ..terrain.palette import PALETTES
 
-        if self.sky_palette not in SKY_PALETTES:
-            raise ConfigError(f"sky_palette must be one of {', '.join(SKY_PALETTES)}, got {self.sky_palette!r}")
+        if self.palette not in PALETTES:
+            raise ConfigError(f"palette must be one of {', '.join(PALETTES)}, got {self.palette!r}")
         for name in ("scenes", "heldout", "validation"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must not be negative, got {getattr(self, name)}")

@@ -342,19 +342,19 @@ def check_disjoint_splits(data_dir: str | Path, splits: tuple[str, ...] = SPLITS
 
 
 def render_scene(preset: str, seed: int, *, views: int, width: int, height: int, samples: int, out: Path,
-                 sky_palette: str = "mars") -> Path:
+                 palette: str = "mars") -> Path:
     """Render one synthetic scene folder (``esgs scene``'s job, in a Blender child process)."""
     from ..terrain.scene_job import SceneJob, render_scene as render
 
     job = SceneJob(preset=preset, seed=seed, views=views, width=width, height=height, samples=samples,
-                   sky_palette=sky_palette)
+                   palette=palette)
     return render(job, out)
 
 
 def build_dataset(out_dir: str | Path, scenes: int, *, heldout: int = 1, validation: int = 0, presets: tuple[str, ...] = TRAIN_PRESETS,
                   heldout_presets: tuple[str, ...] = (), views: int = 8, width: int = 160, height: int = 90,
                   samples: int = 8, working_size: int = 128, multiple: int = 4, keep_scenes: bool = False,
-                  sfm_points: bool = True, sky_palette: str = "mars", progress: ProgressCallback = no_progress) -> dict:
+                  sfm_points: bool = True, palette: str = "mars", progress: ProgressCallback = no_progress) -> dict:
     """Render scenes with ``esgs scene`` and write one shard per scene under ``OUT/shards``.
 
     Resumable: a shard that already exists is skipped, so an interrupted build continues
@@ -365,12 +365,12 @@ def build_dataset(out_dir: str | Path, scenes: int, *, heldout: int = 1, validat
 
     NDNDataConfig(scenes=scenes, heldout=heldout, validation=validation, presets=tuple(presets), heldout_presets=tuple(heldout_presets),
                   views=views, width=width, height=height, samples=samples, working_size=working_size,
-                  multiple=multiple, keep_scenes=keep_scenes, sfm_points=sfm_points, sky_palette=sky_palette).validate()
+                  multiple=multiple, keep_scenes=keep_scenes, sfm_points=sfm_points, palette=palette).validate()
     out_dir = Path(out_dir)
     (out_dir / "shards").mkdir(parents=True, exist_ok=True)
     plan = plan_scenes(scenes, heldout, tuple(presets), tuple(heldout_presets), validation)
     manifest = {"format": SHARD_FORMAT, "working_size": working_size, "multiple": multiple, "views": views,
-                "resolution": [width, height], "samples": samples, "sfm_points": sfm_points, "sky_palette": sky_palette,
+                "resolution": [width, height], "samples": samples, "sfm_points": sfm_points, "palette": palette,
                 "scenes": [{"split": s, "preset": p, "seed": seed, "shard": f"shards/{s}_{p}_{seed}.npz"}
                            for s, p, seed in plan]}
     atomic_write_json(out_dir / "manifest.json", manifest)
@@ -384,7 +384,7 @@ def build_dataset(out_dir: str | Path, scenes: int, *, heldout: int = 1, validat
         try:
             try:
                 render_scene(preset, seed, views=views, width=width, height=height, samples=samples, out=scene_dir,
-                             sky_palette=sky_palette)
+                             palette=palette)
             except ESGSError as error:
                 raise DatasetError(f"rendering scene {preset} seed {seed} failed: {error.message}",
                                    path=error.path or scene_dir, hint=error.hint) from error

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from ..errors import ConfigError
 from .config import RenderConfig, RigConfig, TerrainConfig, _check_types, _help, _require
 from .rigs import horizon_problem
-from .sky import SKY_PALETTES
+from .palette import PALETTES
 
 
 @dataclass
@@ -27,16 +27,16 @@ class SceneConfig:
     sun_elevation_deg: float = field(default=35.0, metadata=_help("sun height above the horizon, degrees"))
     sun_azimuth_deg: float = field(default=135.0, metadata=_help("direction toward the sun (ccw from +x), degrees"))
     sky: bool = field(default=False, metadata=_help("the views show the horizon and sky (else every pixel sees terrain)"))
-    sky_palette: str = field(default="mars", metadata=_help(
-        "the sky's colours: mars (the fixed butterscotch gradient) or varied (drawn from the seed: "
-        "butterscotch to grey, brightness, haze; training data for sky detection)"))
+    palette: str = field(default="mars", metadata=_help(
+        "the scene's look: mars (the fixed butterscotch sky over reddish ground) or varied (drawn from the "
+        "seed: sky butterscotch to grey, brightness, haze; ground saturation; training data for sky detection)"))
 
     def validate(self) -> None:
         _check_types(self, "")
         _require(self.seed >= 0, "seed", "must be a non-negative integer", self.seed)
         _require(0.0 < self.sun_elevation_deg <= 90.0, "sun_elevation_deg", "must be in (0, 90]", self.sun_elevation_deg)
-        _require(self.sky_palette in SKY_PALETTES, "sky_palette", f"must be one of {', '.join(SKY_PALETTES)}",
-                 self.sky_palette)
+        _require(self.palette in PALETTES, "palette", f"must be one of {', '.join(PALETTES)}",
+                 self.palette)
         self.terrain.validate()
         self.rig.validate()
         self.render.validate()

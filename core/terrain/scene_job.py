@@ -39,9 +39,9 @@ class SceneJob:
         "help": "with --mesh --rig mixed: how many of the views are rover-height views (0 = 40 percent)"})
     rover_pitch_deg: float = field(default=2.0, metadata={
         "help": "with --mesh --rig mixed: rover views' pitch in degrees (the horizon and sky in frame)"})
-    sky_palette: str = field(default="", metadata={
-        "help": "a synthetic scene's sky colours: mars (fixed) or varied (drawn from the seed); empty = the "
-                "preset's or file's", "choices": ("", "mars", "varied")})
+    palette: str = field(default="", metadata={
+        "help": "a synthetic scene's look (sky colours, ground saturation): mars (fixed) or varied (drawn from "
+                "the seed); empty = the preset's or file's", "choices": ("", "mars", "varied")})
 
     def validate(self) -> None:
         from ..errors import ConfigError
@@ -57,9 +57,9 @@ class SceneJob:
             raise ConfigError(f"points_per_view must be positive, got {self.points_per_view}")
         if self.mesh and self.config:
             raise ConfigError("--mesh and --config exclude each other", hint="a mesh scene takes its settings from the flags")
-        if self.mesh and self.sky_palette:
-            raise ConfigError("--sky-palette applies to synthetic scenes only",
-                              hint="a --mesh scene's mixed rig has the fixed Mars sky; drop --sky-palette")
+        if self.mesh and self.palette:
+            raise ConfigError("--palette applies to synthetic scenes only",
+                              hint="a --mesh scene keeps its mesh's texture and the fixed Mars sky; drop --palette")
 
     def mesh_scene_config(self) -> Any:
         """The validated MeshSceneConfig of a ``--mesh`` job (DatasetError for a missing mesh file)."""
@@ -94,14 +94,14 @@ class SceneJob:
             config = load_preset(self.preset, seed=self.seed if self.seed >= 0 else None, views=self.views or None,
                                  resolution=(self.width, self.height) if self.width else None,
                                  samples=self.samples or None)
-            if not self.sky_palette:
+            if not self.palette:
                 return config
             data = config_to_dict(config)
-            data["sky_palette"] = self.sky_palette
+            data["palette"] = self.palette
             return scene_config_from_dict(data, source=f"preset {self.preset}")
         data = config_to_dict(load_scene_config(self.config))
-        if self.sky_palette:
-            data["sky_palette"] = self.sky_palette
+        if self.palette:
+            data["palette"] = self.palette
         if self.seed >= 0:
             data["seed"] = self.seed
         if self.views:

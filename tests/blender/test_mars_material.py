@@ -90,14 +90,27 @@ def _render_sky(world, tmp_path) -> np.ndarray:
 
 
 def test_a_grey_palette_renders_a_grey_sky_and_the_mars_one_a_dusty_one(tmp_path):
-    from esgs.core.terrain.sky import MARS_SKY, varied_sky_palette
+    from esgs.core.terrain.palette import MARS_PALETTE, varied_palette
     from esgs.esgs_addon.mars_material import make_sky_world
 
-    grey_seed = next(seed for seed in range(100) if len(set(varied_sky_palette(seed).horizon)) == 1)
-    grey = _render_sky(make_sky_world("grey", sky=True, sun_elevation_deg=60, palette=varied_sky_palette(grey_seed)),
+    grey_seed = next(seed for seed in range(100) if len(set(varied_palette(seed).horizon)) == 1)
+    grey = _render_sky(make_sky_world("grey", sky=True, sun_elevation_deg=60, palette=varied_palette(grey_seed)),
                        tmp_path)
-    dusty = _render_sky(make_sky_world("dusty", sky=True, sun_elevation_deg=60, palette=MARS_SKY), tmp_path)
+    dusty = _render_sky(make_sky_world("dusty", sky=True, sun_elevation_deg=60, palette=MARS_PALETTE), tmp_path)
     assert float(grey.mean()) > 0.02 and float(dusty.mean()) > 0.02  # the camera sees the sky
     grey_rgb, dusty_rgb = grey.reshape(-1, 3).mean(0), dusty.reshape(-1, 3).mean(0)  # (one sample: noisy pixels)
     assert abs(float(grey_rgb[0] - grey_rgb[2])) < 0.01  # red equals blue: no tint
     assert float(dusty_rgb[0] - dusty_rgb[2]) > 0.1  # butterscotch: red well above blue
+
+
+@pytest.mark.parametrize("make", [make_terrain_material, make_rock_material])
+def test_a_palettes_surface_saturation_scales_the_albedo_and_one_adds_no_node(make):
+    def saturation_nodes(material):
+        return [node for node in material.node_tree.nodes if node.bl_idname == "ShaderNodeHueSaturation"]
+
+    assert not saturation_nodes(make())  # the default material is the one every scene was rendered with
+    grey = make(saturation=0.0)
+    (node,) = saturation_nodes(grey)
+    assert node.inputs["Saturation"].default_value == 0.0
+    shader = next(n for n in grey.node_tree.nodes if n.bl_idname == "ShaderNodeBsdfPrincipled")
+    assert shader.inputs["Base Color"].links[0].from_node == node  # the last step before the shader

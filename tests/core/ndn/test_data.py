@@ -109,14 +109,14 @@ def test_build_data_resumes_and_checks_its_settings(scene, tmp_path, monkeypatch
         import shutil
 
         rendered.append((preset, seed))
-        palettes.append(settings["sky_palette"])
+        palettes.append(settings["palette"])
         shutil.copytree(scene, out)
         return out
 
     monkeypatch.setattr(data_module, "render_scene", fake_render)
     manifest = data_module.build_dataset(out, 2, heldout=1, presets=("dune_field", "rocky_slope"), working_size=32,
-                                         multiple=2, sky_palette="varied")
-    assert palettes == ["varied", "varied"] and manifest["sky_palette"] == "varied"
+                                         multiple=2, palette="varied")
+    assert palettes == ["varied", "varied"] and manifest["palette"] == "varied"
     assert rendered == [("rocky_slope", 1), ("dune_field", HELDOUT_SEED_OFFSET)]  # the existing shard is skipped
     assert sorted(p.name for p in (out / "shards").iterdir()) == [
         "heldout_dune_field_100000.npz", "train_dune_field_1.npz", "train_rocky_slope_1.npz"]
