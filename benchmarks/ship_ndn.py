@@ -67,7 +67,8 @@ def data_plan(data_dir: Path) -> dict:
     width, height = manifest.get("resolution", [160, 90])
     return {"presets": presets, "heldout_presets": heldout_only, "count": count, "views": manifest.get("views", 8),
             "width": width, "height": height, "samples": manifest.get("samples", 8),
-            "working_size": manifest.get("working_size", 128)}
+            "working_size": manifest.get("working_size", 128),
+            "palette": manifest.get("palette", "mars")}  # (a folder from before palettes holds the mars look)
 
 
 def build_data_command(data_dir: Path, plan: dict) -> str:
@@ -77,7 +78,8 @@ def build_data_command(data_dir: Path, plan: dict) -> str:
     if plan["heldout_presets"]:
         command += f" --heldout-presets {' '.join(plan['heldout_presets'])}"
     return command + (f" --views {plan['views']} --resolution {plan['width']}x{plan['height']} "
-                      f"--samples {plan['samples']} --working-size {plan['working_size']}")
+                      f"--samples {plan['samples']} --working-size {plan['working_size']} "
+                      f"--palette {plan.get('palette', 'mars')}")
 
 
 def output_line(diffusion: dict, model: dict | None = None) -> str:

@@ -171,7 +171,7 @@ class NDNDataConfig:
     sfm_points: bool = field(default=True, metadata={
         "help": "triangulate each scene's images with its known poses and store the points' depth in the shard "
                 "(the evidence an evidence-conditioned network reads; ~2 s per 8-view scene)"})
-    palette: str = field(default="mars", metadata={
+    palette: str = field(default="varied", metadata={
         "help": "the scenes' look: mars (the generator's fixed sky and ground colours) or varied (drawn from each "
                 "scene's seed: sky butterscotch to grey, brightness, haze; ground saturation), so the sky head "
                 "does not learn one pairing of sky and ground", "choices": ("mars", "varied")})

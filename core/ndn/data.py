@@ -342,7 +342,7 @@ def check_disjoint_splits(data_dir: str | Path, splits: tuple[str, ...] = SPLITS
 
 
 def render_scene(preset: str, seed: int, *, views: int, width: int, height: int, samples: int, out: Path,
-                 palette: str = "mars") -> Path:
+                 palette: str = "varied") -> Path:
     """Render one synthetic scene folder (``esgs scene``'s job, in a Blender child process)."""
     from ..terrain.scene_job import SceneJob, render_scene as render
 
@@ -351,10 +351,24 @@ def render_scene(preset: str, seed: int, *, views: int, width: int, height: int,
     return render(job, out)
 
 
+def _check_resumed_palette(out_dir: Path, palette: str) -> None:
+    """Refuse to add scenes of another look to a data folder (a folder from before palettes
+    existed holds the fixed ``mars`` look)."""
+    import json
+
+    manifest = out_dir / "manifest.json"
+    if not manifest.is_file():
+        return
+    built = json.loads(manifest.read_text()).get("palette", "mars")
+    if built != palette:
+        raise ConfigError(f"this data folder was built with --palette {built}, not {palette}", path=manifest,
+                          hint=f"pass --palette {built} to continue it, or build into a new folder")
+
+
 def build_dataset(out_dir: str | Path, scenes: int, *, heldout: int = 1, validation: int = 0, presets: tuple[str, ...] = TRAIN_PRESETS,
                   heldout_presets: tuple[str, ...] = (), views: int = 8, width: int = 160, height: int = 90,
                   samples: int = 8, working_size: int = 128, multiple: int = 4, keep_scenes: bool = False,
-                  sfm_points: bool = True, palette: str = "mars", progress: ProgressCallback = no_progress) -> dict:
+                  sfm_points: bool = True, palette: str = "varied", progress: ProgressCallback = no_progress) -> dict:
     """Render scenes with ``esgs scene`` and write one shard per scene under ``OUT/shards``.
 
     Resumable: a shard that already exists is skipped, so an interrupted build continues
@@ -367,6 +381,7 @@ def build_dataset(out_dir: str | Path, scenes: int, *, heldout: int = 1, validat
                   views=views, width=width, height=height, samples=samples, working_size=working_size,
                   multiple=multiple, keep_scenes=keep_scenes, sfm_points=sfm_points, palette=palette).validate()
     out_dir = Path(out_dir)
+    _check_resumed_palette(out_dir, palette)
     (out_dir / "shards").mkdir(parents=True, exist_ok=True)
     plan = plan_scenes(scenes, heldout, tuple(presets), tuple(heldout_presets), validation)
     manifest = {"format": SHARD_FORMAT, "working_size": working_size, "multiple": multiple, "views": views,

@@ -122,5 +122,7 @@ def test_build_data_resumes_and_checks_its_settings(scene, tmp_path, monkeypatch
         "heldout_dune_field_100000.npz", "train_dune_field_1.npz", "train_rocky_slope_1.npz"]
     assert len(manifest["scenes"]) == 3 and not [p for p in out.iterdir() if p.name.startswith(".")]
     assert load_shards(out, "heldout")["views"].shape == (4, 9, 18, 32)
+    with pytest.raises(ConfigError, match="built with --palette varied, not mars"):
+        data_module.build_dataset(out, 2, heldout=1, presets=("dune_field", "rocky_slope"), palette="mars")
     with pytest.raises(ConfigError, match="also training presets"):
         data_module.build_dataset(out, 1, presets=("dune_field",), heldout_presets=("dune_field",))

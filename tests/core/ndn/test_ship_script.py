@@ -42,6 +42,8 @@ def test_data_plan_and_command_come_from_the_manifest(ship, tmp_path):
     assert f"--out {data} --scenes 12 --heldout 4 --validation 2" in command
     assert "--presets cratered_plain rover_horizon dune_field --heldout-presets layered_outcrop" in command
     assert "--views 6 --resolution 192x108 --samples 4 --working-size 128" in command
+    # a manifest from before palettes existed was rendered with the fixed look: the command says so
+    assert command.endswith("--palette mars")
     # the command is one the CLI accepts: it re-plans the same scenes
     assert plan_scenes(12, 4, tuple(plan["presets"]), tuple(plan["heldout_presets"]), 2) == [
         (s["split"], s["preset"], s["seed"]) for s in json.loads((data / "manifest.json").read_text())["scenes"]]
