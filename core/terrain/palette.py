@@ -29,7 +29,8 @@ Colour = tuple[float, float, float]
 
 @dataclass(frozen=True)
 class ScenePalette:
-    """Linear RGB in [0, 1] of the gradient's stops along the view direction's elevation.
+    """A scene's look. Colours: linear RGB in [0, 1] of the sky gradient's stops along the view
+    direction's elevation.
 
     ``ground``: just below the horizon (a distant plain past the terrain's edge); ``nadir``:
     straight down (darker); ``horizon``: the bright haze at the horizon; ``haze``: where the haze fades,
@@ -62,9 +63,9 @@ class ScenePalette:
             raise ConfigError(f"palette strength must be positive, got {self.strength}")
 
 
-#: the generator's original sky: butterscotch horizon, darker brown zenith
-MARS_PALETTE = ScenePalette(nadir=(0.16, 0.08, 0.04), ground=(0.30, 0.16, 0.08), horizon=(0.72, 0.50, 0.32), haze=(0.45, 0.28, 0.16),
-                      zenith=(0.20, 0.12, 0.07))
+#: the generator's original look: butterscotch horizon, darker brown zenith, the ground as designed
+MARS_PALETTE = ScenePalette(nadir=(0.16, 0.08, 0.04), ground=(0.30, 0.16, 0.08), horizon=(0.72, 0.50, 0.32),
+                            haze=(0.45, 0.28, 0.16), zenith=(0.20, 0.12, 0.07))
 
 
 def _toward_grey(colour: Colour, saturation: float, brightness: float) -> Colour:
@@ -75,7 +76,7 @@ def _toward_grey(colour: Colour, saturation: float, brightness: float) -> Colour
 
 
 def varied_palette(seed: int) -> ScenePalette:
-    """A palette drawn from ``seed`` (the scene's): the same seed gives the same sky.
+    """A palette drawn from ``seed`` (the scene's): the same seed gives the same look.
 
     Saturation 0 (grey) with probability 1/4, else uniform in [0.15, 1.2] of the Mars sky's;
     brightness 0.6-1.6x; the zenith 0.25-1.3x the horizon's brightness (darker, flat, or brighter
