@@ -72,6 +72,10 @@ def property_annotations(cls: type, extra: dict[str, dict] | None = None,
                    "default": fld.default, **extra.get(fld.name, {})}
         choices = fld.metadata.get("choices")
         if choices and hints[fld.name] is str:
+            if not all(choices):
+                # Blender accepts an item with an empty identifier, then warns on every read and
+                # cannot select it again: name the choice instead (e.g. "preset" for "keep it")
+                raise TypeError(f"{cls.__name__}.{fld.name} has an empty choice; give it a name")
             maker = bpy.props.EnumProperty
             options["items"] = [(str(choice), str(choice), description) for choice in choices]
         annotations[fld.name] = maker(**options)

@@ -16,7 +16,7 @@ class ESGS_PT_terrain(ESGSSection, bpy.types.Panel):
     def draw(self, context: bpy.types.Context) -> None:
         layout = self.layout
         settings = context.scene.esgs.terrain
-        column = prop_column(layout, settings, ("preset", "config", "seed", "views"))
+        column = prop_column(layout, settings, ("preset", "palette", "config", "seed", "views"))
         row = column.row(align=True)
         row.prop(settings, "width")
         row.prop(settings, "height")

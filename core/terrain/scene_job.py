@@ -12,6 +12,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from .palette import PALETTES
+
+#: ``SceneJob.palette`` value that keeps the preset's or config file's look. A named choice, not
+#: "", because the add-on turns the choices into a drop-down, whose items need identifiers.
+KEEP_PALETTE = "preset"
+
 
 @dataclass
 class SceneJob:
@@ -39,9 +45,9 @@ class SceneJob:
         "help": "with --mesh --rig mixed: how many of the views are rover-height views (0 = 40 percent)"})
     rover_pitch_deg: float = field(default=2.0, metadata={
         "help": "with --mesh --rig mixed: rover views' pitch in degrees (the horizon and sky in frame)"})
-    palette: str = field(default="", metadata={
-        "help": "a synthetic scene's look (sky colours, ground saturation): mars (fixed) or varied (drawn from "
-                "the seed); empty = the preset's or file's", "choices": ("", "mars", "varied")})
+    palette: str = field(default=KEEP_PALETTE, metadata={
+        "help": "a synthetic scene's look (sky colours, ground saturation): mars (fixed), varied (drawn from "
+                "the seed) or preset (the preset's or file's)", "choices": (KEEP_PALETTE, *PALETTES)})
 
     def validate(self) -> None:
         from ..errors import ConfigError
@@ -57,7 +63,9 @@ class SceneJob:
             raise ConfigError(f"points_per_view must be positive, got {self.points_per_view}")
         if self.mesh and self.config:
             raise ConfigError("--mesh and --config exclude each other", hint="a mesh scene takes its settings from the flags")
-        if self.mesh and self.palette:
+        if self.palette not in (KEEP_PALETTE, *PALETTES):
+            raise ConfigError(f"palette must be one of {KEEP_PALETTE}, {', '.join(PALETTES)}, got {self.palette!r}")
+        if self.mesh and self.palette != KEEP_PALETTE:
             raise ConfigError("--palette applies to synthetic scenes only",
                               hint="a --mesh scene keeps its mesh's texture and the fixed Mars sky; drop --palette")
 
@@ -94,13 +102,13 @@ class SceneJob:
             config = load_preset(self.preset, seed=self.seed if self.seed >= 0 else None, views=self.views or None,
                                  resolution=(self.width, self.height) if self.width else None,
                                  samples=self.samples or None)
-            if not self.palette:
+            if self.palette == KEEP_PALETTE:
                 return config
             data = config_to_dict(config)
             data["palette"] = self.palette
             return scene_config_from_dict(data, source=f"preset {self.preset}")
         data = config_to_dict(load_scene_config(self.config))
-        if self.palette:
+        if self.palette != KEEP_PALETTE:
             data["palette"] = self.palette
         if self.seed >= 0:
             data["seed"] = self.seed

@@ -68,7 +68,8 @@ def test_labels_panel_greys_the_mesh_while_reconstructing(reconstruct):
 
 def test_terrain_panel_shows_generator_then_render_settings():
     assert draw(ESGS_PT_terrain) == [
-        *[("prop", name, True) for name in ("preset", "config", "seed", "views", "width", "height", "samples")],
+        *[("prop", name, True) for name in ("preset", "palette", "config", "seed", "views", "width", "height",
+                                                    "samples")],
         ("label", "0 keeps the preset's value"), ("operator", "esgs.generate_terrain"),
         *[("prop", name, True) for name in ("output_dir", "points_per_view", "sfm", "overwrite")],
         ("operator", "esgs.render_dataset")]

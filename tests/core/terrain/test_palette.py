@@ -3,6 +3,7 @@ data builder choose them."""
 from __future__ import annotations
 
 import colorsys
+import json
 
 import pytest
 
@@ -62,3 +63,17 @@ def test_the_data_builder_checks_its_palette():
     NDNDataConfig(palette="varied").validate()
     with pytest.raises(ConfigError, match="palette must be one of mars, varied"):
         NDNDataConfig(palette="grey").validate()
+
+
+def test_a_scene_job_keeps_a_config_files_palette_unless_told(tmp_path):
+    from esgs.core.config import config_to_dict
+    from esgs.core.terrain.presets import load_preset
+
+    data = config_to_dict(load_preset("rover_horizon", seed=4))
+    data["palette"] = "varied"
+    saved = tmp_path / "scene.json"
+    saved.write_text(json.dumps(data))
+    assert SceneJob(config=str(saved)).scene_config().palette == "varied"
+    assert SceneJob(config=str(saved), palette="mars").scene_config().palette == "mars"
+    with pytest.raises(ConfigError, match="palette must be one of preset, mars, varied"):
+        SceneJob(palette="").validate()
