@@ -46,6 +46,15 @@ def _switches() -> dict[str, Callable[[], None]]:
     return {"torch": use(False, False), "fusion kernels": use(False, True), "all kernels": use(True, True)}
 
 
+def arm_order(names: list[str], repeat: int) -> list[str]:
+    """The arms' order in block ``repeat``: each block starts with the next arm (no arm always runs
+    first), and every other cycle through the arms runs backwards (no arm always runs after the
+    same one, whose caches and clock state it would inherit)."""
+    base = names if (repeat // len(names)) % 2 == 0 else names[::-1]
+    shift = repeat % len(names)
+    return base[shift:] + base[:shift]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("scene", type=Path)
@@ -83,9 +92,7 @@ def main(argv: list[str] | None = None) -> int:
                 step += 1
         names = list(switches)
         for repeat in range(args.repeats):
-            # each repeat starts with the next arm: no arm always runs first (or after the same one)
-            shift = repeat % len(names)
-            for name in names[shift:] + names[:shift]:
+            for name in arm_order(names, repeat):
                 switches[name]()
                 start = time.perf_counter()
                 for _ in range(args.steps):

@@ -69,6 +69,10 @@ def check_reused_render(out: Path, noise_seed: int) -> None:
 
     path = SceneDir(out).provenance
     recorded = json.loads(path.read_text()).get("cycles_noise_seed") if path.is_file() else None
+    if recorded is None:
+        # a render from before the seed was recorded (or not this script's): its seed is unknown
+        raise SystemExit(f"{out} holds a render whose Cycles noise seed is not recorded ({path} has no "
+                         "cycles_noise_seed): pass another --out to render afresh")
     if recorded != noise_seed:
         raise SystemExit(f"{out} holds a render with Cycles noise seed {recorded} (from {path}), not "
                          f"{noise_seed}: pass another --out to render afresh, or --noise-seed {recorded} to reuse it")

@@ -79,7 +79,7 @@ def build_data_command(data_dir: Path, plan: dict) -> str:
         command += f" --heldout-presets {' '.join(plan['heldout_presets'])}"
     return command + (f" --views {plan['views']} --resolution {plan['width']}x{plan['height']} "
                       f"--samples {plan['samples']} --working-size {plan['working_size']} "
-                      f"--palette {plan.get('palette', 'mars')}")
+                      f"--palette {plan['palette']}")
 
 
 def output_line(diffusion: dict, model: dict | None = None) -> str:

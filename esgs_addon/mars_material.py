@@ -280,7 +280,7 @@ def make_sky_world(name: str, *, sky: bool, sun_elevation_deg: float = 30.0,
     elements = ramp.color_ramp.elements
     elements[0].position, elements[0].color = 0.0, (*palette.nadir, 1.0)  # distant ground
     elements[1].position, elements[1].color = 1.0, (*palette.zenith, 1.0)
-    for position, color in ((0.495, palette.ground),  # ground just below the horizon
+    for position, color in ((0.495, palette.distant_ground),  # ground just below the horizon
                             (0.505, palette.horizon),  # bright dusty horizon
                             (palette.haze_height, palette.haze)):
         element = elements.new(position)

@@ -25,7 +25,7 @@ def test_a_reused_render_must_record_the_noise_seed_asked_for(tmp_path):
     out.mkdir()
     provenance = SceneDir(out).provenance
     provenance.write_text(json.dumps({"seed": 4}))
-    with pytest.raises(SystemExit, match="noise seed None .*pass another --out"):
+    with pytest.raises(SystemExit, match="noise seed is not recorded .*pass another --out to render afresh$"):
         script.check_reused_render(out, 7)  # rendered before the seed was recorded
     script._record_noise_seed(out, 7)
     assert json.loads(provenance.read_text()) == {"seed": 4, "cycles_noise_seed": 7}

@@ -32,15 +32,16 @@ class ScenePalette:
     """A scene's look. Colours: linear RGB in [0, 1] of the sky gradient's stops along the view
     direction's elevation.
 
-    ``ground``: just below the horizon (a distant plain past the terrain's edge); ``nadir``:
+    ``distant_ground``: just below the horizon (a plain past the terrain's edge); ``nadir``:
     straight down (darker); ``horizon``: the bright haze at the horizon; ``haze``: where the haze fades,
     at ``haze_height`` (the gradient's position, 0.5 = horizon, 1 = zenith); ``zenith``: straight
-    up. ``strength``: the world's emission scale before the sun-elevation factor.
+    up. ``strength``: the world's emission scale before the sun-elevation factor (the varied looks
+    keep 1 and scale their colours instead).
     ``surface_saturation``: the terrain's and rocks' albedo saturation (0 grey, 1 as designed).
     """
 
     nadir: Colour
-    ground: Colour
+    distant_ground: Colour
     horizon: Colour
     haze: Colour
     zenith: Colour
@@ -51,7 +52,7 @@ class ScenePalette:
     def validate(self) -> None:
         from ..errors import ConfigError
 
-        for name in ("nadir", "ground", "horizon", "haze", "zenith"):
+        for name in ("nadir", "distant_ground", "horizon", "haze", "zenith"):
             colour = getattr(self, name)
             if len(colour) != 3 or not all(0.0 <= float(c) <= 1.0 for c in colour):
                 raise ConfigError(f"palette colour {name} must be three values in [0, 1], got {colour}")
@@ -64,7 +65,7 @@ class ScenePalette:
 
 
 #: the generator's original look: butterscotch horizon, darker brown zenith, the ground as designed
-MARS_PALETTE = ScenePalette(nadir=(0.16, 0.08, 0.04), ground=(0.30, 0.16, 0.08), horizon=(0.72, 0.50, 0.32),
+MARS_PALETTE = ScenePalette(nadir=(0.16, 0.08, 0.04), distant_ground=(0.30, 0.16, 0.08), horizon=(0.72, 0.50, 0.32),
                             haze=(0.45, 0.28, 0.16), zenith=(0.20, 0.12, 0.07))
 
 
@@ -91,11 +92,11 @@ def varied_palette(seed: int) -> ScenePalette:
     horizon = _toward_grey(MARS_PALETTE.horizon, saturation, brightness)
     zenith = _toward_grey(MARS_PALETTE.horizon, saturation, brightness * zenith_ratio)
     haze = tuple(0.5 * (h + z) for h, z in zip(horizon, zenith))
-    ground = _toward_grey(MARS_PALETTE.ground, saturation, float(generator.uniform(0.7, 1.3)))
+    ground = _toward_grey(MARS_PALETTE.distant_ground, saturation, float(generator.uniform(0.7, 1.3)))
     nadir = tuple(0.53 * g for g in ground)  # the Mars sky's ratio of the two ground stops
     haze_height = float(generator.uniform(0.53, 0.80))
     surface = 0.0 if generator.random() < 1 / 3 else float(generator.uniform(0.3, 1.2))
-    return ScenePalette(nadir=nadir, ground=ground, horizon=horizon, haze=haze, zenith=zenith,  # type: ignore[arg-type]
+    return ScenePalette(nadir=nadir, distant_ground=ground, horizon=horizon, haze=haze, zenith=zenith,  # type: ignore[arg-type]
                         haze_height=haze_height, surface_saturation=surface)
 
 

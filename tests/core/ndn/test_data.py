@@ -1,6 +1,8 @@
 """NDN data: working sizes, neighbour choice, depth states, shards, split planning."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -126,3 +128,10 @@ def test_build_data_resumes_and_checks_its_settings(scene, tmp_path, monkeypatch
         data_module.build_dataset(out, 2, heldout=1, presets=("dune_field", "rocky_slope"), palette="mars")
     with pytest.raises(ConfigError, match="also training presets"):
         data_module.build_dataset(out, 1, presets=("dune_field",), heldout_presets=("dune_field",))
+    # a folder from before palettes (no key in its manifest) holds the fixed look: resuming it
+    # with today's default look is refused, with the flag that continues it
+    manifest.pop("palette")
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ConfigError, match="built with --palette mars, not varied") as refused:
+        data_module.build_dataset(out, 2, heldout=1, presets=("dune_field", "rocky_slope"))
+    assert "pass --palette mars to continue it" in str(refused.value)

@@ -42,12 +42,12 @@ def test_varied_palettes_span_grey_to_dusty_and_are_valid():
     assert MARS_PALETTE.surface_saturation == 1.0
     for palette in palettes:  # a grey sky sits over a grey plain
         if colorsys.rgb_to_hsv(*palette.horizon)[1] == 0.0:
-            assert len(set(palette.ground)) == 1 and len(set(palette.nadir)) == 1
+            assert len(set(palette.distant_ground)) == 1 and len(set(palette.nadir)) == 1
 
 
 def test_a_palette_with_a_colour_out_of_range_is_refused():
     with pytest.raises(ConfigError, match="colour zenith"):
-        ScenePalette(nadir=(0, 0, 0), ground=(0, 0, 0), horizon=(1, 1, 1), haze=(0.5, 0.5, 0.5),
+        ScenePalette(nadir=(0, 0, 0), distant_ground=(0, 0, 0), horizon=(1, 1, 1), haze=(0.5, 0.5, 0.5),
                    zenith=(1.2, 0, 0)).validate()
 
 
