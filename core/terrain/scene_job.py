@@ -7,6 +7,7 @@ the ``"scene"`` job of the child-process runtime (Blender's ``bpy`` never enters
 from __future__ import annotations
 
 import argparse
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,6 +46,9 @@ class SceneJob:
         "help": "with --mesh --rig mixed: how many of the views are rover-height views (0 = 40 percent)"})
     rover_pitch_deg: float = field(default=2.0, metadata={
         "help": "with --mesh --rig mixed: rover views' pitch in degrees (the horizon and sky in frame)"})
+    site_center: str = field(default="", metadata={
+        "help": "with --mesh --rig orbit or mixed: the site's centre as X,Y in the mesh's metres (Blender's "
+                "frame, +Z up), e.g. 60,-40; empty = the middle of the mesh's footprint"})
     palette: str = field(default=KEEP_PALETTE, metadata={
         "help": "a synthetic scene's look (sky colours, ground saturation): mars (fixed), varied (drawn from "
                 "the seed) or preset (the preset's or file's)", "choices": (KEEP_PALETTE, *PALETTES)})
@@ -65,9 +69,32 @@ class SceneJob:
             raise ConfigError("--mesh and --config exclude each other", hint="a mesh scene takes its settings from the flags")
         if self.palette not in (KEEP_PALETTE, *PALETTES):
             raise ConfigError(f"palette must be one of {KEEP_PALETTE}, {', '.join(PALETTES)}, got {self.palette!r}")
+        if self.site_center:
+            self.site_center_xy()
+            if not self.mesh or self.rig == "traverse":
+                raise ConfigError("--site-center applies to --mesh scenes with --rig orbit or mixed",
+                                  hint="a traverse drives from random places over the whole mesh; drop --site-center")
         if self.mesh and self.palette != KEEP_PALETTE:
             raise ConfigError("--palette applies to synthetic scenes only",
                               hint="a --mesh scene keeps its mesh's texture and the fixed Mars sky; drop --palette")
+
+    def site_center_xy(self) -> tuple[float, float] | None:
+        """``site_center`` as (x, y) metres, or None for the middle of the footprint."""
+        from ..errors import ConfigError
+
+        if not self.site_center:
+            return None
+        parts = self.site_center.split(",")
+        try:
+            if len(parts) != 2:
+                raise ValueError
+            x, y = (float(part) for part in parts)
+        except ValueError:
+            raise ConfigError(f"site_center must be two numbers X,Y in metres, got {self.site_center!r}",
+                              hint="for example --site-center 60,-40") from None
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise ConfigError(f"site_center must be finite, got {self.site_center!r}")
+        return x, y
 
     def mesh_scene_config(self) -> Any:
         """The validated MeshSceneConfig of a ``--mesh`` job (DatasetError for a missing mesh file)."""
@@ -85,6 +112,9 @@ class SceneJob:
         rig = MeshRigConfig(kind=self.rig, views=self.views or base.rig.views, mast_height_m=self.mast_height_m,
                             pitch_deg=self.pitch_deg, rover_views=self.rover_views,
                             rover_pitch_deg=self.rover_pitch_deg)
+        centre = self.site_center_xy()
+        if centre is not None:
+            rig.center_x_m, rig.center_y_m = centre
         config = MeshSceneConfig(mesh=str(Path(self.mesh).expanduser().resolve()), name=Path(self.mesh).stem,
                                  seed=self.seed if self.seed >= 0 else 0, rig=rig, render=render)
         config.validate()

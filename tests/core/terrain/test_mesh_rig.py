@@ -113,3 +113,40 @@ def test_mixed_rig_is_placed_on_flat_ground_with_the_default_pitch():
                           seed=0)
     rover = poses[-3:]  # 40 % of 8 views, rounded
     assert all(abs(pose.camera_center[2] - rig.mast_height_m) < 1e-9 for pose in rover)
+
+
+def test_a_scene_jobs_site_center_moves_the_mixed_rig(tmp_path):
+    import dataclasses
+
+    from esgs.core.terrain.scene_job import SceneJob
+
+    mesh = tmp_path / "terrain.glb"
+    mesh.write_bytes(b"glTF")  # only its existence is checked here
+    job = SceneJob(mesh=str(mesh), rig="mixed", views=10, site_center=" 30, -20")
+    rig = job.scene_config().rig
+    assert (rig.center_x_m, rig.center_y_m) == (30.0, -20.0)
+    assert SceneJob(mesh=str(mesh), rig="mixed").scene_config().rig.center_x_m is None  # the footprint's middle
+    rig = dataclasses.replace(rig, orbit_radius_m=25.0, orbit_height_m=20.0, border_margin_m=5.0, probe_grid=5,
+                              max_attempts=200)
+    poses = make_mesh_rig(rig, _render(), bowl_cast, BOUNDS_MIN, BOUNDS_MAX, seed=2)
+    centres = np.stack([pose.camera_center for pose in poses])
+    np.testing.assert_allclose(poses[0].target[:2], (30.0, -20.0))
+    np.testing.assert_allclose(np.linalg.norm(centres[:6, :2] - (30.0, -20.0), axis=1), 25.0, rtol=1e-9)
+    assert np.all(np.linalg.norm(centres[6:, :2] - (30.0, -20.0), axis=1) <= 25.0 + rig.spacing_m * 4)
+
+
+@pytest.mark.parametrize("center, message", [("30", "two numbers X,Y"), ("a,b", "two numbers X,Y"),
+                                             ("1,2,3", "two numbers X,Y"), ("inf,0", "finite")])
+def test_a_bad_site_center_is_refused_with_an_example(center, message):
+    from esgs.core.terrain.scene_job import SceneJob
+
+    with pytest.raises(ConfigError, match=message):
+        SceneJob(mesh="terrain.glb", rig="mixed", site_center=center).validate()
+
+
+def test_a_site_center_needs_a_mesh_orbit_or_mixed_rig():
+    from esgs.core.terrain.scene_job import SceneJob
+
+    for job in (SceneJob(site_center="1,2"), SceneJob(mesh="terrain.glb", rig="traverse", site_center="1,2")):
+        with pytest.raises(ConfigError, match="--site-center applies to --mesh scenes with --rig orbit or mixed"):
+            job.validate()
