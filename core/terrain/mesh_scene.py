@@ -242,10 +242,11 @@ def make_mesh_rig(rig: MeshRigConfig, render: RenderConfig, cast: RayCaster, bou
     elif rig.kind == "mixed":
         poses = _mixed(rig, render, cast, footprint, top_z, rng)
         hint = ("change rig.rover_pitch_deg (up shows more sky, down more ground), lower rig.min_sky_fraction, "
-                "lower rig.border_margin_m, or change the orbit (rig.orbit_radius_m, the centre)")
+                "lower rig.border_margin_m, or change the orbit (rig.orbit_radius_m, the centre: esgs scene "
+                "--site-center X,Y)")
     else:
         poses = _orbit(rig, render, cast, footprint, top_z, rng)
-        hint = "change rig.orbit_radius_m, rig.orbit_height_m or the centre"
+        hint = "change rig.orbit_radius_m, rig.orbit_height_m or the centre (esgs scene --site-center X,Y)"
     if poses is None:
         needs = ("aerial views must see only surface; rover views must see the ground below the horizon "
                  "and the sky above it" if rig.kind == "mixed" else "every view must see only surface")
