@@ -124,6 +124,10 @@ class NDNTrainConfig:
         "help": "probability that a batch's views are changed photometrically (grey, gamma, contrast, brightness, "
                 "blur; the same for a triple's three views, depth and normals untouched): robustness to cameras and "
                 "terrain textures unlike the generator's; 0 = off (the runs before it existed)"})
+    crop_zoom: float = field(default=0.0, metadata={
+        "help": "probability that a batch's triples are each seen through a window of 60-100 %% of the image, zoomed "
+                "back (the same window for a triple's views, targets and evidence): horizons and sky bands anywhere "
+                "in the frame; 0 = off (the runs before it existed)"})
     init: str = field(default="", metadata={
         "help": "fine-tune: start from this checkpoint's weights and optimiser moments (steps continue from "
                 "its step; the schedule spans from there to --steps); ignored when --resume finds a checkpoint"})
@@ -144,6 +148,8 @@ class NDNTrainConfig:
             raise ConfigError(f"min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
         if not 0.0 <= self.augment <= 1.0:
             raise ConfigError(f"augment must be a probability in [0, 1], got {self.augment}")
+        if not 0.0 <= self.crop_zoom <= 1.0:
+            raise ConfigError(f"crop_zoom must be a probability in [0, 1], got {self.crop_zoom}")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ConfigError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
 

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch.nn import functional as F
 
 from ..errors import CheckpointError, ConfigError
 from ..io_utils import atomic_write_json
@@ -211,6 +212,32 @@ def flip_horizontally(views: torch.Tensor, depth: torch.Tensor, normal: torch.Te
     return views.flip(-1), depth.flip(-1), normal
 
 
+def crop_and_zoom(views: torch.Tensor, maps: dict[str, torch.Tensor], generator: torch.Generator, *,
+                  min_scale: float = 0.6) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Show each triple through a smaller window of its image, zoomed back to the working size.
+
+    Per triple one window (the same for its three views and every per-pixel map), ``min_scale``-1
+    of the height and width, anywhere in the image: the horizon lands anywhere in the frame and
+    the sky fills a thin band as well as a third of it, as in real rover frames (the generator's
+    rover views put it near the middle). Per-pixel camera-frame quantities are unchanged by a crop
+    (z depth, normals, sky, evidence), so the maps are resampled, nearest, never blended: a depth
+    edge or a point of evidence keeps its values. Views: [B, 9, h, w]; maps: name -> [B, C, h, w].
+    """
+    batch, _, height, width = views.shape
+    uniform = torch.rand((batch, 3), generator=generator)
+    scale = min_scale + (1.0 - min_scale) * uniform[:, 0]
+    theta = torch.zeros((batch, 2, 3))
+    theta[:, 0, 0] = theta[:, 1, 1] = scale
+    theta[:, 0, 2] = (2.0 * uniform[:, 1] - 1.0) * (1.0 - scale)  # window centre, in [-1, 1] image units
+    theta[:, 1, 2] = (2.0 * uniform[:, 2] - 1.0) * (1.0 - scale)
+    grid = F.affine_grid(theta, [batch, 1, height, width], align_corners=False)
+
+    def resample(tensor: torch.Tensor, mode: str) -> torch.Tensor:
+        return F.grid_sample(tensor, grid.to(tensor.dtype), mode=mode, padding_mode="border", align_corners=False)
+
+    return resample(views, "bilinear"), {name: resample(value, "nearest") for name, value in maps.items()}
+
+
 def augment_photometric(views: torch.Tensor, generator: torch.Generator, *, gray_probability: float = 0.3,
                         max_blur_sigma: float = 1.5) -> torch.Tensor:
     """Change how a batch of triples looks, not what it shows: views [B, 9, h, w] in [-1, 1].
@@ -374,6 +401,10 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
         if config.model.evidence or config.model.sky:
             extra_inputs = evidence_batch(data, index, flip, config, generator)
             depth = extra_inputs.pop("depth", depth)
+        if train_config.crop_zoom > 0 and bool(torch.rand((), generator=generator) < train_config.crop_zoom):
+            views, maps = crop_and_zoom(views, {"depth": depth, "normal": normal, **extra_inputs}, generator)
+            depth, normal = maps.pop("depth"), maps.pop("normal")
+            extra_inputs = maps
         loss, parts = diffusion.training_loss(model, views, depth, normal, generator=generator,
                                               normal_weight=train_config.normal_weight,
                                               sky_weight=train_config.sky_weight, **extra_inputs)

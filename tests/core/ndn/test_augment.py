@@ -83,3 +83,55 @@ def test_training_with_augmentation_runs_and_differs(tmp_path):
     for key in weights["plain"]:
         torch.testing.assert_close(weights["plain"][key], weights["again"][key], rtol=0, atol=0)
     assert any(not torch.equal(weights["plain"][key], weights["augmented"][key]) for key in weights["plain"])
+
+
+def test_crop_and_zoom_is_the_identity_at_full_scale_and_keeps_map_values():
+    from esgs.core.ndn.train import crop_and_zoom
+
+    views = _triples(batch=3, size=(18, 32))
+    depth = torch.from_numpy(np.random.default_rng(2).integers(0, 5, (3, 1, 18, 32)).astype(np.float32))
+    same, maps = crop_and_zoom(views, {"depth": depth}, torch.Generator().manual_seed(0), min_scale=1.0)
+    torch.testing.assert_close(same, views, rtol=0, atol=1e-5)
+    torch.testing.assert_close(maps["depth"], depth, rtol=0, atol=0)
+    zoomed, maps = crop_and_zoom(views, {"depth": depth}, torch.Generator().manual_seed(0), min_scale=0.5)
+    assert zoomed.shape == views.shape and maps["depth"].shape == depth.shape
+    # nearest for maps: every value is one the input held (no blend across a depth edge)
+    assert set(maps["depth"].unique().tolist()) <= set(depth.unique().tolist())
+    assert not torch.equal(maps["depth"], depth)
+    # a triple's three views share the window
+    torch.testing.assert_close(zoomed[:, 0:3], zoomed[:, 3:6], rtol=0, atol=0)
+
+
+def test_crop_and_zoom_shows_the_window_it_drew():
+    from esgs.core.ndn.train import crop_and_zoom
+
+    # a ramp in x and y: the zoomed image must be the ramp over a sub-window, scaled up
+    height, width = 20, 40
+    y, x = torch.meshgrid(torch.arange(height, dtype=torch.float32), torch.arange(width, dtype=torch.float32),
+                          indexing="ij")
+    views = torch.stack([x / width] * 9)[None]
+    rows = torch.stack([y])[None]
+    zoomed, maps = crop_and_zoom(views, {"rows": rows}, torch.Generator().manual_seed(5), min_scale=0.5)
+    columns = zoomed[0, 0, height // 2]
+    step = float((columns[1:] - columns[:-1])[2:-2].mean()) * width  # source pixels per output pixel
+    assert 0.5 <= step < 1.0 - 1e-3
+    # the rows map spans the same share of the image height, within one pixel
+    span = float(maps["rows"][0, 0, -1, 0] - maps["rows"][0, 0, 0, 0])
+    assert abs(span - step * (height - 1)) <= 1.0 + 1e-6
+
+
+def test_training_with_crop_and_zoom_runs_and_zero_draws_nothing(tmp_path):
+    scene = make_scene(tmp_path / "scene", seed=0)
+    write_shard(tmp_path / "data" / "shards" / "train_plane_1.npz", scene_triples(scene, 32, 2), {})
+    settings = dict(steps=3, batch_size=2, checkpoint_every=3, seed=0, threads=1, validation_triples=0)
+    for name, crop in (("plain", None), ("zero", 0.0), ("crop", 1.0)):
+        extra = {} if crop is None else {"crop_zoom": crop}
+        result = train_ndn(tmp_path / "data", tmp_path / name, NDNTrainConfig(**settings, **extra), tiny_config())
+        assert np.isfinite(result["final_loss_mean_last_50"])
+    weights = {name: torch.load(tmp_path / name / "checkpoints" / "step_0000003.pt", weights_only=True)["model"]
+               for name in ("plain", "zero", "crop")}
+    for key in weights["plain"]:
+        torch.testing.assert_close(weights["plain"][key], weights["zero"][key], rtol=0, atol=0)
+    assert any(not torch.equal(weights["plain"][key], weights["crop"][key]) for key in weights["plain"])
+    with pytest.raises(ConfigError, match="crop_zoom"):
+        NDNTrainConfig(crop_zoom=-0.1).validate()
