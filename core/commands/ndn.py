@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
 def _train(args: argparse.Namespace, bar) -> int:
     from ..config import dataclass_from_args
     from ..ndn.config import NDNConfig, NDNDiffusionConfig, NDNModelConfig, NDNTrainConfig
-    from ..ndn.train import checkpoint_config, resume_source, train_ndn
+    from ..ndn.train import checkpoint_config, resume_source, saved_train_config, train_ndn
     from ..progress import JsonLinesProgress, combine
 
     model_config = dataclass_from_args(NDNModelConfig, args)
@@ -123,7 +123,9 @@ def _train(args: argparse.Namespace, bar) -> int:
         model_config.working_size = int(json.loads(manifest_path.read_text())["working_size"])
         model_config.validate()
     config = NDNConfig(model=model_config, diffusion=dataclass_from_args(NDNDiffusionConfig, args))
-    train_config = dataclass_from_args(NDNTrainConfig, args)
+    # a resumed run keeps the training settings it was started with; the flags given override them
+    saved_train = saved_train_config(args.out) if args.resume and resume_source(args.out) is not None else None
+    train_config = dataclass_from_args(NDNTrainConfig, args, base=saved_train)
     # resuming or fine-tuning keeps the checkpoint's depth state unless --depth-state /
     # --log-depth-range ask for another one, which train_ndn then refuses
     source = resume_source(args.out) if args.resume else None

@@ -124,10 +124,10 @@ class NDNTrainConfig:
         "help": "probability that a batch's views are changed photometrically (grey, gamma, contrast, brightness, "
                 "blur; the same for a triple's three views, depth and normals untouched): robustness to cameras and "
                 "terrain textures unlike the generator's; 0 = off (the runs before it existed)"})
-    crop_zoom: float = field(default=0.0, metadata={
+    crop_zoom: float = field(default=0.5, metadata={
         "help": "probability that a batch's triples are each seen through a window of 60-100 %% of the image, zoomed "
                 "back (the same window for a triple's views, targets and evidence): horizons and sky bands anywhere "
-                "in the frame; 0 = off (the runs before it existed)"})
+                "in the frame; 0 = off (runs saved before it existed resume with 0)"})
     init: str = field(default="", metadata={
         "help": "fine-tune: start from this checkpoint's weights and optimiser moments (steps continue from "
                 "its step; the schedule spans from there to --steps); ignored when --resume finds a checkpoint"})

@@ -163,6 +163,28 @@ def resume_source(model_dir: str | Path) -> Path | None:
     return checkpoint
 
 
+# Training settings that did not exist when some runs were started, with the value those runs
+# trained with: a saved config.json without the key resumes with this, not today's default.
+SETTINGS_BEFORE_THEY_EXISTED = {"augment": 0.0, "crop_zoom": 0.0}
+
+
+def saved_train_config(model_dir: str | Path) -> NDNTrainConfig | None:
+    """The training settings a run in ``MODEL_DIR`` was started (or last resumed) with, from its
+    ``config.json``; None when there is no such file. ``--resume`` starts from these and lets
+    the flags given override them, so a default changed since the run started does not change it."""
+    from ..config import config_from_dict
+
+    path = Path(model_dir) / "config.json"
+    if not path.is_file():
+        return None
+    try:
+        saved = json.loads(path.read_text(encoding="utf-8"))["train"]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise ConfigError(f"cannot read the run's training settings: {err}", path=path,
+                          hint="restore the file, or start a new model folder without --resume") from err
+    return config_from_dict(NDNTrainConfig, {**SETTINGS_BEFORE_THEY_EXISTED, **saved}, source=path)
+
+
 def training_tensors(arrays: dict[str, np.ndarray], depth_state: str = "affine",
                      log_range: float = LOG_DEPTH_RANGE) -> dict[str, torch.Tensor]:
     """Shard arrays -> network inputs and targets in [-1, 1]: views [N, 9, h, w], depth state

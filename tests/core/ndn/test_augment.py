@@ -1,11 +1,14 @@
 """Photometric augmentation of NDN training triples (--augment): what it changes and what it keeps."""
 from __future__ import annotations
 
+import json
+
 import cv2
 import numpy as np
 import pytest
 import torch
 
+from esgs.core.cli import main
 from esgs.core.errors import ConfigError
 from esgs.core.ndn.config import NDNTrainConfig
 from esgs.core.ndn.data import scene_triples, write_shard
@@ -120,18 +123,62 @@ def test_crop_and_zoom_shows_the_window_it_drew():
     assert abs(span - step * (height - 1)) <= 1.0 + 1e-6
 
 
-def test_training_with_crop_and_zoom_runs_and_zero_draws_nothing(tmp_path):
+def test_training_with_crop_and_zoom_runs_and_the_default_crops(tmp_path):
     scene = make_scene(tmp_path / "scene", seed=0)
     write_shard(tmp_path / "data" / "shards" / "train_plane_1.npz", scene_triples(scene, 32, 2), {})
     settings = dict(steps=3, batch_size=2, checkpoint_every=3, seed=0, threads=1, validation_triples=0)
-    for name, crop in (("plain", None), ("zero", 0.0), ("crop", 1.0)):
+    assert NDNTrainConfig().crop_zoom == 0.5  # the measured choice (docs/ndn.md)
+    arms = (("zero", 0.0), ("zero_again", 0.0), ("default", None), ("crop", 1.0))
+    for name, crop in arms:
         extra = {} if crop is None else {"crop_zoom": crop}
         result = train_ndn(tmp_path / "data", tmp_path / name, NDNTrainConfig(**settings, **extra), tiny_config())
         assert np.isfinite(result["final_loss_mean_last_50"])
     weights = {name: torch.load(tmp_path / name / "checkpoints" / "step_0000003.pt", weights_only=True)["model"]
-               for name in ("plain", "zero", "crop")}
-    for key in weights["plain"]:
-        torch.testing.assert_close(weights["plain"][key], weights["zero"][key], rtol=0, atol=0)
-    assert any(not torch.equal(weights["plain"][key], weights["crop"][key]) for key in weights["plain"])
+               for name, _ in arms}
+    for key in weights["zero"]:  # no crops drawn: the run is reproducible bit for bit
+        torch.testing.assert_close(weights["zero"][key], weights["zero_again"][key], rtol=0, atol=0)
+    for name in ("default", "crop"):
+        assert any(not torch.equal(weights["zero"][key], weights[name][key]) for key in weights["zero"])
     with pytest.raises(ConfigError, match="crop_zoom"):
         NDNTrainConfig(crop_zoom=-0.1).validate()
+
+
+def test_resume_keeps_the_runs_saved_settings_unless_a_flag_overrides_them(tmp_path):
+    scene = make_scene(tmp_path / "scene", seed=0)
+    data = tmp_path / "data"
+    write_shard(data / "shards" / "train_plane_1.npz", scene_triples(scene, 32, 2), {})
+    out = tmp_path / "model"
+    tiny = ["--base-channels", "8", "--levels", "2", "--time-dim", "16", "--working-size", "32", "--timesteps", "50",
+            "--sample-steps", "2", "--batch-size", "2", "--checkpoint-every", "1", "--threads", "1"]
+
+    def saved() -> dict:
+        return json.loads((out / "config.json").read_text())["train"]
+
+    assert main(["ndn", "train", str(data), "--out", str(out), "--steps", "1", "--crop-zoom", "0", "--augment", "0.2",
+                 *tiny]) == 0
+    # resumed without the flags: the run's own settings, not today's defaults
+    assert main(["ndn", "train", str(data), "--out", str(out), "--steps", "2", "--resume", *tiny]) == 0
+    assert (saved()["crop_zoom"], saved()["augment"], saved()["steps"]) == (0.0, 0.2, 2)
+    # a flag given on the resuming command line wins
+    assert main(["ndn", "train", str(data), "--out", str(out), "--steps", "3", "--resume", "--crop-zoom", "0.25",
+                 *tiny]) == 0
+    assert (saved()["crop_zoom"], saved()["augment"]) == (0.25, 0.2)
+    # a run saved before a setting existed resumes with the value it trained with (crop_zoom 0 then)
+    config = json.loads((out / "config.json").read_text())
+    del config["train"]["crop_zoom"]
+    (out / "config.json").write_text(json.dumps(config))
+    assert main(["ndn", "train", str(data), "--out", str(out), "--steps", "4", "--resume", *tiny]) == 0
+    assert saved()["crop_zoom"] == 0.0
+    # a new folder (no --resume) takes the defaults
+    assert main(["ndn", "train", str(data), "--out", str(tmp_path / "fresh"), "--steps", "1", *tiny]) == 0
+    assert json.loads((tmp_path / "fresh" / "config.json").read_text())["train"]["crop_zoom"] == 0.5
+
+
+def test_an_unreadable_saved_config_is_a_clear_error(tmp_path):
+    from esgs.core.ndn.train import saved_train_config
+
+    assert saved_train_config(tmp_path) is None
+    (tmp_path / "config.json").write_text("{not json")
+    with pytest.raises(ConfigError, match="cannot read the run's training settings") as err:
+        saved_train_config(tmp_path)
+    assert "config.json" in str(err.value)
