@@ -111,6 +111,12 @@ def scene_views(scene: Path, copy: Path, working_size: int = 128) -> dict:
             "auto_depth": np.stack(auto_depth), "auto_normal": np.stack(auto_normal), "intrinsics": intrinsics}
 
 
+def stereo_filled_depth(data: dict, index: int, dense: np.ndarray) -> np.ndarray:
+    """Today's fill of view ``index``: the ``auto`` prior made with the shipped NDN, and the SfM
+    interpolation ``dense`` where it has no value."""
+    return np.where(data["auto_depth"][index] > 0, data["auto_depth"][index], dense)
+
+
 def baseline_rows(data: dict) -> dict[str, list[dict]]:
     """Scores of the rows that need no network, per view."""
     from esgs.core.ndn.infer import metric_depth_scores, score_view
@@ -121,7 +127,7 @@ def baseline_rows(data: dict) -> dict[str, list[dict]]:
         dense, normals = _interpolated(data["sfm_depth"][index], data["intrinsics"])
         rows["sfm_interpolated"].append({**score_view(dense, normals, *truth), **metric_depth_scores(dense, truth[0], truth[2])})
         fused = data["auto_depth"][index]
-        filled = np.where(fused > 0, fused, dense)
+        filled = stereo_filled_depth(data, index, dense)
         fused_normal = data["auto_normal"][index]
         normal = np.where(np.linalg.norm(fused_normal, axis=0, keepdims=True) > 0.5, fused_normal, normals)
         rows["stereo_filled"].append({**score_view(filled, normal, *truth), **metric_depth_scores(filled, truth[0], truth[2]),

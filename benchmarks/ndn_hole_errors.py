@@ -69,7 +69,7 @@ def hole_errors(weights: Path, scenes: list[Path], work: Path) -> dict:
             sky = np.zeros_like(truth) if sky is None else np.asarray(sky).reshape(truth.shape)
             stereo = data["stereo_depth"][index]
             dense, _ = ndn_completion._interpolated(data["sfm_depth"][index], data["intrinsics"])
-            old = np.where(data["auto_depth"][index] > 0, data["auto_depth"][index], dense)
+            old = ndn_completion.stereo_filled_depth(data, index, dense)
             surface = mask & (truth > 0)
             holes = surface & (stereo <= 0)
             hole_share.append(float(holes.sum() / max(surface.sum(), 1)))

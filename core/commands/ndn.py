@@ -123,12 +123,12 @@ def _train(args: argparse.Namespace, bar) -> int:
         model_config.working_size = int(json.loads(manifest_path.read_text())["working_size"])
         model_config.validate()
     config = NDNConfig(model=model_config, diffusion=dataclass_from_args(NDNDiffusionConfig, args))
+    source = resume_source(args.out) if args.resume else None
     # a resumed run keeps the training settings it was started with; the flags given override them
-    saved_train = saved_train_config(args.out) if args.resume and resume_source(args.out) is not None else None
-    train_config = dataclass_from_args(NDNTrainConfig, args, base=saved_train)
+    train_config = dataclass_from_args(NDNTrainConfig, args,
+                                       base=saved_train_config(args.out) if source is not None else None)
     # resuming or fine-tuning keeps the checkpoint's depth state unless --depth-state /
     # --log-depth-range ask for another one, which train_ndn then refuses
-    source = resume_source(args.out) if args.resume else None
     if source is None and train_config.init and Path(train_config.init).exists():
         source = Path(train_config.init)
     if source is not None:
