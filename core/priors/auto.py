@@ -14,7 +14,9 @@ relative depth error, ``e``). The per-pixel confidence that scales the prior los
 rule documented in docs/priors.md ("The auto source"):
 
 - labels: ``1 - e / max_error`` (0 when above ``max_error``: the view's labels are not used);
-- ndn where labels are missing: ``ndn_trust * (1 - e / max_error)``;
+- ndn where labels are missing: ``ndn_trust * (1 - e / max_error)``; its depth there is the
+  gradient fill (:mod:`.hole_fill`): NDN's shape, level with the labels at each hole's border
+  and drawn to the SfM points inside it (``hole_fill="pinned"``: NDN pinned to the points as it is);
 - where both exist and differ by more than ``disagreement`` (relative), labels' confidence is
   halved: one of two independent estimates is wrong there;
 - sfm points where no dense source has a value: confidence 1, depth only;
@@ -44,6 +46,7 @@ from ..errors import ConfigError, ESGSError
 from ..formats.scene_dir import PriorSource, SceneDir
 from ..io_utils import atomic_directory
 from ..progress import ProgressCallback, ProgressEvent, no_progress
+from .hole_fill import DEFAULT_REACH, gradient_fill
 from .pinning import MIN_PIN_SAMPLES, pin_relative_depth
 
 #: ``priors/auto/auto.json``: what the fused folder was made from, per view and in total.
@@ -53,7 +56,9 @@ MIN_CHECK_POINTS = MIN_PIN_SAMPLES
 #: Confidence of a dense source on a view whose error could not be checked (too few points).
 UNCHECKED_CONFIDENCE = 0.5
 #: Bumped when the fusion rule changes, so cached folders are rebuilt.
-RULE_VERSION = 1
+RULE_VERSION = 2
+#: How NDN fills the labels' holes (``AutoPriorSettings.hole_fill``).
+HOLE_FILLS = ("gradient", "pinned")
 
 
 @dataclass
@@ -69,6 +74,15 @@ class AutoPriorSettings:
         "help": "labels and NDN differing by more than this relative depth halve the labels' confidence there"})
     labels: bool = field(default=True, metadata={"help": "compute and use stereo labels (needs bpy)"})
     ndn: bool = field(default=True, metadata={"help": "compute and use NDN priors"})
+    hole_fill: str = field(default="gradient", metadata={
+        "help": "how NDN fills the labels' holes: 'gradient' keeps NDN's shape and meets the labels at each "
+                "hole's border (esgs.core.priors.hole_fill), 'pinned' takes NDN pinned to the view's SfM points"})
+    fill_reach: float = field(default=DEFAULT_REACH, metadata={
+        "help": "with hole_fill 'gradient': how far into a hole the border's level carries, as a share of the "
+                "image's longer side (beyond it the fill falls back to pinned NDN)"})
+    fill_anchor_weight: float = field(default=1.0, metadata={
+        "help": "with hole_fill 'gradient': pull of the SfM points inside holes (0 = none; 1 = as strong as one "
+                "neighbour)"})
 
     def validate(self) -> None:
         for name in ("max_error", "disagreement"):
@@ -76,6 +90,12 @@ class AutoPriorSettings:
                 raise ConfigError(f"{name} must be > 0, got {getattr(self, name)}")
         if not 0 <= self.ndn_trust <= 1:
             raise ConfigError(f"ndn_trust must be in [0, 1], got {self.ndn_trust}")
+        if self.hole_fill not in HOLE_FILLS:
+            raise ConfigError(f"hole_fill must be one of {', '.join(HOLE_FILLS)}, got {self.hole_fill!r}")
+        if self.fill_reach <= 0:
+            raise ConfigError(f"fill_reach must be > 0, got {self.fill_reach}")
+        if self.fill_anchor_weight < 0:
+            raise ConfigError(f"fill_anchor_weight must be >= 0, got {self.fill_anchor_weight}")
 
 
 @dataclass
@@ -164,6 +184,12 @@ def fuse_view(sfm_depth: np.ndarray, labels: Any = None, ndn: Any = None, sky: O
     fill = np.zeros((height, width), bool)
     if ndn_depth is not None:
         fill = ndn_valid & (depth <= 0)
+        if settings.hole_fill == "gradient" and labels_valid.any():
+            # level with the labels around each hole, NDN's shape inside (module hole_fill)
+            known = np.where(labels_valid, depth, 0.0)
+            ndn_depth = np.where(fill, gradient_fill(ndn_depth, known, fill, anchors=sfm_depth,
+                                                     anchor_weight=settings.fill_anchor_weight,
+                                                     reach=settings.fill_reach), ndn_depth)
         depth[fill] = ndn_depth[fill]
         confidence[fill] = report["ndn"]["trust"]
         if ndn.normal is not None:

@@ -1,0 +1,106 @@
+"""Filling the holes of a metric depth map with the shape of a dense guide (gradient-domain fill).
+
+``priors/auto`` takes stereo labels where multi-view stereo held and a dense network prediction
+elsewhere. Pinned to the SfM points with one scale and shift per view, the network's depth is
+right on average but not where it meets the labels: a hole's fill sits a few percent (on rover
+views tens of percent) nearer or farther than the labelled ground around it. This module keeps
+the guide's *shape* (the differences of log depth between neighbouring pixels) and takes its
+*level* from the labels at the hole's border: a screened Poisson problem in log depth, the
+technique of gradient-domain image blending applied to depth.
+
+For the unknown log depths ``x`` of the hole pixels, least squares over
+
+- every 4-neighbour pair ``(p, q)`` with at least one unknown and both guided:
+  ``x_p - x_q = g_p - g_q`` (``g`` = log guide; a known neighbour enters with its value);
+- every unknown: ``sqrt(screen) * (x_p - g_p) = 0``, which keeps a hole that touches no label at
+  the guide and makes the border's correction fade over ``reach`` of the image's longer side
+  (``screen = 1 / (reach * side)^2``);
+- optional metric anchors inside holes (SfM points): ``sqrt(anchor_weight) * (x_p - log a_p) = 0``.
+
+Log depth makes the fit relative (a 1 m step at 5 m weighs what a 10 m step at 50 m does) and
+keeps every filled depth positive. The normal equations are a sparse symmetric positive definite
+system, solved by conjugate gradients from the guide (each hole is independent; far from a
+border the answer is the guide, so few iterations are needed).
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+#: Default reach of a border's correction, as a share of the image's longer side.
+DEFAULT_REACH = 1.0
+
+
+def gradient_fill(guide: np.ndarray, known: np.ndarray, region: np.ndarray, *,
+                  anchors: Optional[np.ndarray] = None, anchor_weight: float = 1.0,
+                  reach: float = DEFAULT_REACH, tolerance: float = 1e-6, max_iterations: int = 3000) -> np.ndarray:
+    """Depth [H, W] over ``region`` shaped like ``guide`` and level with ``known`` at its border.
+
+    ``guide`` [H, W]: dense depth (> 0 where defined; metric or not: only its log differences
+    count, and its level where no border reaches); ``known`` [H, W]: metric depth held fixed
+    (> 0 where known); ``region`` [H, W] bool: the pixels to fill (those with a known value or no
+    guide are left out of it); ``anchors`` [H, W]: optional metric samples inside the region
+    (> 0 where given). Returns the filled depth on the region's pixels, 0 elsewhere.
+    """
+    from scipy.sparse import coo_matrix, diags
+    from scipy.sparse.linalg import cg
+
+    if reach <= 0:
+        raise ValueError(f"reach must be > 0, got {reach}")
+    if guide.shape != known.shape or guide.shape != region.shape:
+        raise ValueError(f"guide {guide.shape}, known {known.shape} and region {region.shape} differ in shape")
+    height, width = guide.shape
+    guided = np.isfinite(guide) & (guide > 0)
+    unknown = region & guided & ~(known > 0)
+    out = np.zeros((height, width), np.float32)
+    count = int(unknown.sum())
+    if count == 0:
+        return out
+    index = np.full((height, width), -1, np.int64)
+    index[unknown] = np.arange(count)
+    log_guide = np.where(guided, np.log(np.where(guided, guide, 1.0)), 0.0)
+    log_known = np.where(known > 0, np.log(np.where(known > 0, known, 1.0)), 0.0)
+
+    # Normal equations assembled directly: each pair term (x_p - x_q - d)^2 adds the graph
+    # Laplacian's entries; a known neighbour moves to the right-hand side.
+    diagonal = np.zeros(count)
+    rhs = np.zeros(count)
+    off_rows: list[np.ndarray] = []
+    off_cols: list[np.ndarray] = []
+    for a_slice, b_slice in (((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+                             ((slice(None, -1), slice(None)), (slice(1, None), slice(None)))):
+        ia, ib = index[a_slice], index[b_slice]
+        ga, gb = guided[a_slice], guided[b_slice]
+        ka, kb = (known > 0)[a_slice], (known > 0)[b_slice]
+        difference = log_guide[a_slice] - log_guide[b_slice]  # wanted x_a - x_b
+        both = (ia >= 0) & (ib >= 0) & ga & gb
+        np.add.at(diagonal, ia[both], 1.0)
+        np.add.at(diagonal, ib[both], 1.0)
+        np.add.at(rhs, ia[both], difference[both])
+        np.add.at(rhs, ib[both], -difference[both])
+        off_rows += [ia[both], ib[both]]
+        off_cols += [ib[both], ia[both]]
+        # a unknown, b known: x_a = x_b(known) + difference
+        edge = (ia >= 0) & kb & ga & gb
+        np.add.at(diagonal, ia[edge], 1.0)
+        np.add.at(rhs, ia[edge], log_known[b_slice][edge] + difference[edge])
+        # b unknown, a known: x_b = x_a(known) - difference
+        edge = (ib >= 0) & ka & ga & gb
+        np.add.at(diagonal, ib[edge], 1.0)
+        np.add.at(rhs, ib[edge], log_known[a_slice][edge] - difference[edge])
+    screen = 1.0 / (reach * max(height, width)) ** 2
+    diagonal += screen
+    rhs += screen * log_guide[unknown]
+    if anchors is not None and anchor_weight > 0:
+        anchored = unknown & (anchors > 0)
+        diagonal[index[anchored]] += anchor_weight
+        rhs[index[anchored]] += anchor_weight * np.log(anchors[anchored])
+    rows = np.concatenate(off_rows) if off_rows else np.zeros(0, np.int64)
+    cols = np.concatenate(off_cols) if off_cols else np.zeros(0, np.int64)
+    matrix = coo_matrix((-np.ones(len(rows)), (rows, cols)), shape=(count, count)).tocsr() + diags(diagonal)
+    preconditioner = diags(1.0 / diagonal)
+    solution, _ = cg(matrix, rhs, x0=log_guide[unknown], rtol=tolerance, atol=0.0, maxiter=max_iterations,
+                     M=preconditioner)
+    out[unknown] = np.exp(solution).astype(np.float32)
+    return out
