@@ -11,7 +11,7 @@ every view is fused again under each variant of ``AutoPriorSettings`` (``fuse_vi
 - per view, and summarised over all views and over the views with sky.
 
 Variants: ``pinned`` (NDN pinned to the view's SfM points, the rule before 2026-11-29) and
-``gradient`` fills at each ``--reach`` and ``--anchor-weight`` given.
+``gradient`` fills at each ``--reach``, ``--anchor-weight`` and ``--border-tolerance`` given.
 
     .venv/bin/python benchmarks/auto_hole_fill.py --work DIR --json OUT SCENE [SCENE ...]
 """
@@ -43,15 +43,17 @@ def depth_scores(depth: np.ndarray, truth: np.ndarray, where: np.ndarray) -> dic
             "delta1": float(np.mean(np.maximum(d / t, t / d) < 1.25)), "pixels": int(pick.sum())}
 
 
-def variants(reaches: list[float], anchor_weights: list[float]):
+def variants(reaches: list[float], anchor_weights: list[float], tolerances: list[float]):
     from esgs.core.priors.auto import AutoPriorSettings
 
     base = AutoPriorSettings()
     yield "pinned", replace(base, hole_fill="pinned")
     for reach in reaches:
         for weight in anchor_weights:
-            yield f"gradient_r{reach:g}_a{weight:g}", replace(base, hole_fill="gradient", fill_reach=reach,
-                                                               fill_anchor_weight=weight)
+            for tolerance in tolerances:
+                yield f"gradient_r{reach:g}_a{weight:g}_t{tolerance:g}", replace(
+                    base, hole_fill="gradient", fill_reach=reach, fill_anchor_weight=weight,
+                    fill_border_tolerance=tolerance)
 
 
 def score_scene(copy: Path, settings_list: list[tuple[str, object]]) -> dict[str, list[dict]]:
@@ -114,6 +116,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work", type=Path, required=True, help="cache of the scenes' SfM copies and their sources")
     parser.add_argument("--reach", type=float, nargs="+", default=[0.25], help="gradient fill reaches to score")
     parser.add_argument("--anchor-weight", type=float, nargs="+", default=[0.0], help="gradient fill SfM anchor weights")
+    parser.add_argument("--border-tolerance", type=float, nargs="+", default=[0.3],
+                        help="gradient fill border tolerances (0 = every border label)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--json", type=Path, required=True)
     args = parser.parse_args(argv)
@@ -125,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(args.threads)
     args.work.mkdir(parents=True, exist_ok=True)
-    settings_list = list(variants(args.reach, args.anchor_weight))
+    settings_list = list(variants(args.reach, args.anchor_weight, args.border_tolerance))
     result: dict = {"what": "priors/auto depth against the exact depth, per hole-fill variant "
                             "(benchmarks/auto_hole_fill.py)",
                     "command": " ".join([Path(sys.executable).name, *sys.argv]), "machine": platform.node(),

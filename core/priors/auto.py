@@ -46,7 +46,7 @@ from ..errors import ConfigError, ESGSError
 from ..formats.scene_dir import PriorSource, SceneDir
 from ..io_utils import atomic_directory
 from ..progress import ProgressCallback, ProgressEvent, no_progress
-from .hole_fill import DEFAULT_REACH, gradient_fill
+from .hole_fill import DEFAULT_BORDER_TOLERANCE, DEFAULT_REACH, gradient_fill
 from .pinning import MIN_PIN_SAMPLES, pin_relative_depth
 
 #: ``priors/auto/auto.json``: what the fused folder was made from, per view and in total.
@@ -83,6 +83,9 @@ class AutoPriorSettings:
     fill_anchor_weight: float = field(default=1.0, metadata={
         "help": "with hole_fill 'gradient': pull of the SfM points inside holes (0 = none; 1 = as strong as one "
                 "neighbour)"})
+    fill_border_tolerance: float = field(default=DEFAULT_BORDER_TOLERANCE, metadata={
+        "help": "with hole_fill 'gradient': a label at a hole's border whose level (log of labels over NDN) is "
+                "farther than this from the median over that border is not used (0 = use every border label)"})
 
     def validate(self) -> None:
         for name in ("max_error", "disagreement"):
@@ -94,6 +97,8 @@ class AutoPriorSettings:
             raise ConfigError(f"hole_fill must be one of {', '.join(HOLE_FILLS)}, got {self.hole_fill!r}")
         if self.fill_reach <= 0:
             raise ConfigError(f"fill_reach must be > 0, got {self.fill_reach}")
+        if self.fill_border_tolerance < 0:
+            raise ConfigError(f"fill_border_tolerance must be >= 0, got {self.fill_border_tolerance}")
         if self.fill_anchor_weight < 0:
             raise ConfigError(f"fill_anchor_weight must be >= 0, got {self.fill_anchor_weight}")
 
@@ -189,7 +194,9 @@ def fuse_view(sfm_depth: np.ndarray, labels: Any = None, ndn: Any = None, sky: O
             known = np.where(labels_valid, depth, 0.0)
             ndn_depth = np.where(fill, gradient_fill(ndn_depth, known, fill, anchors=sfm_depth,
                                                      anchor_weight=settings.fill_anchor_weight,
-                                                     reach=settings.fill_reach), ndn_depth)
+                                                     reach=settings.fill_reach,
+                                                     border_tolerance=settings.fill_border_tolerance or None),
+                                     ndn_depth)
         depth[fill] = ndn_depth[fill]
         confidence[fill] = report["ndn"]["trust"]
         if ndn.normal is not None:

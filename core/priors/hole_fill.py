@@ -30,18 +30,40 @@ import numpy as np
 
 #: Default reach of a border's correction, as a share of the image's longer side.
 DEFAULT_REACH = 1.0
+#: Default largest departure (log depth) of a border pixel's level from its hole's median level.
+DEFAULT_BORDER_TOLERANCE = 0.3
+
+
+def _consistent_border(unknown: np.ndarray, index: np.ndarray, at: np.ndarray, offset: np.ndarray,
+                       limit: float) -> np.ndarray:
+    """Which border edges to keep: those whose level offset (known over guide, log) lies within
+    ``limit`` of the median offset over the border of the same hole (4-connected component)."""
+    from scipy import ndimage
+
+    components, _ = ndimage.label(unknown)
+    component_of = components[unknown]  # per unknown index (row-major, as ``index`` numbers them)
+    edge_component = component_of[at]
+    names = np.unique(edge_component)
+    medians = np.asarray(ndimage.median(offset, labels=edge_component, index=names), dtype=np.float64)
+    median_of = np.zeros(int(component_of.max()) + 1)
+    median_of[names] = medians
+    return np.abs(offset - median_of[edge_component]) <= limit
 
 
 def gradient_fill(guide: np.ndarray, known: np.ndarray, region: np.ndarray, *,
                   anchors: Optional[np.ndarray] = None, anchor_weight: float = 1.0,
-                  reach: float = DEFAULT_REACH, tolerance: float = 1e-6, max_iterations: int = 3000) -> np.ndarray:
+                  reach: float = DEFAULT_REACH, border_tolerance: Optional[float] = DEFAULT_BORDER_TOLERANCE,
+                  tolerance: float = 1e-6, max_iterations: int = 3000) -> np.ndarray:
     """Depth [H, W] over ``region`` shaped like ``guide`` and level with ``known`` at its border.
 
     ``guide`` [H, W]: dense depth (> 0 where defined; metric or not: only its log differences
     count, and its level where no border reaches); ``known`` [H, W]: metric depth held fixed
     (> 0 where known); ``region`` [H, W] bool: the pixels to fill (those with a known value or no
     guide are left out of it); ``anchors`` [H, W]: optional metric samples inside the region
-    (> 0 where given). Returns the filled depth on the region's pixels, 0 elsewhere.
+    (> 0 where given). ``border_tolerance``: a known border pixel whose level (log of known over
+    guide) differs from the median level of its hole's border by more than this is not used (a
+    label on a sliver of rebuilt mesh draped over a depth edge; None = use every border pixel).
+    Returns the filled depth on the region's pixels, 0 elsewhere.
     """
     from scipy.sparse import coo_matrix, diags
     from scipy.sparse.linalg import cg
@@ -68,6 +90,8 @@ def gradient_fill(guide: np.ndarray, known: np.ndarray, region: np.ndarray, *,
     rhs = np.zeros(count)
     off_rows: list[np.ndarray] = []
     off_cols: list[np.ndarray] = []
+    border_index: list[np.ndarray] = []  # per border edge: the unknown pixel and the level it implies
+    border_value: list[np.ndarray] = []
     for a_slice, b_slice in (((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
                              ((slice(None, -1), slice(None)), (slice(1, None), slice(None)))):
         ia, ib = index[a_slice], index[b_slice]
@@ -81,14 +105,19 @@ def gradient_fill(guide: np.ndarray, known: np.ndarray, region: np.ndarray, *,
         np.add.at(rhs, ib[both], -difference[both])
         off_rows += [ia[both], ib[both]]
         off_cols += [ib[both], ia[both]]
-        # a unknown, b known: x_a = x_b(known) + difference
-        edge = (ia >= 0) & kb & ga & gb
-        np.add.at(diagonal, ia[edge], 1.0)
-        np.add.at(rhs, ia[edge], log_known[b_slice][edge] + difference[edge])
-        # b unknown, a known: x_b = x_a(known) - difference
-        edge = (ib >= 0) & ka & ga & gb
-        np.add.at(diagonal, ib[edge], 1.0)
-        np.add.at(rhs, ib[edge], log_known[a_slice][edge] - difference[edge])
+        edge = (ia >= 0) & kb & ga & gb  # a unknown, b known: x_a = x_b(known) + difference
+        border_index.append(ia[edge])
+        border_value.append(log_known[b_slice][edge] + difference[edge])
+        edge = (ib >= 0) & ka & ga & gb  # b unknown, a known: x_b = x_a(known) - difference
+        border_index.append(ib[edge])
+        border_value.append(log_known[a_slice][edge] - difference[edge])
+    at = np.concatenate(border_index)
+    level = np.concatenate(border_value)
+    if border_tolerance is not None and len(at):
+        keep = _consistent_border(unknown, index, at, level - log_guide[unknown][at], border_tolerance)
+        at, level = at[keep], level[keep]
+    np.add.at(diagonal, at, 1.0)
+    np.add.at(rhs, at, level)
     screen = 1.0 / (reach * max(height, width)) ** 2
     diagonal += screen
     rhs += screen * log_guide[unknown]

@@ -74,7 +74,8 @@ def test_matches_a_dense_least_squares_solve_with_anchors_screening_and_gaps():
     known[0:3, :] = 0.0  # pixels neither known nor to fill
     anchors = np.zeros((H, W), np.float32)
     anchors[10:20:4, 15:35:5] = 9.0
-    filled = gradient_fill(guide, known, region, anchors=anchors, anchor_weight=0.7, reach=0.3, tolerance=1e-12)
+    filled = gradient_fill(guide, known, region, anchors=anchors, anchor_weight=0.7, reach=0.3,
+                           border_tolerance=None, tolerance=1e-12)
     reference = _dense_solution(guide, known, region, anchors, 0.7, 0.3)
     np.testing.assert_allclose(filled, reference, rtol=1e-4, atol=1e-6)
     assert (filled[~region] == 0).all() and (filled[guide <= 0] == 0).all()
@@ -99,6 +100,22 @@ def test_a_hole_that_touches_nothing_known_keeps_the_guide_and_anchors_pull_it()
     anchors = np.where(hole, truth, 0.0).astype(np.float32)  # every hole pixel measured
     pulled = gradient_fill(truth * 1.4, np.zeros((H, W), np.float32), hole, anchors=anchors, anchor_weight=1.0)
     np.testing.assert_allclose(pulled[hole], truth[hole], rtol=5e-3)  # the screening keeps a trace of the guide
+
+
+def test_border_labels_that_disagree_with_the_rest_of_their_hole_border_are_not_used():
+    """A sliver of wrong labels (40 % too near) along part of a hole's border: with the
+    tolerance the hole is levelled by the rest of its border; with every border label it is
+    dragged towards the sliver."""
+    truth = _plane()
+    hole = _hole()
+    known = np.where(hole, 0.0, truth).astype(np.float32)
+    known[8:22, 11] *= 0.6  # the column just left of the hole
+    guide = truth * 1.2
+    kept = gradient_fill(guide, known, hole, reach=100.0, tolerance=1e-10)
+    every = gradient_fill(guide, known, hole, reach=100.0, border_tolerance=None, tolerance=1e-10)
+    error = {name: float(np.mean(np.abs(fill[hole] - truth[hole]) / truth[hole])) for name, fill in
+             (("kept", kept), ("every", every))}
+    assert error["kept"] < 1e-3 < 0.05 < error["every"], error
 
 
 def test_bad_arguments_are_refused():
