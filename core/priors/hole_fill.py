@@ -34,26 +34,23 @@ DEFAULT_REACH = 1.0
 DEFAULT_BORDER_TOLERANCE = 0.3
 
 
-def _consistent_border(unknown: np.ndarray, index: np.ndarray, at: np.ndarray, offset: np.ndarray,
-                       limit: float) -> np.ndarray:
-    """Which border edges to keep: those whose level offset (known over guide, log) lies within
-    ``limit`` of the median offset over the border of the same hole (4-connected component)."""
+def _border_levels(component_of: np.ndarray, at: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """Per hole (component number, 0 unused): the median level offset (known over guide, log) of
+    its border edges ``at`` (unknown indices) with offsets ``offset``; 0 for a hole with none."""
     from scipy import ndimage
 
-    components, _ = ndimage.label(unknown)
-    component_of = components[unknown]  # per unknown index (row-major, as ``index`` numbers them)
-    edge_component = component_of[at]
-    names = np.unique(edge_component)
-    medians = np.asarray(ndimage.median(offset, labels=edge_component, index=names), dtype=np.float64)
-    median_of = np.zeros(int(component_of.max()) + 1)
-    median_of[names] = medians
-    return np.abs(offset - median_of[edge_component]) <= limit
+    levels = np.zeros(int(component_of.max(initial=0)) + 1)
+    if len(at):
+        edge_component = component_of[at]
+        names = np.unique(edge_component)
+        levels[names] = np.asarray(ndimage.median(offset, labels=edge_component, index=names), dtype=np.float64)
+    return levels
 
 
 def gradient_fill(guide: np.ndarray, known: np.ndarray, region: np.ndarray, *,
                   anchors: Optional[np.ndarray] = None, anchor_weight: float = 1.0,
                   reach: float = DEFAULT_REACH, border_tolerance: Optional[float] = DEFAULT_BORDER_TOLERANCE,
-                  tolerance: float = 1e-6, max_iterations: int = 3000) -> np.ndarray:
+                  tolerance: float = 1e-5, max_iterations: int = 3000) -> np.ndarray:
     """Depth [H, W] over ``region`` shaped like ``guide`` and level with ``known`` at its border.
 
     ``guide`` [H, W]: dense depth (> 0 where defined; metric or not: only its log differences
@@ -65,6 +62,7 @@ def gradient_fill(guide: np.ndarray, known: np.ndarray, region: np.ndarray, *,
     label on a sliver of rebuilt mesh draped over a depth edge; None = use every border pixel).
     Returns the filled depth on the region's pixels, 0 elsewhere.
     """
+    from scipy import ndimage
     from scipy.sparse import coo_matrix, diags
     from scipy.sparse.linalg import cg
 
@@ -113,9 +111,13 @@ def gradient_fill(guide: np.ndarray, known: np.ndarray, region: np.ndarray, *,
         border_value.append(log_known[a_slice][edge] - difference[edge])
     at = np.concatenate(border_index)
     level = np.concatenate(border_value)
+    component_of = ndimage.label(unknown)[0][unknown]  # per unknown index (both number row-major)
+    levels = _border_levels(component_of, at, level - log_guide[unknown][at])
     if border_tolerance is not None and len(at):
-        keep = _consistent_border(unknown, index, at, level - log_guide[unknown][at], border_tolerance)
+        # a draped sliver of labels is far from the level the rest of its hole's border gives
+        keep = np.abs(level - log_guide[unknown][at] - levels[component_of[at]]) <= border_tolerance
         at, level = at[keep], level[keep]
+        levels = _border_levels(component_of, at, level - log_guide[unknown][at])
     np.add.at(diagonal, at, 1.0)
     np.add.at(rhs, at, level)
     screen = 1.0 / (reach * max(height, width)) ** 2
@@ -129,7 +131,10 @@ def gradient_fill(guide: np.ndarray, known: np.ndarray, region: np.ndarray, *,
     cols = np.concatenate(off_cols) if off_cols else np.zeros(0, np.int64)
     matrix = coo_matrix((-np.ones(len(rows)), (rows, cols)), shape=(count, count)).tocsr() + diags(diagonal)
     preconditioner = diags(1.0 / diagonal)
-    solution, _ = cg(matrix, rhs, x0=log_guide[unknown], rtol=tolerance, atol=0.0, maxiter=max_iterations,
+    # started from the guide moved to each hole's border level: CG then only has the variation
+    # of the level along the border to spread, not the level itself (far fewer iterations)
+    start = log_guide[unknown] + levels[component_of]
+    solution, _ = cg(matrix, rhs, x0=start, rtol=tolerance, atol=0.0, maxiter=max_iterations,
                      M=preconditioner)
     out[unknown] = np.exp(solution).astype(np.float32)
     return out
