@@ -32,6 +32,38 @@ import numpy as np
 DEFAULT_REACH = 1.0
 #: Default largest departure (log depth) of a border pixel's level from its hole's median level.
 DEFAULT_BORDER_TOLERANCE = 0.3
+#: With more pixels to fill than this, CG starts from the same problem solved at half resolution
+#: (recursively): the correction is smooth, and CG alone needs thousands of iterations to carry
+#: it across a hole of a million pixels.
+COARSE_ABOVE = 40_000
+
+
+def _half(values: np.ndarray, fill: float | bool) -> np.ndarray:
+    """``values`` [H, W] padded to even sides with ``fill`` and cut into 2x2 blocks [H/2, 2, W/2, 2]."""
+    height, width = values.shape
+    padded = np.pad(values, ((0, height % 2), (0, width % 2)), constant_values=fill)
+    return padded.reshape(padded.shape[0] // 2, 2, padded.shape[1] // 2, 2)
+
+
+def _coarse_start(unknown: np.ndarray, border: np.ndarray, border_count: np.ndarray, anchor: np.ndarray,
+                  anchor_count: np.ndarray, anchor_weight: float, reach: float) -> np.ndarray:
+    """The level offset (fill minus guide, log depth) [H, W] from the problem at half resolution.
+
+    In offsets the problem is a screened membrane: no guide, the border's offsets held (here at
+    the unknown pixels next to the border: ``border`` sums and ``border_count`` counts them per
+    pixel), anchors' offsets pulled (``anchor``, ``anchor_count``). A 2x2 block holding border
+    pixels is held at their mean; one holding only unknowns is solved (by :func:`gradient_fill`
+    with a flat guide, so it recurses while the problem is large)."""
+    held = _half(border_count, 0).sum(axis=(1, 3))
+    level = np.where(held > 0, _half(border, 0.0).sum(axis=(1, 3)) / np.maximum(held, 1), 0.0)
+    region = _half(unknown, False).any(axis=(1, 3)) & (held == 0)
+    pulled = _half(anchor_count, 0).sum(axis=(1, 3))
+    anchors = np.where(pulled > 0, np.exp(_half(anchor, 0.0).sum(axis=(1, 3)) / np.maximum(pulled, 1)), 0.0)
+    solved = gradient_fill(np.ones(region.shape), np.where(held > 0, np.exp(level), 0.0), region, anchors=anchors,
+                           anchor_weight=anchor_weight, reach=reach, border_tolerance=None, tolerance=1e-3)
+    offset = np.where(region, np.log(np.where(solved > 0, solved, 1.0)), level)
+    height, width = unknown.shape
+    return np.repeat(np.repeat(offset, 2, axis=0), 2, axis=1)[:height, :width]
 
 
 def _border_levels(component_of: np.ndarray, at: np.ndarray, offset: np.ndarray) -> np.ndarray:
@@ -45,6 +77,13 @@ def _border_levels(component_of: np.ndarray, at: np.ndarray, offset: np.ndarray)
         names = np.unique(edge_component)
         levels[names] = np.asarray(ndimage.median(offset, labels=edge_component, index=names), dtype=np.float64)
     return levels
+
+
+def _scatter(unknown: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Per-unknown ``values`` back into an [H, W] map (0 elsewhere)."""
+    out = np.zeros(unknown.shape)
+    out[unknown] = values
+    return out
 
 
 def gradient_fill(guide: np.ndarray, known: np.ndarray, region: np.ndarray, *,
@@ -123,6 +162,7 @@ def gradient_fill(guide: np.ndarray, known: np.ndarray, region: np.ndarray, *,
     screen = 1.0 / (reach * max(height, width)) ** 2
     diagonal += screen
     rhs += screen * log_guide[unknown]
+    anchored = np.zeros_like(unknown)
     if anchors is not None and anchor_weight > 0:
         anchored = unknown & (anchors > 0)
         diagonal[index[anchored]] += anchor_weight
@@ -131,9 +171,20 @@ def gradient_fill(guide: np.ndarray, known: np.ndarray, region: np.ndarray, *,
     cols = np.concatenate(off_cols) if off_cols else np.zeros(0, np.int64)
     matrix = coo_matrix((-np.ones(len(rows)), (rows, cols)), shape=(count, count)).tocsr() + diags(diagonal)
     preconditioner = diags(1.0 / diagonal)
-    # started from the guide moved to each hole's border level: CG then only has the variation
-    # of the level along the border to spread, not the level itself (far fewer iterations)
-    start = log_guide[unknown] + levels[component_of]
+    # started from the guide moved to each hole's border level (or, for a large problem, to the
+    # level field solved at half resolution): CG then has little left to carry across the holes
+    if count > COARSE_ABOVE:
+        border_sum, border_count = np.zeros(count), np.zeros(count)
+        np.add.at(border_sum, at, level - log_guide[unknown][at])
+        np.add.at(border_count, at, 1.0)
+        anchor_sum, anchor_count = np.zeros((height, width)), np.zeros((height, width))
+        if anchors is not None and anchor_weight > 0:
+            anchor_count[anchored] = 1.0
+            anchor_sum[anchored] = np.log(anchors[anchored]) - log_guide[anchored]
+        start = log_guide[unknown] + _coarse_start(unknown, _scatter(unknown, border_sum), _scatter(unknown, border_count),
+                                                   anchor_sum, anchor_count, anchor_weight, reach)[unknown]
+    else:
+        start = log_guide[unknown] + levels[component_of]
     solution, _ = cg(matrix, rhs, x0=start, rtol=tolerance, atol=0.0, maxiter=max_iterations,
                      M=preconditioner)
     out[unknown] = np.exp(solution).astype(np.float32)

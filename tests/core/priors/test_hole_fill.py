@@ -81,6 +81,33 @@ def test_matches_a_dense_least_squares_solve_with_anchors_screening_and_gaps():
     assert (filled[~region] == 0).all() and (filled[guide <= 0] == 0).all()
 
 
+def test_the_coarse_start_of_a_large_problem_leads_to_the_same_fill(monkeypatch):
+    """Above COARSE_ABOVE pixels CG starts from the problem solved at half resolution (twice
+    here, recursively); the answer is the problem's, not the start's."""
+    import esgs.core.priors.hole_fill as hole_fill
+
+    rng = np.random.default_rng(1)
+    guide = (_plane() * np.exp(0.3 * np.mgrid[0:H, 0:W][1] / W + 0.02 * rng.standard_normal((H, W)))).astype(np.float32)
+    region = _hole()
+    region[2:6, 3:9] = True  # a second hole
+    known = np.where(region, 0.0, _plane()).astype(np.float32)
+    known[8:22, 11] *= 0.6  # a sliver the border check drops
+    anchors = np.zeros((H, W), np.float32)
+    anchors[10:20:4, 15:35:5] = _plane()[10:20:4, 15:35:5]
+    reference = _dense_solution(guide, np.where((np.arange(W) == 11)[None] & (np.arange(H)[:, None] >= 8)
+                                                & (np.arange(H)[:, None] < 22), 0.0, known), region, anchors, 1.0, 1.0)
+    monkeypatch.setattr(hole_fill, "COARSE_ABOVE", 50)
+    cascaded = gradient_fill(guide, known, region, anchors=anchors, tolerance=1e-10)
+    np.testing.assert_allclose(cascaded, reference, rtol=1e-5, atol=1e-6)
+    # and the start is the point: after three iterations it is far nearer the answer
+    early = {}
+    for above in (50, 10**9):
+        monkeypatch.setattr(hole_fill, "COARSE_ABOVE", above)
+        fill = gradient_fill(guide, known, region, anchors=anchors, max_iterations=3)
+        early[above] = float(np.abs(np.log(fill[region] / reference[region])).mean())
+    assert early[50] < 0.5 * early[10**9], early
+
+
 def test_a_guide_with_the_right_shape_at_the_wrong_level_is_levelled_by_the_border():
     truth = _plane()
     hole = _hole()
