@@ -59,11 +59,9 @@ def variants(reaches: list[float], anchor_weights: list[float], tolerances: list
 def score_scene(copy: Path, settings_list: list[tuple[str, object]]) -> dict[str, list[dict]]:
     """Per variant, per view scores of the fused depth of the scene copy ``copy``."""
     from esgs.core.colmap import read_model
-    from esgs.core.errors import ESGSError
     from esgs.core.formats.scene_dir import PriorSource
-    from esgs.core.priors.auto import fuse_view
+    from esgs.core.priors.auto import fuse_view, view_sources
     from esgs.core.priors.io import load_prior_maps
-    from esgs.core.priors.sfm import sparse_depth_map
 
     model = read_model(copy)
     rows: dict[str, list[dict]] = {}
@@ -71,21 +69,15 @@ def score_scene(copy: Path, settings_list: list[tuple[str, object]]) -> dict[str
         camera = model.cameras[image.camera_id]
         size = (camera.width, camera.height)
         rotation = image.rotation_matrix()
-        sfm = sparse_depth_map(model, image.image_id)
-        maps = {}
-        for source in (PriorSource.LABELS, PriorSource.NDN):
-            try:
-                maps[source] = load_prior_maps(copy, source, image.name, size=size, world_to_camera_rotation=rotation)
-            except ESGSError:
-                maps[source] = None
+        sfm, maps = view_sources(copy, model, image, ["labels", "ndn"])
         gt = load_prior_maps(copy, PriorSource.GT, image.name, size=size, world_to_camera_rotation=rotation)
         surface = gt.mask & (gt.depth > 0)
         sky = ~gt.mask  # the synthetic scenes' auto prior takes its sky from gt (the trainer's mask order)
-        labels = maps[PriorSource.LABELS]
+        labels = maps.get(PriorSource.LABELS)
         labelled = (labels.mask & (labels.depth > 0)) if labels is not None else np.zeros_like(surface)
         for name, settings in settings_list:
             started = time.perf_counter()
-            fused = fuse_view(sfm, labels, maps[PriorSource.NDN], sky, settings)
+            fused = fuse_view(sfm, labels, maps.get(PriorSource.NDN), sky, settings)
             seconds = time.perf_counter() - started
             hole = surface & ~labelled & fused.mask
             rows.setdefault(name, []).append({
@@ -114,10 +106,15 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("scenes", nargs="+", type=Path, help="scene folders with priors/gt")
     parser.add_argument("--work", type=Path, required=True, help="cache of the scenes' SfM copies and their sources")
-    parser.add_argument("--reach", type=float, nargs="+", default=[0.25], help="gradient fill reaches to score")
-    parser.add_argument("--anchor-weight", type=float, nargs="+", default=[0.0], help="gradient fill SfM anchor weights")
-    parser.add_argument("--border-tolerance", type=float, nargs="+", default=[0.3],
-                        help="gradient fill border tolerances (0 = every border label)")
+    from esgs.core.priors.auto import AutoPriorSettings
+
+    defaults = AutoPriorSettings()
+    parser.add_argument("--reach", type=float, nargs="+", default=[defaults.fill_reach],
+                        help="gradient fill reaches to score (default: auto's)")
+    parser.add_argument("--anchor-weight", type=float, nargs="+", default=[defaults.fill_anchor_weight],
+                        help="gradient fill SfM anchor weights (default: auto's)")
+    parser.add_argument("--border-tolerance", type=float, nargs="+", default=[defaults.fill_border_tolerance],
+                        help="gradient fill border tolerances (0 = every border label; default: auto's)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--json", type=Path, required=True)
     args = parser.parse_args(argv)

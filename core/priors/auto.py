@@ -326,13 +326,31 @@ def ensure_auto_priors(scene: str | Path, progress: ProgressCallback = no_progre
     return build_auto_priors(scene, used, settings, progress, extra={**key, "skipped": skipped})
 
 
+def view_sources(scene: Path, model: Any, image: Any, used: list[str]) -> tuple[np.ndarray, dict[str, Any]]:
+    """One view's inputs to :func:`fuse_view`: its SfM depth samples [H, W] and the dense sources
+    of ``used`` (labels, ndn) as :class:`~.io.PriorMaps` at the camera's size in the camera
+    frame (None for a view the source did not cover)."""
+    from .io import load_prior_maps
+    from .sfm import sparse_depth_map
+
+    camera = model.cameras[image.camera_id]
+    maps: dict[str, Any] = {}
+    for source in (PriorSource.LABELS, PriorSource.NDN):
+        if str(source) in used:
+            try:
+                maps[source] = load_prior_maps(scene, source, image.name, size=(camera.width, camera.height),
+                                               world_to_camera_rotation=image.rotation_matrix())
+            except ESGSError:
+                maps[source] = None  # a view the source did not cover
+    return sparse_depth_map(model, image.image_id), maps
+
+
 def build_auto_priors(scene: Path, used: list[str], settings: AutoPriorSettings,
                       progress: ProgressCallback = no_progress, extra: Optional[dict] = None) -> dict:
     """Fuse ``used`` sources into ``priors/auto`` (staged; replaces the folder when complete);
     ``extra`` goes into the report as it is (the cache key)."""
     from ..colmap import read_model
     from .io import load_prior_maps, write_prior_maps
-    from .sfm import sparse_depth_map
 
     folder = SceneDir(scene)
     model = read_model(scene)
@@ -346,15 +364,7 @@ def build_auto_priors(scene: Path, used: list[str], settings: AutoPriorSettings,
             camera = model.cameras[image.camera_id]
             size = (camera.width, camera.height)
             rotation = image.rotation_matrix()
-            sfm = sparse_depth_map(model, image.image_id)
-            maps = {}
-            for source in (PriorSource.LABELS, PriorSource.NDN):
-                if str(source) in used:
-                    try:
-                        maps[source] = load_prior_maps(scene, source, image.name, size=size,
-                                                       world_to_camera_rotation=rotation)
-                    except ESGSError:
-                        maps[source] = None  # a view the source did not cover
+            sfm, maps = view_sources(scene, model, image, used)
             sky, sky_from = None, None
             for source in sky_sources:
                 try:
