@@ -43,7 +43,8 @@ def depth_scores(depth: np.ndarray, truth: np.ndarray, where: np.ndarray) -> dic
             "delta1": float(np.mean(np.maximum(d / t, t / d) < 1.25)), "pixels": int(pick.sum())}
 
 
-def variants(reaches: list[float], anchor_weights: list[float], tolerances: list[float]):
+def variants(reaches: list[float], anchor_weights: list[float], tolerances: list[float], fits: list[str],
+             checks: list[str]):
     from esgs.core.priors.auto import AutoPriorSettings
 
     base = AutoPriorSettings()
@@ -51,9 +52,12 @@ def variants(reaches: list[float], anchor_weights: list[float], tolerances: list
     for reach in reaches:
         for weight in anchor_weights:
             for tolerance in tolerances:
-                yield f"gradient_r{reach:g}_a{weight:g}_t{tolerance:g}", replace(
-                    base, hole_fill="gradient", fill_reach=reach, fill_anchor_weight=weight,
-                    fill_border_tolerance=tolerance)
+                for fit in fits:
+                    for check in checks:
+                        name = f"gradient_r{reach:g}_a{weight:g}_t{tolerance:g}_{fit}_check{check}"
+                        yield name, replace(base, hole_fill="gradient", fill_reach=reach, fill_anchor_weight=weight,
+                                            fill_border_tolerance=tolerance, fill_border_fit=fit,
+                                            fill_check=check == "on")
 
 
 def score_scene(copy: Path, settings_list: list[tuple[str, object]]) -> dict[str, list[dict]]:
@@ -115,6 +119,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="gradient fill SfM anchor weights (default: auto's)")
     parser.add_argument("--border-tolerance", type=float, nargs="+", default=[defaults.fill_border_tolerance],
                         help="gradient fill border tolerances (0 = every border label; default: auto's)")
+    parser.add_argument("--border-fit", nargs="+", default=[defaults.fill_border_fit], choices=["median", "plane"],
+                        help="what border labels are checked against (default: auto's)")
+    parser.add_argument("--fill-check", nargs="+", default=["on" if defaults.fill_check else "off"],
+                        choices=["on", "off"], help="check the fill against the SfM points in the holes (default: auto's)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--json", type=Path, required=True)
     args = parser.parse_args(argv)
@@ -126,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(args.threads)
     args.work.mkdir(parents=True, exist_ok=True)
-    settings_list = list(variants(args.reach, args.anchor_weight, args.border_tolerance))
+    settings_list = list(variants(args.reach, args.anchor_weight, args.border_tolerance, args.border_fit, args.fill_check))
     result: dict = {"what": "priors/auto depth against the exact depth, per hole-fill variant "
                             "(benchmarks/auto_hole_fill.py)",
                     "command": " ".join([Path(sys.executable).name, *sys.argv]), "machine": platform.node(),

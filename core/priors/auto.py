@@ -16,7 +16,8 @@ rule documented in docs/priors.md ("The auto source"):
 - labels: ``1 - e / max_error`` (0 when above ``max_error``: the view's labels are not used);
 - ndn where labels are missing: ``ndn_trust * (1 - e / max_error)``; its depth there is the
   gradient fill (:mod:`.hole_fill`): NDN's shape, level with the labels at each hole's border
-  and drawn to the SfM points inside it (``hole_fill="pinned"``: NDN pinned to the points as it is);
+  and drawn to the SfM points inside it, unless those points prefer pinned NDN in that view
+  (``fill_check``; ``hole_fill="pinned"``: NDN pinned to the points as it is, everywhere);
 - where both exist and differ by more than ``disagreement`` (relative), labels' confidence is
   halved: one of two independent estimates is wrong there;
 - sfm points where no dense source has a value: confidence 1, depth only;
@@ -46,7 +47,7 @@ from ..errors import ConfigError, ESGSError
 from ..formats.scene_dir import PriorSource, SceneDir
 from ..io_utils import atomic_directory
 from ..progress import ProgressCallback, ProgressEvent, no_progress
-from .hole_fill import DEFAULT_BORDER_TOLERANCE, DEFAULT_REACH, gradient_fill
+from .hole_fill import BORDER_FITS, DEFAULT_BORDER_TOLERANCE, DEFAULT_REACH, gradient_fill
 from .pinning import MIN_PIN_SAMPLES, pin_relative_depth
 
 #: ``priors/auto/auto.json``: what the fused folder was made from, per view and in total.
@@ -83,9 +84,15 @@ class AutoPriorSettings:
     fill_anchor_weight: float = field(default=1.0, metadata={
         "help": "with hole_fill 'gradient': pull of the SfM points inside holes (0 = none; 1 = as strong as one "
                 "neighbour)"})
+    fill_check: bool = field(default=True, metadata={
+        "help": "with hole_fill 'gradient': keep pinned NDN in a view whose SfM points inside the holes it "
+                "matches better than the gradient fill made without them"})
+    fill_border_fit: str = field(default="plane", metadata={
+        "help": "with hole_fill 'gradient': what a hole's border labels are checked against: their 'median' level, "
+                "or a robust 'plane' of level over the image"})
     fill_border_tolerance: float = field(default=DEFAULT_BORDER_TOLERANCE, metadata={
         "help": "with hole_fill 'gradient': a label at a hole's border whose level (log of labels over NDN) is "
-                "farther than this from the median over that border is not used (0 = use every border label)"})
+                "farther than this from what the rest of that border predicts there is not used (0 = use every border label)"})
 
     def validate(self) -> None:
         for name in ("max_error", "disagreement"):
@@ -97,6 +104,8 @@ class AutoPriorSettings:
             raise ConfigError(f"hole_fill must be one of {', '.join(HOLE_FILLS)}, got {self.hole_fill!r}")
         if self.fill_reach <= 0:
             raise ConfigError(f"fill_reach must be > 0, got {self.fill_reach}")
+        if self.fill_border_fit not in BORDER_FITS:
+            raise ConfigError(f"fill_border_fit must be one of {', '.join(BORDER_FITS)}, got {self.fill_border_fit!r}")
         if self.fill_border_tolerance < 0:
             raise ConfigError(f"fill_border_tolerance must be >= 0, got {self.fill_border_tolerance}")
         if self.fill_anchor_weight < 0:
@@ -132,6 +141,32 @@ def _view_trust(error: float, settings: AutoPriorSettings) -> float:
     if not np.isfinite(error):
         return UNCHECKED_CONFIDENCE
     return float(np.clip(1.0 - error / settings.max_error, 0.0, 1.0))
+
+
+def _gradient_filled(pinned: np.ndarray, known: np.ndarray, fill: np.ndarray, sfm_depth: np.ndarray,
+                     settings: AutoPriorSettings) -> tuple[np.ndarray, dict[str, Any]]:
+    """NDN's depth with the holes ``fill`` filled level with the labels ``known`` (module
+    :mod:`.hole_fill`), and what was done. With ``fill_check`` and enough SfM points inside the
+    holes, the fill made without them is first compared there with ``pinned``: where pinned NDN
+    is the closer of the two (large holes on aerial views, where one scale and shift fits the
+    whole view and a long walk along NDN's gradients drifts) it is kept as it is."""
+    def filled(anchor_weight: float) -> np.ndarray:
+        return gradient_fill(pinned, known, fill, anchors=sfm_depth, anchor_weight=anchor_weight,
+                             reach=settings.fill_reach, border_tolerance=settings.fill_border_tolerance or None,
+                             border_fit=settings.fill_border_fit)
+
+    inside = fill & (sfm_depth > 0)
+    note: dict[str, Any] = {"points_in_holes": int(inside.sum())}
+    if settings.fill_check and note["points_in_holes"] >= MIN_CHECK_POINTS:
+        free = filled(0.0)  # the SfM points judge it: they must not have shaped it
+        truth = sfm_depth[inside]
+        note["gradient_error"] = float(np.median(np.abs(free[inside] - truth) / truth))
+        note["pinned_error"] = float(np.median(np.abs(pinned[inside] - truth) / truth))
+        if note["pinned_error"] <= note["gradient_error"]:
+            note["used"] = "pinned"
+            return pinned, note
+    note["used"] = "gradient"
+    return np.where(fill, filled(settings.fill_anchor_weight), pinned), note
 
 
 def fuse_view(sfm_depth: np.ndarray, labels: Any = None, ndn: Any = None, sky: Optional[np.ndarray] = None,
@@ -190,13 +225,8 @@ def fuse_view(sfm_depth: np.ndarray, labels: Any = None, ndn: Any = None, sky: O
     if ndn_depth is not None:
         fill = ndn_valid & (depth <= 0)
         if settings.hole_fill == "gradient" and labels_valid.any():
-            # level with the labels around each hole, NDN's shape inside (module hole_fill)
-            known = np.where(labels_valid, depth, 0.0)
-            ndn_depth = np.where(fill, gradient_fill(ndn_depth, known, fill, anchors=sfm_depth,
-                                                     anchor_weight=settings.fill_anchor_weight,
-                                                     reach=settings.fill_reach,
-                                                     border_tolerance=settings.fill_border_tolerance or None),
-                                     ndn_depth)
+            ndn_depth, report["fill"] = _gradient_filled(ndn_depth, np.where(labels_valid, depth, 0.0), fill,
+                                                         sfm_depth, settings)
         depth[fill] = ndn_depth[fill]
         confidence[fill] = report["ndn"]["trust"]
         if ndn.normal is not None:
@@ -410,6 +440,9 @@ def _summary(views: dict[str, Any]) -> dict[str, Any]:
         checked = [v[source] for v in views.values() if source in v]
         summary[f"{source}_error"] = mean([c["error"] for c in checked])
         summary[f"{source}_views_used"] = sum(1 for c in checked if c["trust"] > 0)
+    fills = [v["fill"]["used"] for v in views.values() if "fill" in v]
+    summary["fill_views_gradient"] = fills.count("gradient")  # the rest kept pinned NDN (fill_check)
+    summary["fill_views_pinned"] = fills.count("pinned")
     summary["coverage"] = mean([v["coverage"] for v in views.values()])
     summary["mean_confidence"] = mean([v["mean_confidence"] for v in views.values()])
     return summary

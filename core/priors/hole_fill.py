@@ -17,6 +17,11 @@ For the unknown log depths ``x`` of the hole pixels, least squares over
   (``screen = 1 / (reach * side)^2``);
 - optional metric anchors inside holes (SfM points): ``sqrt(anchor_weight) * (x_p - log a_p) = 0``.
 
+Before that, each hole's border labels are checked against one another: a label whose level
+(log of known over guide) is farther than ``border_tolerance`` from a plane of level over the
+image fitted robustly to the hole's border (or from the border's median) is left out, since a
+sliver of rebuilt mesh draped over a depth edge would otherwise drag the whole hole.
+
 Log depth makes the fit relative (a 1 m step at 5 m weighs what a 10 m step at 50 m does) and
 keeps every filled depth positive. The normal equations are a sparse symmetric positive definite
 system, solved by conjugate gradients from the guide (each hole is independent; far from a
@@ -30,8 +35,11 @@ import numpy as np
 
 #: Default reach of a border's correction, as a share of the image's longer side.
 DEFAULT_REACH = 1.0
-#: Default largest departure (log depth) of a border pixel's level from its hole's median level.
-DEFAULT_BORDER_TOLERANCE = 0.3
+#: Default largest departure (log depth) of a border pixel's level from what its hole's border predicts.
+DEFAULT_BORDER_TOLERANCE = 0.4
+#: What a hole's border labels are checked against: their median level, or a robust plane of
+#: level over the image (a rover view's border drifts in level along a long hole).
+BORDER_FITS = ("plane", "median")
 #: With more pixels to fill than this, CG starts from the same problem solved at half resolution
 #: (recursively): the correction is smooth, and CG alone needs thousands of iterations to carry
 #: it across a hole of a million pixels.
@@ -79,6 +87,34 @@ def _border_levels(component_of: np.ndarray, at: np.ndarray, offset: np.ndarray)
     return levels
 
 
+def _robust_planes(component: np.ndarray, rows: np.ndarray, cols: np.ndarray, offset: np.ndarray,
+                   start: np.ndarray, limit: float, rounds: int = 3, min_edges: int = 12) -> np.ndarray:
+    """Per border edge, the level its hole's border predicts there: a plane in image position
+    fitted per hole to the edges within ``limit`` of the current prediction (``start``: the
+    median), refitted ``rounds`` times; a hole with fewer than ``min_edges`` such edges keeps
+    ``start``."""
+    expected = start.copy()
+    count = int(component.max(initial=0)) + 1
+    for _ in range(rounds):
+        inside = np.abs(offset - expected) <= limit
+        basis = np.stack([np.ones_like(rows), rows, cols], axis=1)[inside]
+        names = component[inside]
+        gram = np.zeros((count, 3, 3))
+        moment = np.zeros((count, 3))
+        for i in range(3):
+            moment[:, i] = np.bincount(names, basis[:, i] * offset[inside], minlength=count)
+            for j in range(3):
+                gram[:, i, j] = np.bincount(names, basis[:, i] * basis[:, j], minlength=count)
+        enough = (gram[:, 0, 0] >= min_edges) & (np.abs(np.linalg.det(gram)) > 1e-12)
+        coefficients = np.zeros((count, 3))
+        if enough.any():
+            coefficients[enough] = np.linalg.solve(gram[enough], moment[enough][..., None])[..., 0]
+        fitted = enough[component]
+        plane = coefficients[component]
+        expected = np.where(fitted, plane[:, 0] + plane[:, 1] * rows + plane[:, 2] * cols, start)
+    return expected
+
+
 def _scatter(unknown: np.ndarray, values: np.ndarray) -> np.ndarray:
     """Per-unknown ``values`` back into an [H, W] map (0 elsewhere)."""
     out = np.zeros(unknown.shape)
@@ -89,6 +125,7 @@ def _scatter(unknown: np.ndarray, values: np.ndarray) -> np.ndarray:
 def gradient_fill(guide: np.ndarray, known: np.ndarray, region: np.ndarray, *,
                   anchors: Optional[np.ndarray] = None, anchor_weight: float = 1.0,
                   reach: float = DEFAULT_REACH, border_tolerance: Optional[float] = DEFAULT_BORDER_TOLERANCE,
+                  border_fit: str = "plane",
                   tolerance: float = 1e-5, max_iterations: int = 3000) -> np.ndarray:
     """Depth [H, W] over ``region`` shaped like ``guide`` and level with ``known`` at its border.
 
@@ -97,8 +134,10 @@ def gradient_fill(guide: np.ndarray, known: np.ndarray, region: np.ndarray, *,
     (> 0 where known); ``region`` [H, W] bool: the pixels to fill (those with a known value or no
     guide are left out of it); ``anchors`` [H, W]: optional metric samples inside the region
     (> 0 where given). ``border_tolerance``: a known border pixel whose level (log of known over
-    guide) differs from the median level of its hole's border by more than this is not used (a
-    label on a sliver of rebuilt mesh draped over a depth edge; None = use every border pixel).
+    guide) differs by more than this from what its hole's border predicts there is not used (a
+    label on a sliver of rebuilt mesh draped over a depth edge; None = use every border pixel);
+    ``border_fit``: the prediction, the border's median level or a plane of level over the image
+    fitted robustly to the border (:data:`BORDER_FITS`).
     Returns the filled depth on the region's pixels, 0 elsewhere.
     """
     from scipy import ndimage
@@ -107,6 +146,8 @@ def gradient_fill(guide: np.ndarray, known: np.ndarray, region: np.ndarray, *,
 
     if reach <= 0:
         raise ValueError(f"reach must be > 0, got {reach}")
+    if border_fit not in BORDER_FITS:
+        raise ValueError(f"border_fit must be one of {', '.join(BORDER_FITS)}, got {border_fit!r}")
     if guide.shape != known.shape or guide.shape != region.shape:
         raise ValueError(f"guide {guide.shape}, known {known.shape} and region {region.shape} differ in shape")
     height, width = guide.shape
@@ -154,7 +195,14 @@ def gradient_fill(guide: np.ndarray, known: np.ndarray, region: np.ndarray, *,
     levels = _border_levels(component_of, at, level - log_guide[unknown][at])
     if border_tolerance is not None and len(at):
         # a draped sliver of labels is far from the level the rest of its hole's border gives
-        keep = np.abs(level - log_guide[unknown][at] - levels[component_of[at]]) <= border_tolerance
+        offset = level - log_guide[unknown][at]
+        expected = levels[component_of[at]]
+        if border_fit == "plane":
+            rows_of, cols_of = np.nonzero(unknown)
+            side = float(max(height, width))
+            expected = _robust_planes(component_of[at], rows_of[at] / side, cols_of[at] / side, offset, expected,
+                                      border_tolerance)
+        keep = np.abs(offset - expected) <= border_tolerance
         at, level = at[keep], level[keep]
         levels = _border_levels(component_of, at, level - log_guide[unknown][at])
     np.add.at(diagonal, at, 1.0)
