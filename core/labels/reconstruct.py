@@ -88,6 +88,10 @@ def load_views(scene_dir: str | Path, margin: float, ground_normal: np.ndarray |
                max_width: int = 0) -> tuple[list[View], Any]:
     """The scene's views for stereo: grey images, K, poses, depth ranges from the sparse points.
 
+    An image that sees fewer than 3 sparse points in front of it has no depth range and is left
+    out of stereo (the labels rendered from the mesh still cover it); fewer than two views left
+    is a DatasetError.
+
     max_width: images wider than this are shrunk (area averaging) with K scaled to match
     (pixel coordinates scale about the top-left corner, COLMAP's origin); 0 keeps them.
     """
@@ -119,7 +123,7 @@ def load_views(scene_dir: str | Path, margin: float, ground_normal: np.ndarray |
         z = in_camera[:, 2]
         z = z[z > 0]
         if len(z) < 3:
-            raise DatasetError(f"image {image.name!r} sees fewer than 3 sparse points in front of it", path=scene_dir)
+            continue  # its depth range is unknown: no stereo from it (its labels still come from the mesh)
         near, far = np.percentile(z, [1, 99])
         ground_offsets = None
         if ground_normal is not None:
@@ -139,6 +143,10 @@ def load_views(scene_dir: str | Path, margin: float, ground_normal: np.ndarray |
             K = np.diag([size[0] / camera.width, size[1] / camera.height, 1.0]) @ K
         views.append(View(image.name, grey, K, world_to_camera, (float(near / margin), float(far * margin)),
                           frozenset(ids), ground_offsets))
+    if len(views) < 2:
+        raise DatasetError(f"only {len(views)} of {len(model.images)} images see 3 or more sparse points in front of "
+                           "them: stereo needs two", path=scene_dir,
+                           hint="run SfM with more features (esgs dataset from-images) or give a --mesh instead")
     return views, model
 
 
@@ -260,6 +268,10 @@ def reconstruct_mesh(scene_dir: str | Path, options: ReconstructOptions | None =
         ground_normal, _ = fit_ground_plane(xyz, centers)
     views, model = load_views(scene_dir, options.stereo.depth_margin, ground_normal, options.max_width)
     total = len(views) + 2
+    without_points = sorted({image.name for image in model.images.values()} - {view.name for view in views})
+    if without_points:
+        progress(ProgressEvent(0, total, "stereo", kind="message",
+                               message=f"no stereo from {', '.join(without_points)}: fewer than 3 sparse points in front"))
 
     def sweep_progress(step: int, count: int, name: str) -> None:
         progress(ProgressEvent(step, total, "stereo", message=f"depth of {name}"))
@@ -302,7 +314,7 @@ def reconstruct_mesh(scene_dir: str | Path, options: ReconstructOptions | None =
     progress(ProgressEvent(total, total, "mesh", kind="done", message=f"mesh written: {mesh_path}",
                            metrics={"triangles": float(len(built.triangles))}))
     return {"mesh": str(mesh_path), "gaps": str(gaps_path) if len(built.gap_triangles) else None,
-            "views": len(views), "stereo_fraction": raw_fraction,
+            "views": len(views), "views_without_points": without_points, "stereo_fraction": raw_fraction,
             "consistent_fraction": float(np.mean([np.mean(d > 0) for d in depths])),
             "fused_points": int(len(points_all)), **built.stats, "seconds": round(time.perf_counter() - start, 2),
             "neighbours": {view.name: [views[j].name for j in nbrs] for view, nbrs in zip(views, neighbours)},

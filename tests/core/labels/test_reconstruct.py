@@ -146,3 +146,34 @@ def test_far_range_cells_with_huge_footprints_stay_bounded_and_spikes_still_go()
     tracemalloc.stop()
     assert peak < 200 * 2**20  # a ball query here holds ~30k x 30k neighbour indices (several GB)
     assert stats["spikes_removed"] >= 1 and vertices[:, 2].max() < 0.5
+
+
+def test_a_view_that_sees_too_few_points_is_left_out_of_stereo_not_the_scene(tmp_path):
+    """One image whose tracks hold 2 points has no depth range: stereo goes on without it (said
+    in the report); with one image left that can do stereo, the scene is refused."""
+    from esgs.core.colmap import read_model, write_model
+    from esgs.core.labels.reconstruct import load_views
+
+    write_scene(tmp_path, 3)
+    sparse = tmp_path / "sparse" / "0"
+    model = read_model(tmp_path)
+
+    def see_two_points(image_id: int) -> None:  # the image's observations and the points' tracks agree
+        image = model.images[image_id]
+        image.point3d_ids = np.array([1, 2], np.int64)
+        image.points2d = np.zeros((2, 2))
+        for index, point_id in enumerate((1, 2)):
+            point = model.points[point_id]
+            point.track_image_ids = np.append(point.track_image_ids, image_id).astype(np.int64)
+            point.track_point2d_idxs = np.append(point.track_point2d_idxs, index).astype(np.int64)
+
+    see_two_points(1)
+    write_model(model, sparse, overwrite=True)
+    views, _ = load_views(tmp_path, 1.3, None)
+    assert [view.name for view in views] == ["v2.png", "v3.png"]
+    report = reconstruct_mesh(tmp_path, ReconstructOptions(stereo=StereoOptions(planes=48, neighbours=1, best_of=1)))
+    assert report["views"] == 2 and report["views_without_points"] == ["v1.png"]
+    see_two_points(2)
+    write_model(model, sparse, overwrite=True)
+    with pytest.raises(DatasetError, match="only 1 of 3 images"):
+        load_views(tmp_path, 1.3, None)
