@@ -217,7 +217,8 @@ class ChildJob:
     def __init__(self, job: str, config: Any, *, workdir: str | os.PathLike,
                  events_path: str | os.PathLike | None = None, command: Sequence[str] | None = None,
                  python: str | None = None, threads: int = 0, on_output: Optional[Callable[[str], None]] = None,
-                 on_event: Optional[ProgressCallback] = None, env: Optional[dict[str, str]] = None):
+                 on_event: Optional[ProgressCallback] = None, env: Optional[dict[str, str]] = None,
+                 cwd: str | os.PathLike | None = None):
         entry_points.entry_point(job)  # an unknown job fails here, not in the child
         self.job = job
         self.config = config
@@ -228,6 +229,9 @@ class ChildJob:
         self.on_output = on_output
         self.on_event = on_event
         self.env = dict(env or {})
+        #: the child's working directory (relative paths in ``config`` resolve there); default
+        #: the work folder's parent
+        self.cwd = Path(cwd) if cwd is not None else self.workdir.parent
         self.output_tail: collections.deque[str] = collections.deque(maxlen=200)
         #: the child's return value once it finished; its handled error (same type) once it failed
         self.result: Any = None
@@ -314,7 +318,7 @@ class ChildJob:
         try:
             self._process = subprocess.Popen(
                 self.command(resume), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                env=child_environment(self.env, self.threads), cwd=str(self.workdir.parent), **platform_options)
+                env=child_environment(self.env, self.threads), cwd=str(self.cwd), **platform_options)
         except OSError as err:
             self._finish(FAILED, error=f"could not start the {self.task} ({self.trainer[0]}): {err}")
             raise ESGSError(f"could not start the {self.task}: {err}", path=self.trainer[0],
@@ -592,8 +596,10 @@ def run_job(job: str, config: Any, progress: ProgressCallback = no_progress, *, 
     temporary = workdir is None
     folder = Path(tempfile.mkdtemp(prefix=f"esgs_{job}_")) if temporary else Path(workdir)
     echo = (lambda line: print(line, file=sys.stderr)) if verbose else None
+    # the caller's working directory: a relative path in ``config`` (esgs scene --out rover) means
+    # what it meant where the command was typed, not a folder beside the temporary work folder
     child = ChildJob(job, config, workdir=folder, command=command or child_command(python or sys.executable),
-                     threads=threads, on_output=echo, on_event=progress)
+                     threads=threads, on_output=echo, on_event=progress, cwd=os.getcwd())
     child.task = label
     try:
         child.start()

@@ -45,6 +45,18 @@ def test_a_childs_dataset_error_comes_back_as_dataset_error(tmp_path):
     assert type(raised.value) is DatasetError and raised.value.path is not None
 
 
+def test_a_relative_path_in_a_jobs_config_means_the_callers_folder(tmp_path, monkeypatch):
+    """The child runs where the caller runs: ``esgs scene --out rover`` typed in a folder wrote
+    to /tmp/rover when the child's working directory was its temporary work folder's parent."""
+    pytest.importorskip("torch")
+    from tests.core.train.scene import make_scene
+
+    make_scene(tmp_path / "scene", views=3, width=16, height=12)
+    monkeypatch.chdir(tmp_path)
+    run_job("priors", {"scene": "scene", "method": "sfm"})
+    assert any((tmp_path / "scene" / "priors" / "sfm").rglob("*.exr"))
+
+
 def test_unknown_jobs_fail_in_the_parent(tmp_path):
     with pytest.raises(ConfigError, match="unknown child job"):
         ChildJob("no_such_job", {}, workdir=tmp_path)
