@@ -157,6 +157,7 @@ def _gradient_filled(pinned: np.ndarray, known: np.ndarray, fill: np.ndarray, sf
 
     inside = fill & (sfm_depth > 0)
     note: dict[str, Any] = {"points_in_holes": int(inside.sum())}
+    free = None
     if settings.fill_check and note["points_in_holes"] >= MIN_CHECK_POINTS:
         free = filled(0.0)  # the SfM points judge it: they must not have shaped it
         truth = sfm_depth[inside]
@@ -166,7 +167,8 @@ def _gradient_filled(pinned: np.ndarray, known: np.ndarray, fill: np.ndarray, sf
             note["used"] = "pinned"
             return pinned, note
     note["used"] = "gradient"
-    return np.where(fill, filled(settings.fill_anchor_weight), pinned), note
+    anchored = free if free is not None and settings.fill_anchor_weight == 0 else filled(settings.fill_anchor_weight)
+    return np.where(fill, anchored, pinned), note
 
 
 def fuse_view(sfm_depth: np.ndarray, labels: Any = None, ndn: Any = None, sky: Optional[np.ndarray] = None,
