@@ -12,7 +12,10 @@ leaves holes is scored after the filling a user would get. Rows, per evaluation 
   no evidence, with the SfM points, with the points and the real stereo labels;
 - ``<weights>:fused``: the stereo labels where they hold a value, the network's ``sfm_stereo``
   output elsewhere (the fusion ``priors/auto`` makes); ``:fused_pinned`` the same with the
-  network's depth first fitted to the labels (robust scale and shift, as the trainer aligns).
+  network's depth first fitted to the labels (robust scale and shift, as the trainer aligns);
+  ``:auto`` the network's output as ``priors/auto`` takes it (``fuse_view`` with today's rule:
+  the labels where they are trusted, the network's depth through the gradient hole fill, its
+  trust gate, the SfM floor), its remaining holes filled as in ``stereo_filled``.
 
 Depth is scored after the robust scale/shift fit the trainer uses (``abs_rel``, ``delta1``) and,
 for rows that are metric, without any alignment (``abs_rel_metric``, ``delta1_metric``);
@@ -166,7 +169,42 @@ def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: 
                     fused = np.where(stereo > 0, stereo, filler)
                     rows.setdefault(f"{name}:{row}", []).append(
                         {**score_view(fused, fused_normal, *truth), **metric_depth_scores(fused, truth[0], truth[2])})
+            if (mode == "sfm_stereo" and metric) or not config.model.evidence:
+                # what priors/auto makes of these weights: metric output fitted to the labels, or
+                # a relative one that the fusion pins to the SfM points itself
+                truth = (data["depth"][index], data["normal"][index], data["mask"][index])
+                guide = pin_to_labels(depth, data["stereo_depth"][index]) if metric else depth
+                filled, filled_normal, report = auto_fused(data, index, guide, normal, relative=not metric)
+                rows.setdefault(f"{name}:auto", []).append(
+                    {**score_view(filled, filled_normal, *truth), **metric_depth_scores(filled, truth[0], truth[2]),
+                     "ndn_trust": report.get("ndn", {}).get("trust", 0.0),
+                     "fill_gradient": float((report.get("fill") or {}).get("used") == "gradient")})
     return rows
+
+
+def auto_fused(data: dict, index: int, network_depth: np.ndarray, network_normal: np.ndarray, *,
+               relative: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
+    """View ``index`` fused by ``priors.auto.fuse_view`` (its default settings) at the working
+    size, with the network's depth (as ``esgs priors --method ndn`` writes it: metric and fitted to
+    the labels, or ``relative``, then pinned to the SfM points by the fusion) and normals in the NDN slot, the real stereo labels, the SfM cells and the true
+    sky (the synthetic scenes' ``auto`` takes its sky from ``gt``); the pixels it leaves empty
+    take the SfM interpolation as in ``stereo_filled``. Returns (depth, normals [3, h, w], the
+    fusion's report)."""
+    from esgs.core.priors.auto import fuse_view
+    from esgs.core.priors.io import PriorMaps
+
+    stereo = data["stereo_depth"][index]
+    stereo_normal = data["stereo_normal"][index].transpose(1, 2, 0)
+    surface = data["mask"][index]
+    labels = PriorMaps(depth=stereo, normal=stereo_normal, mask=stereo > 0, source="labels")
+    ndn = PriorMaps(depth=network_depth.astype(np.float32), normal=network_normal.transpose(1, 2, 0),
+                    mask=network_depth > 0, relative_depth=relative, source="ndn")
+    fused = fuse_view(data["sfm_depth"][index], labels, ndn, ~surface)
+    dense, dense_normals = _interpolated(data["sfm_depth"][index], data["intrinsics"])
+    has_normal = fused.mask & (np.linalg.norm(fused.normal, axis=-1) > 0.5)
+    depth = np.where(fused.depth > 0, fused.depth, dense)
+    normal = np.where(has_normal[None], fused.normal.transpose(2, 0, 1), dense_normals)
+    return depth, normal, fused.report
 
 
 def summarise(per_view: list[dict], sky_views: list[bool]) -> dict:
