@@ -146,6 +146,10 @@ def _train(args: argparse.Namespace, bar) -> int:
         events.close()
     bar.close()
     print(json.dumps(summary, indent=2))
+    if summary.get("status") == "interrupted":
+        print(f"stopped at step {summary['steps']}; checkpoint saved, continue with: "
+              f"esgs ndn train {args.data} --out {args.out} --resume")
+        return 143  # 128 + SIGTERM, as `esgs train`: stopped on request, resumable
     return 0
 
 

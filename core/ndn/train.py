@@ -28,6 +28,7 @@ from torch.nn import functional as F
 from ..errors import CheckpointError, ConfigError
 from ..io_utils import atomic_write_json
 from ..progress import ProgressCallback, ProgressEvent, no_progress
+from ..runtime.stop import StopRequests
 from .config import NDNConfig, NDNTrainConfig
 from .data import LOG_DEPTH_RANGE, check_disjoint_splits, depth_to_state, load_shards
 from .checkpoint import (CHECKPOINT_FORMAT, _read_checkpoint, build_model, checkpoint_config,  # noqa: F401
@@ -334,10 +335,12 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
     At every checkpoint the averaged weights are scored on ``DATA``'s validation split
     (``validation_triples`` of it; skipped when there is none) and the scores go into the
     checkpoint, ``OUT/validation.json`` and the progress events. Writes ``OUT/weights.pt``
-    (the averaged weights) at the end. Returns a summary dict.
-    """
-    from .infer import evaluate_arrays, mean_scores  # deferred: inference loads torch models this module trains
+    (the averaged weights) at the end. Returns a summary dict (``status`` "completed").
 
+    SIGTERM or Ctrl-C (in the main thread) ends the run after the step in progress: a checkpoint
+    of that step is saved (without validation), no ``weights.pt`` is written, and the summary's
+    ``status`` is "interrupted"; ``resume=True`` continues exactly where it stopped.
+    """
     train_config = train_config or NDNTrainConfig()
     train_config.validate()
     out_dir = Path(out_dir)
@@ -404,8 +407,45 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
     model.train()
     count = data["views"].shape[0]
     started = time.time()
-    cpu_mark = time.process_time()
     losses: list[float] = []
+    with StopRequests() as stop:
+        step, best = _training_loop(model, diffusion, config, train_config, data, optimizer, generator, average,
+                                    validation, out_dir, schedule_start, lineage, cpu, losses, start_step, progress,
+                                    stop)
+    if stop.signal_name is not None and step < train_config.steps:
+        progress(ProgressEvent(step, train_config.steps, "ndn-train", kind="message",
+                               message=f"{stop.signal_name} received: checkpoint saved at step {step}; "
+                                       "continue with --resume"))
+        summary = {"status": "interrupted", "steps": step, "resumed_from": start_step,
+                   "stopped_by": stop.signal_name, "seconds": round(time.time() - started, 1)}
+        atomic_write_json(out_dir / "train_summary.json", summary)
+        return summary
+    model.eval()
+    final = average.averaged_model(model) if average is not None else model
+    save_checkpoint(out_dir / "weights.pt", final, config, step=step,
+                    extra={"weights": "ema" if average is not None else "raw", "lineage": lineage})
+    summary = {"status": "completed", "steps": step, "resumed_from": start_step, "train_triples": count,
+               "final_loss_mean_last_50": float(np.mean(losses[-50:])) if losses else None,
+               "seconds": round(time.time() - started, 1), "cpu_seconds": {k: round(v, 1) for k, v in cpu.items()},
+               "best_validation": best, **lineage}
+    atomic_write_json(out_dir / "train_summary.json", summary)
+    progress(ProgressEvent(step, train_config.steps, "ndn-train", kind="done"))
+    return summary
+
+
+def _training_loop(model: NDNUNet, diffusion, config: NDNConfig, train_config: NDNTrainConfig,
+                   data: dict[str, torch.Tensor], optimizer: torch.optim.Optimizer, generator: torch.Generator,
+                   average: "WeightAverage | None", validation: dict | None, out_dir: Path, schedule_start: int,
+                   lineage: dict, cpu: dict, losses: list[float], start_step: int, progress: ProgressCallback,
+                   stop: StopRequests) -> tuple[int, dict | None]:
+    """Steps ``start_step + 1 ..`` of :func:`train_ndn` with its checkpoints; returns (the last step
+    taken, the best validation entry). Ends early, after saving a checkpoint of the step it
+    finished, when ``stop`` has received a signal."""
+    from .infer import evaluate_arrays, mean_scores  # deferred: inference loads torch models this module trains
+
+    count = data["views"].shape[0]
+    started = time.time()
+    cpu_mark = time.process_time()
     best = None
     step = start_step
     for step in range(start_step + 1, train_config.steps + 1):
@@ -470,14 +510,12 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
             extra["cpu_seconds"] = dict(cpu)
             save_checkpoint(out_dir / "checkpoints" / name, model, config, step=step, optimizer=optimizer,
                             generator=generator, average=average, extra=extra)
-    model.eval()
-    final = average.averaged_model(model) if average is not None else model
-    save_checkpoint(out_dir / "weights.pt", final, config, step=step,
-                    extra={"weights": "ema" if average is not None else "raw", "lineage": lineage})
-    summary = {"steps": step, "resumed_from": start_step, "train_triples": count,
-               "final_loss_mean_last_50": float(np.mean(losses[-50:])) if losses else None,
-               "seconds": round(time.time() - started, 1), "cpu_seconds": {k: round(v, 1) for k, v in cpu.items()},
-               "best_validation": best, **lineage}
-    atomic_write_json(out_dir / "train_summary.json", summary)
-    progress(ProgressEvent(step, train_config.steps, "ndn-train", kind="done"))
-    return summary
+        if stop.signal_name is not None:
+            if step % train_config.checkpoint_every and step != train_config.steps:
+                cpu["train"] += time.process_time() - cpu_mark
+                save_checkpoint(out_dir / "checkpoints" / f"step_{step:07d}.pt", model, config, step=step,
+                                optimizer=optimizer, generator=generator, average=average,
+                                extra={"schedule_start": schedule_start, "lineage": lineage,
+                                       "cpu_seconds": dict(cpu), "stopped_by": stop.signal_name})
+            break
+    return step, best

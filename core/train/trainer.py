@@ -21,8 +21,6 @@ checkpoint as the newest one.
 from __future__ import annotations
 
 import math
-import signal
-import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -35,6 +33,7 @@ from ..config import config_to_dict, save_config
 from ..errors import CheckpointError, ConfigError, ESGSError
 from ..io_utils import atomic_write_json
 from ..progress import JsonLinesProgress, ProgressCallback, ProgressEvent, combine
+from ..runtime.stop import StopRequests
 from .checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint, save_checkpoint
 from .config import TrainConfig, run_config_from_dict
 from .dataset import SceneData, check_scene_folder, load_scene_data
@@ -116,29 +115,6 @@ class ViewSampler:
     def load_state_dict(self, state: dict) -> None:
         self.rng.bit_generator.state = state["rng"]
         self.order = [int(i) for i in state["order"]]
-
-
-class _StopRequests:
-    """Turns SIGTERM/SIGINT into a flag checked between steps (main thread only)."""
-
-    def __init__(self) -> None:
-        self.signal_name: Optional[str] = None
-        self._previous: dict[int, Any] = {}
-
-    def __enter__(self) -> "_StopRequests":
-        if threading.current_thread() is threading.main_thread():
-            for number in (signal.SIGTERM, signal.SIGINT):
-                self._previous[number] = signal.signal(number, self._handle)
-        return self
-
-    def _handle(self, number: int, frame: Any) -> None:
-        if self.signal_name is not None and number == signal.SIGINT:
-            raise KeyboardInterrupt  # a second Ctrl-C stops at once
-        self.signal_name = signal.Signals(number).name
-
-    def __exit__(self, *exc: Any) -> None:
-        for number, handler in self._previous.items():
-            signal.signal(number, handler)
 
 
 class Trainer:
@@ -694,7 +670,7 @@ class Trainer:
         stop_files = [path for path in (self.run_dir.stop_request, config.stop_file) if path is not None]
         for path in stop_files:
             Path(path).unlink(missing_ok=True)  # a request left by an earlier session must not stop this one
-        with _StopRequests() as stop:
+        with StopRequests() as stop:
             for step in range(start_step + 1, config.iterations + 1):
                 context = self.train_step(step)
                 if stop.signal_name is None and any(Path(path).exists() for path in stop_files):

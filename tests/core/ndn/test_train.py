@@ -124,6 +124,38 @@ def test_validation_split_never_overlaps_training_or_held_out(tmp_path):
         train_ndn(data, tmp_path / "refused", _settings(steps=1), tiny_config())
 
 
+def test_sigterm_saves_the_step_it_finished_and_resume_equals_the_uninterrupted_run(tmp_path):
+    import os
+    import signal
+
+    data = _data(tmp_path)
+    settings = _settings(steps=5, checkpoint_every=4)
+    straight = train_ndn(data, tmp_path / "straight", settings, tiny_config())
+    assert straight["status"] == "completed"
+    events = []
+
+    def terminate_during_step_3(event):
+        events.append(event)
+        if event.stage == "ndn-train" and event.kind == "progress" and event.step == 3:
+            os.kill(os.getpid(), signal.SIGTERM)  # arrives mid-run; the step in progress finishes
+
+    previous = signal.getsignal(signal.SIGTERM)
+    stopped = train_ndn(data, tmp_path / "split", settings, tiny_config(), progress=terminate_during_step_3)
+    assert signal.getsignal(signal.SIGTERM) is previous  # the handler is put back
+    assert stopped["status"] == "interrupted" and stopped["steps"] == 3 and stopped["stopped_by"] == "SIGTERM"
+    # step 3 is no checkpoint step (every 4), yet it is saved; no final weights for an unfinished run
+    assert sorted(p.name for p in (tmp_path / "split/checkpoints").iterdir()) == ["step_0000003.pt"]
+    assert not (tmp_path / "split/weights.pt").exists()
+    assert json.loads((tmp_path / "split/train_summary.json").read_text())["status"] == "interrupted"
+    assert any(e.kind == "message" and "--resume" in (e.message or "") for e in events)
+    resumed = train_ndn(data, tmp_path / "split", settings, resume=True)
+    assert resumed["status"] == "completed" and resumed["resumed_from"] == 3
+    a = torch.load(tmp_path / "straight/weights.pt", weights_only=True)
+    b = torch.load(tmp_path / "split/weights.pt", weights_only=True)
+    for name in a["model"]:
+        torch.testing.assert_close(a["model"][name], b["model"][name], rtol=0, atol=0)
+
+
 def test_resume_restores_weights_average_optimiser_and_schedule_exactly(tmp_path):
     data = _data(tmp_path)
     straight = train_ndn(data, tmp_path / "straight", _settings(), tiny_config())
