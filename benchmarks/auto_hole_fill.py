@@ -44,11 +44,15 @@ def depth_scores(depth: np.ndarray, truth: np.ndarray, where: np.ndarray) -> dic
 
 
 def variants(reaches: list[float], anchor_weights: list[float], tolerances: list[float], fits: list[str],
-             checks: list[str]):
+             checks: list[str], gates: tuple[str, ...] = ("on",)):
     from esgs.core.priors.auto import AutoPriorSettings
 
     base = AutoPriorSettings()
     yield "pinned", replace(base, hole_fill="pinned")
+    if "off" in gates:
+        # every view's NDN used, however far it is from the SfM points (the trust gate's counterfactual)
+        yield "pinned_gateoff", replace(base, hole_fill="pinned", max_error=float("inf"))
+        yield "default_gateoff", replace(base, max_error=float("inf"))
     for reach in reaches:
         for weight in anchor_weights:
             for tolerance in tolerances:
@@ -89,7 +93,9 @@ def score_scene(copy: Path, settings_list: list[tuple[str, object]]) -> dict[str
                 **depth_scores(fused.depth, gt.depth, surface),
                 "coverage": float((fused.mask & surface).sum() / max(int(surface.sum()), 1)),
                 **{f"hole_{k}": v for k, v in depth_scores(fused.depth, gt.depth, hole).items()},
-                "hole_share": float(hole.sum() / max(int(surface.sum()), 1)), "fuse_s": seconds})
+                "hole_share": float(hole.sum() / max(int(surface.sum()), 1)), "fuse_s": seconds,
+                "labels_gated": float(fused.report.get("labels", {}).get("trust", 1.0) <= 0),
+                "ndn_gated": float(fused.report.get("ndn", {}).get("trust", 1.0) <= 0)})
     return rows
 
 
@@ -101,7 +107,8 @@ def summarise(views: list[dict]) -> dict:
     out = {}
     for label, subset in (("all", views), ("sky_views", [v for v in views if v["sky_view"]])):
         out[label] = {key: mean(key, subset) for key in ("abs_rel", "delta1", "coverage", "hole_abs_rel",
-                                                         "hole_delta1", "hole_share", "fuse_s")}
+                                                         "hole_delta1", "hole_share", "fuse_s", "labels_gated",
+                                                         "ndn_gated")}
         out[label]["views"] = len(subset)
     return out
 
@@ -123,6 +130,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="what border labels are checked against (default: auto's)")
     parser.add_argument("--fill-check", nargs="+", default=["on" if defaults.fill_check else "off"],
                         choices=["on", "off"], help="check the fill against the SfM points in the holes (default: auto's)")
+    parser.add_argument("--ndn-gate", nargs="+", default=["on"], choices=["on", "off"],
+                        help="with 'off': also the pinned and default fills with the trust gate off (max_error "
+                             "infinite: every view's NDN is used, and its labels, whose gate the per-view rows' "
+                             "'labels_gated' says never acted under the defaults on our scenes)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--json", type=Path, required=True)
     args = parser.parse_args(argv)
@@ -134,7 +145,8 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(args.threads)
     args.work.mkdir(parents=True, exist_ok=True)
-    settings_list = list(variants(args.reach, args.anchor_weight, args.border_tolerance, args.border_fit, args.fill_check))
+    settings_list = list(variants(args.reach, args.anchor_weight, args.border_tolerance, args.border_fit, args.fill_check,
+                                  tuple(args.ndn_gate)))
     result: dict = {"what": "priors/auto depth against the exact depth, per hole-fill variant "
                             "(benchmarks/auto_hole_fill.py)",
                     "command": " ".join([Path(sys.executable).name, *sys.argv]), "machine": platform.node(),
