@@ -10,6 +10,7 @@ import argparse
 import importlib
 import os
 import pkgutil
+import re
 import sys
 from typing import Sequence
 
@@ -53,13 +54,31 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: A list of numbers whose first is negative (``-90,60``): argparse takes it for an option, since
+#: only a single negative number is recognised as a value.
+_NEGATIVE_NUMBER_LIST = re.compile(r"^-\d+(\.\d*)?(e-?\d+)?(,-?\d+(\.\d*)?(e-?\d+)?)+$")
+
+
+def join_negative_lists(argv: Sequence[str]) -> list[str]:
+    """``--option -90,60`` as ``--option=-90,60`` (what argparse needs; ``esgs scene --site-center
+    -90,60`` otherwise fails with "expected one argument"). Only a ``--long`` option followed by a
+    comma-separated list of numbers that starts negative is joined: no option name looks like that."""
+    out: list[str] = []
+    for token in argv:
+        if out and _NEGATIVE_NUMBER_LIST.match(token) and out[-1].startswith("--") and "=" not in out[-1]:
+            out[-1] = f"{out[-1]}={token}"
+        else:
+            out.append(token)
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``esgs`` command; returns the exit code."""
     # idle OpenMP threads spin by default, which tripled the CPU time of training steps on a
     # busy 2-core machine; set before any command loads torch (a command-line process is ours)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(join_negative_lists(sys.argv[1:] if argv is None else argv))
     if not getattr(args, "_run", None):
         parser.print_help()  # a bare ``esgs`` asks what there is: help on stdout, success
         return EXIT_OK

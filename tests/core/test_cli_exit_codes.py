@@ -54,3 +54,20 @@ def test_the_process_exit_status(tmp_path):
     assert failed.returncode == 1 and "Traceback" not in failed.stderr
     bare = subprocess.run([sys.executable, "-m", "esgs.core"], capture_output=True, text=True, timeout=120)
     assert bare.returncode == 0 and bare.stdout.startswith("usage: esgs")
+
+
+def test_a_negative_coordinate_pair_is_a_value_not_an_option():
+    from esgs.core.cli import build_parser, join_negative_lists
+
+    # argparse alone: "-90,60" looks like an option, and --site-center "expected one argument"
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["scene", "--preset", "cratered_plain", "--site-center", "-90,60"])
+    args = build_parser().parse_args(join_negative_lists(["scene", "--preset", "cratered_plain", "--site-center",
+                                                          "-90,60", "--pitch-deg", "-5"]))
+    assert args.site_center == "-90,60" and args.pitch_deg == -5
+    assert join_negative_lists(["--site-center", "-1.5,2e-3", "-v"]) == ["--site-center=-1.5,2e-3", "-v"]
+    # left alone: a positive pair, a single negative number, an option after an option, a short option
+    for argv in (["--site-center", "90,-60"], ["--pitch-deg", "-30"], ["--a", "--b"], ["-x", "-1,2"],
+                 ["--a=1", "-1,2"]):
+        assert join_negative_lists(argv) == argv
+
