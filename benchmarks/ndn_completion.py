@@ -108,8 +108,11 @@ def scene_views(scene: Path, copy: Path, working_size: int = 128) -> dict:
         has_normal = valid & (np.linalg.norm(normal, axis=-1) > 0.5)
         auto_normal.append(np.where(resize_valid_depth(np.ones_like(fused.depth), has_normal, width, height)[None] > 0,
                                     _resize_normals(normal, has_normal, (width, height)), 0.0))
+    interpolated = [_interpolated(sparse, intrinsics) for sparse in triples.sfm_depth]  # once per view: rows share it
     return {"names": triples.names, "views": triples.views, "depth": triples.depth, "normal": triples.normal,
             "mask": triples.mask, "sfm_depth": triples.sfm_depth, "stereo_depth": np.stack(stereo),
+            "sfm_dense": np.stack([dense for dense, _ in interpolated]),
+            "sfm_dense_normal": np.stack([normals for _, normals in interpolated]),
             "stereo_normal": np.stack(stereo_normal),
             "auto_depth": np.stack(auto_depth), "auto_normal": np.stack(auto_normal), "intrinsics": intrinsics}
 
@@ -127,7 +130,7 @@ def baseline_rows(data: dict) -> dict[str, list[dict]]:
     rows: dict[str, list[dict]] = {"sfm_interpolated": [], "stereo_filled": []}
     for index in range(len(data["names"])):
         truth = (data["depth"][index], data["normal"][index], data["mask"][index])
-        dense, normals = _interpolated(data["sfm_depth"][index], data["intrinsics"])
+        dense, normals = data["sfm_dense"][index], data["sfm_dense_normal"][index]
         rows["sfm_interpolated"].append({**score_view(dense, normals, *truth), **metric_depth_scores(dense, truth[0], truth[2])})
         fused = data["auto_depth"][index]
         filled = stereo_filled_depth(data, index, dense)
@@ -200,7 +203,7 @@ def auto_fused(data: dict, index: int, network_depth: np.ndarray, network_normal
     ndn = PriorMaps(depth=network_depth.astype(np.float32), normal=network_normal.transpose(1, 2, 0),
                     mask=network_depth > 0, relative_depth=relative, source="ndn")
     fused = fuse_view(data["sfm_depth"][index], labels, ndn, ~surface)
-    dense, dense_normals = _interpolated(data["sfm_depth"][index], data["intrinsics"])
+    dense, dense_normals = data["sfm_dense"][index], data["sfm_dense_normal"][index]
     has_normal = fused.mask & (np.linalg.norm(fused.normal, axis=-1) > 0.5)
     depth = np.where(fused.depth > 0, fused.depth, dense)
     normal = np.where(has_normal[None], fused.normal.transpose(2, 0, 1), dense_normals)

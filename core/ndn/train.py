@@ -18,7 +18,7 @@ import copy
 import json
 import math
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -407,11 +407,11 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
     model.train()
     count = data["views"].shape[0]
     started = time.time()
-    losses: list[float] = []
+    run = _TrainingRun(model, diffusion, config, train_config, data, optimizer, generator, average, validation,
+                       out_dir, schedule_start, lineage, cpu)
+    losses = run.losses
     with StopRequests() as stop:
-        step, best = _training_loop(model, diffusion, config, train_config, data, optimizer, generator, average,
-                                    validation, out_dir, schedule_start, lineage, cpu, losses, start_step, progress,
-                                    stop)
+        step, best = _training_loop(run, start_step, progress, stop)
     if stop.signal_name is not None and step < train_config.steps:
         progress(ProgressEvent(step, train_config.steps, "ndn-train", kind="message",
                                message=f"{stop.signal_name} received: checkpoint saved at step {step}; "
@@ -433,89 +433,125 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
     return summary
 
 
-def _training_loop(model: NDNUNet, diffusion, config: NDNConfig, train_config: NDNTrainConfig,
-                   data: dict[str, torch.Tensor], optimizer: torch.optim.Optimizer, generator: torch.Generator,
-                   average: "WeightAverage | None", validation: dict | None, out_dir: Path, schedule_start: int,
-                   lineage: dict, cpu: dict, losses: list[float], start_step: int, progress: ProgressCallback,
+@dataclass
+class _TrainingRun:
+    """The parts of one :func:`train_ndn` run that its steps and checkpoints share."""
+
+    model: NDNUNet
+    diffusion: object
+    config: NDNConfig
+    train_config: NDNTrainConfig
+    data: dict[str, torch.Tensor]
+    optimizer: torch.optim.Optimizer
+    generator: torch.Generator
+    average: "WeightAverage | None"
+    validation: dict | None
+    out_dir: Path
+    schedule_start: int
+    lineage: dict
+    cpu: dict  # CPU seconds spent on "train" and "validation", carried across resumes
+    losses: list[float] = field(default_factory=list)
+
+
+def _training_loop(run: _TrainingRun, start_step: int, progress: ProgressCallback,
                    stop: StopRequests) -> tuple[int, dict | None]:
     """Steps ``start_step + 1 ..`` of :func:`train_ndn` with its checkpoints; returns (the last step
     taken, the best validation entry). Ends early, after saving a checkpoint of the step it
     finished, when ``stop`` has received a signal."""
-    from .infer import evaluate_arrays, mean_scores  # deferred: inference loads torch models this module trains
-
-    count = data["views"].shape[0]
+    train_config = run.train_config
     started = time.time()
     cpu_mark = time.process_time()
     best = None
     step = start_step
     for step in range(start_step + 1, train_config.steps + 1):
-        learning_rate = learning_rate_at(step, train_config, schedule_start)
-        for group in optimizer.param_groups:
-            group["lr"] = learning_rate
-        index = torch.randint(0, count, (min(train_config.batch_size, count),), generator=generator)
-        views, depth, normal = data["views"][index], data["depth"][index], data["normal"][index]
-        flip = bool(torch.rand((), generator=generator) < 0.5)
-        if flip:
-            views, depth, normal = flip_horizontally(views, depth, normal)
-        if train_config.augment > 0 and bool(torch.rand((), generator=generator) < train_config.augment):
-            views = augment_photometric(views, generator)
-        extra_inputs: dict[str, torch.Tensor] = {}
-        if config.model.evidence or config.model.sky:
-            extra_inputs = evidence_batch(data, index, flip, config, generator)
-            depth = extra_inputs.pop("depth", depth)
-        if train_config.crop_zoom > 0 and bool(torch.rand((), generator=generator) < train_config.crop_zoom):
-            views, maps = crop_and_zoom(views, {"depth": depth, "normal": normal, **extra_inputs}, generator)
-            depth, normal = maps.pop("depth"), maps.pop("normal")
-            extra_inputs = maps
-        loss, parts = diffusion.training_loss(model, views, depth, normal, generator=generator,
-                                              normal_weight=train_config.normal_weight,
-                                              sky_weight=train_config.sky_weight, **extra_inputs)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-        optimizer.step()
-        if average is not None:
-            average.update(model)
-        losses.append(float(loss.detach()))
+        learning_rate = learning_rate_at(step, train_config, run.schedule_start)
+        parts = _take_step(run, learning_rate)
         elapsed = time.time() - started
         eta = elapsed / (step - start_step) * (train_config.steps - step)
         progress(ProgressEvent(step, train_config.steps, "ndn-train",
-                               metrics={"loss": losses[-1], **parts, "lr": learning_rate, "eta_s": round(eta, 1)}))
+                               metrics={"loss": run.losses[-1], **parts, "lr": learning_rate, "eta_s": round(eta, 1)}))
         if step % train_config.checkpoint_every == 0 or step == train_config.steps:
-            now = time.process_time()
-            cpu["train"] += now - cpu_mark
-            extra = {"schedule_start": schedule_start, "lineage": lineage}
-            name = f"step_{step:07d}.pt"
-            if validation is not None:
-                scored = average.averaged_model(model) if average is not None else copy.deepcopy(model).eval()
-                reduce = diffusion.config.sample_reduce
-                diffusion.config.sample_reduce = train_config.validation_reduce or reduce
-                scores = mean_scores(evaluate_arrays(scored, diffusion, validation, seed=0,
-                                                     steps=train_config.validation_steps or None,
-                                                     ensemble=train_config.validation_ensemble or None,
-                                                     evidence_mode="sfm" if config.model.evidence else "none"))
-                extra["validation_reduce"] = diffusion.config.sample_reduce
-                diffusion.config.sample_reduce = reduce  # the model's own setting stays as saved
-                scores["score"] = selection_score(scores)
-                extra["validation"] = {**scores, "triples": int(validation["views"].shape[0]),
-                                       "ddim_steps": train_config.validation_steps or diffusion.config.sample_steps,
-                                       "ensemble": train_config.validation_ensemble
-                                       or diffusion.config.sample_ensemble, "reduce": extra.pop("validation_reduce")}
-                best = _record_validation(out_dir, {"step": step, "checkpoint": name, **extra["validation"]})["best"]
-                progress(ProgressEvent(step, train_config.steps, "ndn-validation", metrics=scores, kind="message",
-                                       message=f"validation at step {step}: " + ", ".join(
-                                           f"{key} {value:.4f}" for key, value in scores.items())))
-                cpu["validation"] += time.process_time() - now
+            run.cpu["train"] += time.process_time() - cpu_mark
+            best = _save_scored_checkpoint(run, step, progress) or best
             cpu_mark = time.process_time()
-            extra["cpu_seconds"] = dict(cpu)
-            save_checkpoint(out_dir / "checkpoints" / name, model, config, step=step, optimizer=optimizer,
-                            generator=generator, average=average, extra=extra)
         if stop.signal_name is not None:
             if step % train_config.checkpoint_every and step != train_config.steps:
-                cpu["train"] += time.process_time() - cpu_mark
-                save_checkpoint(out_dir / "checkpoints" / f"step_{step:07d}.pt", model, config, step=step,
-                                optimizer=optimizer, generator=generator, average=average,
-                                extra={"schedule_start": schedule_start, "lineage": lineage,
-                                       "cpu_seconds": dict(cpu), "stopped_by": stop.signal_name})
+                run.cpu["train"] += time.process_time() - cpu_mark
+                save_checkpoint(run.out_dir / "checkpoints" / f"step_{step:07d}.pt", run.model, run.config,
+                                step=step, optimizer=run.optimizer, generator=run.generator, average=run.average,
+                                extra={"schedule_start": run.schedule_start, "lineage": run.lineage,
+                                       "cpu_seconds": dict(run.cpu), "stopped_by": stop.signal_name})
             break
     return step, best
+
+
+def _take_step(run: _TrainingRun, learning_rate: float) -> dict[str, float]:
+    """One optimiser step on a random, augmented batch; returns the loss parts (the total is
+    appended to ``run.losses``). The draws from ``run.generator`` happen in a fixed order, so a
+    resumed run repeats the uninterrupted one."""
+    config, train_config, data, generator = run.config, run.train_config, run.data, run.generator
+    for group in run.optimizer.param_groups:
+        group["lr"] = learning_rate
+    count = data["views"].shape[0]
+    index = torch.randint(0, count, (min(train_config.batch_size, count),), generator=generator)
+    views, depth, normal = data["views"][index], data["depth"][index], data["normal"][index]
+    flip = bool(torch.rand((), generator=generator) < 0.5)
+    if flip:
+        views, depth, normal = flip_horizontally(views, depth, normal)
+    if train_config.augment > 0 and bool(torch.rand((), generator=generator) < train_config.augment):
+        views = augment_photometric(views, generator)
+    extra_inputs: dict[str, torch.Tensor] = {}
+    if config.model.evidence or config.model.sky:
+        extra_inputs = evidence_batch(data, index, flip, config, generator)
+        depth = extra_inputs.pop("depth", depth)
+    if train_config.crop_zoom > 0 and bool(torch.rand((), generator=generator) < train_config.crop_zoom):
+        views, maps = crop_and_zoom(views, {"depth": depth, "normal": normal, **extra_inputs}, generator)
+        depth, normal = maps.pop("depth"), maps.pop("normal")
+        extra_inputs = maps
+    loss, parts = run.diffusion.training_loss(run.model, views, depth, normal, generator=generator,
+                                              normal_weight=train_config.normal_weight,
+                                              sky_weight=train_config.sky_weight, **extra_inputs)
+    run.optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(run.model.parameters(), 1.0)
+    run.optimizer.step()
+    if run.average is not None:
+        run.average.update(run.model)
+    run.losses.append(float(loss.detach()))
+    return parts
+
+
+def _save_scored_checkpoint(run: _TrainingRun, step: int, progress: ProgressCallback) -> dict | None:
+    """The checkpoint of ``step``, with the averaged weights' validation scores when the data has
+    a validation split; returns the best validation entry so far (None without validation)."""
+    from .infer import evaluate_arrays, mean_scores  # deferred: inference loads torch models this module trains
+
+    train_config, diffusion = run.train_config, run.diffusion
+    extra = {"schedule_start": run.schedule_start, "lineage": run.lineage}
+    name = f"step_{step:07d}.pt"
+    best = None
+    if run.validation is not None:
+        now = time.process_time()
+        scored = run.average.averaged_model(run.model) if run.average is not None else copy.deepcopy(run.model).eval()
+        reduce = diffusion.config.sample_reduce
+        diffusion.config.sample_reduce = train_config.validation_reduce or reduce
+        scores = mean_scores(evaluate_arrays(scored, diffusion, run.validation, seed=0,
+                                             steps=train_config.validation_steps or None,
+                                             ensemble=train_config.validation_ensemble or None,
+                                             evidence_mode="sfm" if run.config.model.evidence else "none"))
+        used_reduce = diffusion.config.sample_reduce
+        diffusion.config.sample_reduce = reduce  # the model's own setting stays as saved
+        scores["score"] = selection_score(scores)
+        extra["validation"] = {**scores, "triples": int(run.validation["views"].shape[0]),
+                               "ddim_steps": train_config.validation_steps or diffusion.config.sample_steps,
+                               "ensemble": train_config.validation_ensemble or diffusion.config.sample_ensemble,
+                               "reduce": used_reduce}
+        best = _record_validation(run.out_dir, {"step": step, "checkpoint": name, **extra["validation"]})["best"]
+        progress(ProgressEvent(step, train_config.steps, "ndn-validation", metrics=scores, kind="message",
+                               message=f"validation at step {step}: " + ", ".join(
+                                   f"{key} {value:.4f}" for key, value in scores.items())))
+        run.cpu["validation"] += time.process_time() - now
+    extra["cpu_seconds"] = dict(run.cpu)
+    save_checkpoint(run.out_dir / "checkpoints" / name, run.model, run.config, step=step, optimizer=run.optimizer,
+                    generator=run.generator, average=run.average, extra=extra)
+    return best
