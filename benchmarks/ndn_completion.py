@@ -15,7 +15,9 @@ leaves holes is scored after the filling a user would get. Rows, per evaluation 
   network's depth first fitted to the labels (robust scale and shift, as the trainer aligns);
   ``:auto`` the network's output as ``priors/auto`` takes it (``fuse_view`` with today's rule:
   the labels where they are trusted, the network's depth through the gradient hole fill, its
-  trust gate, the SfM floor), its remaining holes filled as in ``stereo_filled``.
+  trust gate, the SfM floor), its remaining holes filled as in ``stereo_filled``;
+  ``:auto_network_normals`` the same depth with the network's normals on every pixel (labels'
+  normals nowhere): whether ``auto`` should take its normals from the network.
 
 Depth is scored after the robust scale/shift fit the trainer uses (``abs_rel``, ``delta1``) and,
 for rows that are metric, without any alignment (``abs_rel_metric``, ``delta1_metric``);
@@ -182,6 +184,12 @@ def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: 
                     {**score_view(filled, filled_normal, *truth), **metric_depth_scores(filled, truth[0], truth[2]),
                      "ndn_trust": report.get("ndn", {}).get("trust", 0.0),
                      "fill_gradient": float((report.get("fill") or {}).get("used") == "gradient")})
+                # the same depth with the network's normals on every pixel it has one: whether
+                # auto should take its normals from the network rather than from the labels
+                has_network_normal = np.linalg.norm(normal, axis=0, keepdims=True) > 0.5
+                network_normal = np.where(has_network_normal, normal, filled_normal)
+                rows.setdefault(f"{name}:auto_network_normals", []).append(
+                    {**score_view(filled, network_normal, *truth), **metric_depth_scores(filled, truth[0], truth[2])})
     return rows
 
 
