@@ -17,7 +17,9 @@ leaves holes is scored after the filling a user would get. Rows, per evaluation 
   the labels where they are trusted, the network's depth through the gradient hole fill, its
   trust gate, the SfM floor), its remaining holes filled as in ``stereo_filled``;
   ``:auto_network_normals`` the same depth with the network's normals on every pixel (labels'
-  normals nowhere): whether ``auto`` should take its normals from the network.
+  normals nowhere): whether ``auto`` should take its normals from the network;
+- ``<depth weights>+<normal weights>_normals:auto`` (``--hybrid A:B``): A's ``:auto`` depth with
+  B's ``:auto`` normals, when one network's depth and another's normals are better.
 
 Depth is scored after the robust scale/shift fit the trainer uses (``abs_rel``, ``delta1``) and,
 for rows that are metric, without any alignment (``abs_rel_metric``, ``delta1_metric``);
@@ -144,12 +146,13 @@ def baseline_rows(data: dict) -> dict[str, list[dict]]:
 
 
 def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: int | None,
-                 ensemble: int | None) -> dict[str, list[dict]]:
+                 ensemble: int | None, auto_maps: dict | None = None) -> dict[str, list[dict]]:
     """Scores of one set of weights under each evidence mode, per view (with CPU seconds per view).
 
     With the stereo mode, a ``<name>:fused`` row too: the stereo labels (depth and normals) where
     they are valid, the network's metric output elsewhere (what ``priors/auto`` does with them),
-    and ``:fused_pinned``, the same with the network's depth first fitted to the labels.
+    and ``:fused_pinned``, the same with the network's depth first fitted to the labels. The
+    ``:auto`` maps (depth, normals) of each view are appended to ``auto_maps[name]`` when given.
     """
     from esgs.core.ndn.checkpoint import load_checkpoint
     from esgs.core.ndn.infer import metric_depth_scores, pin_to_labels, predict_triple, score_triple, score_view
@@ -180,6 +183,8 @@ def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: 
                 truth = (data["depth"][index], data["normal"][index], data["mask"][index])
                 guide = pin_to_labels(depth, data["stereo_depth"][index]) if metric else depth
                 filled, filled_normal, report = auto_fused(data, index, guide, normal, relative=not metric)
+                if auto_maps is not None:
+                    auto_maps.setdefault(name, []).append((filled, filled_normal))
                 rows.setdefault(f"{name}:auto", []).append(
                     {**score_view(filled, filled_normal, *truth), **metric_depth_scores(filled, truth[0], truth[2]),
                      "ndn_trust": report.get("ndn", {}).get("trust", 0.0),
@@ -218,6 +223,18 @@ def auto_fused(data: dict, index: int, network_depth: np.ndarray, network_normal
     return depth, normal, fused.report
 
 
+def hybrid_rows(data: dict, depth_maps: list, normal_maps: list) -> list[dict]:
+    """Per view: the ``:auto`` depth of one network with the ``:auto`` normals of another (the
+    labels' normals where the labels hold, each network's in the holes it fills)."""
+    from esgs.core.ndn.infer import metric_depth_scores, score_view
+
+    rows = []
+    for index, ((depth, _), (_, normal)) in enumerate(zip(depth_maps, normal_maps)):
+        truth = (data["depth"][index], data["normal"][index], data["mask"][index])
+        rows.append({**score_view(depth, normal, *truth), **metric_depth_scores(depth, truth[0], truth[2])})
+    return rows
+
+
 def summarise(per_view: list[dict], sky_views: list[bool]) -> dict:
     from esgs.core.ndn.infer import mean_scores
 
@@ -237,10 +254,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work", type=Path, required=True, help="cache of prepared scene copies")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--json", type=Path, required=True)
+    parser.add_argument("--hybrid", action="append", default=[], metavar="DEPTH:NORMALS",
+                        help="a row with one weights' :auto depth and another's :auto normals (names from --weights)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     args.work.mkdir(parents=True, exist_ok=True)
     weights = [(text.partition("=")[0], Path(text.partition("=")[2])) for text in args.weights]
+    hybrids = [tuple(text.split(":")) for text in args.hybrid]
+    known = {name for name, _ in weights}
+    for pair in hybrids:
+        if len(pair) != 2 or not set(pair) <= known:
+            parser.error(f"--hybrid takes DEPTH_WEIGHTS:NORMAL_WEIGHTS, two names given with --weights ({sorted(known)})")
     result: dict = {"what": "full-image scores of the learned completion against SfM and stereo labels with "
                             "today's hole filling (benchmarks/ndn_completion.py)",
                     "command": " ".join([Path(sys.executable).name, *sys.argv]), "machine": platform.node(),
@@ -258,8 +282,12 @@ def main(argv: list[str] | None = None) -> int:
             sky_views += [float((~mask).mean()) >= SKY_VIEW_SHARE for mask in data["mask"]]
             view_names += [f"{scene.name}/{name}" for name in data["names"]]
             rows = baseline_rows(data)
+            auto_maps: dict[str, list] = {}
             for name, path in weights:
-                rows.update(network_rows(name, path, data, args.modes, args.steps, args.ensemble))
+                rows.update(network_rows(name, path, data, args.modes, args.steps, args.ensemble, auto_maps))
+            for depth_name, normal_name in hybrids:
+                rows[f"{depth_name}+{normal_name}_normals:auto"] = hybrid_rows(data, auto_maps[depth_name],
+                                                                                auto_maps[normal_name])
             for row, scores in rows.items():
                 per_row.setdefault(row, []).extend(scores)
         result["sets"][set_name] = {"scenes": [str(s) for s in scenes], "views": view_names,
