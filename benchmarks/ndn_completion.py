@@ -286,6 +286,9 @@ def main(argv: list[str] | None = None) -> int:
             for name, path in weights:
                 rows.update(network_rows(name, path, data, args.modes, args.steps, args.ensemble, auto_maps))
             for depth_name, normal_name in hybrids:
+                missing = {depth_name, normal_name} - set(auto_maps)
+                if missing:  # an evidence network makes its :auto row only in the sfm_stereo mode
+                    parser.error(f"--hybrid: no :auto row for {sorted(missing)}; add sfm_stereo to --modes")
                 rows[f"{depth_name}+{normal_name}_normals:auto"] = hybrid_rows(data, auto_maps[depth_name],
                                                                                 auto_maps[normal_name])
             for row, scores in rows.items():
