@@ -127,21 +127,28 @@ def stereo_filled_depth(data: dict, index: int, dense: np.ndarray) -> np.ndarray
     return np.where(data["auto_depth"][index] > 0, data["auto_depth"][index], dense)
 
 
-def baseline_rows(data: dict) -> dict[str, list[dict]]:
-    """Scores of the rows that need no network, per view."""
+def full_scores(depth: np.ndarray, normal: np.ndarray, data: dict, index: int) -> dict:
+    """Aligned and metric depth scores and normal scores of view ``index``'s maps against its truth."""
     from esgs.core.ndn.infer import metric_depth_scores, score_view
 
+    truth_depth, truth_normal, surface = data["depth"][index], data["normal"][index], data["mask"][index]
+    return {**score_view(depth, normal, truth_depth, truth_normal, surface),
+            **metric_depth_scores(depth, truth_depth, surface)}
+
+
+def baseline_rows(data: dict) -> dict[str, list[dict]]:
+    """Scores of the rows that need no network, per view."""
     rows: dict[str, list[dict]] = {"sfm_interpolated": [], "stereo_filled": []}
     for index in range(len(data["names"])):
-        truth = (data["depth"][index], data["normal"][index], data["mask"][index])
+        surface = data["mask"][index]
         dense, normals = data["sfm_dense"][index], data["sfm_dense_normal"][index]
-        rows["sfm_interpolated"].append({**score_view(dense, normals, *truth), **metric_depth_scores(dense, truth[0], truth[2])})
+        rows["sfm_interpolated"].append(full_scores(dense, normals, data, index))
         fused = data["auto_depth"][index]
         filled = stereo_filled_depth(data, index, dense)
         fused_normal = data["auto_normal"][index]
         normal = np.where(np.linalg.norm(fused_normal, axis=0, keepdims=True) > 0.5, fused_normal, normals)
-        rows["stereo_filled"].append({**score_view(filled, normal, *truth), **metric_depth_scores(filled, truth[0], truth[2]),
-                                      "hole_share": float(((fused <= 0) & truth[2]).sum() / max(truth[2].sum(), 1))})
+        rows["stereo_filled"].append({**full_scores(filled, normal, data, index),
+                                      "hole_share": float(((fused <= 0) & surface).sum() / max(surface.sum(), 1))})
     return rows
 
 
@@ -155,7 +162,7 @@ def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: 
     ``:auto`` maps (depth, normals) of each view are appended to ``auto_maps[name]`` when given.
     """
     from esgs.core.ndn.checkpoint import load_checkpoint
-    from esgs.core.ndn.infer import metric_depth_scores, pin_to_labels, predict_triple, score_triple, score_view
+    from esgs.core.ndn.infer import pin_to_labels, predict_triple, score_triple
 
     model, diffusion, config, _ = load_checkpoint(weights)
     rows: dict[str, list[dict]] = {}
@@ -168,7 +175,6 @@ def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: 
             rows.setdefault(f"{name}:{mode}", []).append(
                 {**score_triple(depth, normal, sky, metric, data, index), "cpu_s_per_view": seconds})
             if mode == "sfm_stereo" and metric:
-                truth = (data["depth"][index], data["normal"][index], data["mask"][index])
                 stereo = data["stereo_depth"][index]
                 stereo_normal = data["stereo_normal"][index]
                 has_normal = (stereo > 0) & (np.linalg.norm(stereo_normal, axis=0) > 0.5)
@@ -176,17 +182,16 @@ def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: 
                 for row, filler in (("fused", depth), ("fused_pinned", pin_to_labels(depth, stereo))):
                     fused = np.where(stereo > 0, stereo, filler)
                     rows.setdefault(f"{name}:{row}", []).append(
-                        {**score_view(fused, fused_normal, *truth), **metric_depth_scores(fused, truth[0], truth[2])})
+                        full_scores(fused, fused_normal, data, index))
             if (mode == "sfm_stereo" and metric) or not config.model.evidence:
                 # what priors/auto makes of these weights: metric output fitted to the labels, or
                 # a relative one that the fusion pins to the SfM points itself
-                truth = (data["depth"][index], data["normal"][index], data["mask"][index])
                 guide = pin_to_labels(depth, data["stereo_depth"][index]) if metric else depth
                 filled, filled_normal, report = auto_fused(data, index, guide, normal, relative=not metric)
                 if auto_maps is not None:
                     auto_maps.setdefault(name, []).append((filled, filled_normal))
                 rows.setdefault(f"{name}:auto", []).append(
-                    {**score_view(filled, filled_normal, *truth), **metric_depth_scores(filled, truth[0], truth[2]),
+                    {**full_scores(filled, filled_normal, data, index),
                      "ndn_trust": report.get("ndn", {}).get("trust", 0.0),
                      "fill_gradient": float((report.get("fill") or {}).get("used") == "gradient")})
                 # the same depth with the network's normals on every pixel it has one: whether
@@ -194,7 +199,7 @@ def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: 
                 has_network_normal = np.linalg.norm(normal, axis=0, keepdims=True) > 0.5
                 network_normal = np.where(has_network_normal, normal, filled_normal)
                 rows.setdefault(f"{name}:auto_network_normals", []).append(
-                    {**score_view(filled, network_normal, *truth), **metric_depth_scores(filled, truth[0], truth[2])})
+                    full_scores(filled, network_normal, data, index))
     return rows
 
 
@@ -226,12 +231,9 @@ def auto_fused(data: dict, index: int, network_depth: np.ndarray, network_normal
 def hybrid_rows(data: dict, depth_maps: list, normal_maps: list) -> list[dict]:
     """Per view: the ``:auto`` depth of one network with the ``:auto`` normals of another (the
     labels' normals where the labels hold, each network's in the holes it fills)."""
-    from esgs.core.ndn.infer import metric_depth_scores, score_view
-
     rows = []
     for index, ((depth, _), (_, normal)) in enumerate(zip(depth_maps, normal_maps)):
-        truth = (data["depth"][index], data["normal"][index], data["mask"][index])
-        rows.append({**score_view(depth, normal, *truth), **metric_depth_scores(depth, truth[0], truth[2])})
+        rows.append(full_scores(depth, normal, data, index))
     return rows
 
 
