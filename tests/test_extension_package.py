@@ -44,7 +44,8 @@ def test_build_linux_package(tmp_path):
     assert any(n.startswith("core/") for n in names)
     assert any(n.startswith("esgs_addon/") for n in names)
     assert "panels/main.py" in names
-    assert "core/ndn/weights/ndn_mars.pt" in names  # the NDN prior works out of the box
+    # the NDN prior works out of the box: the depth network and the normals network
+    assert {"core/ndn/weights/ndn_mars.pt", "core/ndn/weights/ndn_completion.pt"} <= names
     # Preferences > Set Up Trainer installs the trainer from the extension's own files
     assert {"requirements-trainer.txt", "esgs_addon/trainer_setup.py", "operators/trainer_setup.py"} <= names
     with zipfile.ZipFile(zips[0]) as archive:

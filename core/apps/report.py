@@ -312,18 +312,22 @@ def _auto_priors_paragraph(scene: Path) -> str:
 
 def _ndn_weights(scene: Path) -> str:
     """Which NDN weights wrote the scene's ndn priors, from a depth map's EXR header."""
-    from ..formats.imageio import read_depth_exr
+    from ..ndn.infer import ndn_priors_header
     from ..ndn.shipped import SHIPPED_WEIGHTS
 
-    maps = sorted(SceneDir(scene).prior_maps(PriorSource.NDN, "depth").glob("*.exr"))
-    try:
-        weights = read_depth_exr(maps[0])[1].get("weights", "") if maps else ""
-    except Exception:  # noqa: BLE001 - provenance only: an unreadable header must not sink the report
-        weights = ""
-    if weights and Path(weights).resolve() == SHIPPED_WEIGHTS.resolve():
-        return ("the weights shipped in the package, trained on our synthetic Mars scenes only; see "
+    header = ndn_priors_header(scene)
+    weights, normals = header.get("weights", ""), header.get("normal_weights", "")
+    if header.get("networks") == "default" or (weights and not normals
+                                               and Path(weights).resolve() == SHIPPED_WEIGHTS.resolve()):
+        text = ("the depth network shipped in the package, trained on our synthetic Mars scenes only; see "
                 "docs/ndn_model_card.md")
-    return f"weights `{weights}`" if weights else "weights not recorded"
+        if normals:
+            text += ("; normals from the shipped completion network, which also reads the SfM points and stereo "
+                     "labels (docs/ndn_completion_model_card.md)")
+        return text
+    if not weights:
+        return "weights not recorded"
+    return f"weights `{weights}`" + (f", normals from `{normals}`" if normals else "")
 
 
 def _is_synthetic(scene: Path) -> bool:

@@ -26,8 +26,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-error-px", type=float, default=2.0, help="drop points with a larger reprojection error")
     parser.add_argument("--min-track-length", type=int, default=2, help="drop points seen in fewer views")
     parser.add_argument("--weights", type=Path, default=None,
-                        help="ndn: weights file or model folder (default: $ESGS_NDN_WEIGHTS, else the weights "
-                             "shipped with the package)")
+                        help="ndn: the depth network, a weights file or model folder (default: $ESGS_NDN_WEIGHTS, "
+                             "else the one shipped with the package)")
+    parser.add_argument("--normal-weights", default=None, metavar="PATH|same",
+                        help="ndn: the normals network, a weights file or model folder, or 'same' for the depth "
+                             "network's own normals (default: $ESGS_NDN_NORMAL_WEIGHTS, else the completion network "
+                             "shipped with the package when the depth network is the shipped one, else 'same')")
     parser.add_argument("--steps", type=int, default=None, help="ndn: DDIM steps (default: the model's)")
     parser.add_argument("--seed", type=int, default=0, help="ndn: seed of the starting noise")
     parser.add_argument("--events", type=Path, default=None,
@@ -63,9 +67,10 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _compute(args: argparse.Namespace, progress) -> tuple[int, "Path | None"]:
+def _compute(args: argparse.Namespace, progress) -> tuple[int, "str | None"]:
     settings = PriorsSettings(scene=args.scene, method=args.method, max_error_px=args.max_error_px,
-                              min_track_length=args.min_track_length, weights=args.weights, steps=args.steps,
+                              min_track_length=args.min_track_length, weights=args.weights,
+                              normal_weights=args.normal_weights, steps=args.steps,
                               seed=args.seed, force=args.force)
     return compute_priors(settings, progress)
 

@@ -11,6 +11,7 @@ a zero normal where there is no surface).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,7 @@ from .data import (LOG_DEPTH_RANGE, SceneTriples, load_shards, relative_depth_bo
 from .diffusion import GaussianDiffusion
 from .model import NDNUNet
 from .checkpoint import load_checkpoint
+from .config import NDNConfig
 
 SURFACE_NORMAL_LENGTH = 0.5  # predicted normals shorter than this are "no surface"
 
@@ -115,32 +117,25 @@ def scene_evidence(scene_dir: str | Path, triples: SceneTriples, *,
     return sfm, stereo
 
 
-def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *, steps: int | None = None, seed: int = 0,
-                     batch_size: int = 4, progress: ProgressCallback = no_progress) -> int:
-    """Predict and write ``SCENE/priors/ndn/`` for every view of the scene; returns the view count.
+@dataclass
+class _ScenePrediction:
+    """One network's raw output for every view of a scene, at its working size."""
 
-    ``weights``: a weights/checkpoint file or a model folder (``weights.pt`` or latest checkpoint);
-    None means ``$ESGS_NDN_WEIGHTS`` or else the weights shipped with the package.
+    names: list[str]
+    depth_states: np.ndarray  # [N, 1, h, w]
+    normal_states: np.ndarray  # [N, 3, h, w]
+    sky: np.ndarray | None  # [N, 1, h, w] probability, None without a sky head
+    reference: torch.Tensor | None  # [N] metric reference depth of an evidence network (0: none)
+    stereo: np.ndarray  # [N, h, w] the stereo labels it read (zeros without)
+    config: NDNConfig
+    had_stereo: bool
 
-    Weights that read evidence get each view's SfM points and, where ``priors/labels`` exists,
-    its stereo labels (:func:`scene_evidence`); their depth is then written in metres, fitted to
-    the view's labels where it has some (:func:`pin_to_labels`; a view without any evidence
-    stays relative). Weights with a sky head mark the sky: their pixels
-    with sky probability above one half are left out of the mask and written as ``sky``.
-    """
-    import os
-    import shutil
-    import tempfile
 
-    from ..formats.imageio import read_image
-    from ..io_utils import atomic_directory
-    from ..priors import prior_dir, write_prior_maps
+def _predict_scene(scene_dir: Path, weights: Path, *, steps: int | None, seed: int, batch_size: int,
+                   stage: str, progress: ProgressCallback) -> _ScenePrediction:
+    """Sample one network on every view of the scene (its evidence when it reads evidence)."""
+    from .evidence import encode_evidence, evidence_reference
 
-    from .evidence import depth_from_state, encode_evidence, evidence_reference
-    from .shipped import resolve_default_weights
-
-    scene_dir = Path(scene_dir)
-    weights = resolve_default_weights(weights)
     model, diffusion, config, _ = load_checkpoint(weights)
     triples: SceneTriples = scene_triples(scene_dir, config.model.working_size, 2 ** (config.model.levels - 1),
                                           with_targets=False)
@@ -157,7 +152,7 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
     depth_states, normal_states, sky_maps = [], [], []
     batch_size = views_per_batch(batch_size, diffusion)
     for start in range(0, total, batch_size):
-        progress(ProgressEvent(start, total, "ndn-infer"))
+        progress(ProgressEvent(start, total, stage))
         part = slice(start, start + batch_size)
         depth, normal, sky = diffusion.sample(model, views[part], steps=steps, seed=seed + start,
                                               evidence=evidence[part] if evidence is not None else None,
@@ -165,39 +160,106 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
         depth_states.append(depth.numpy())
         normal_states.append(normal.numpy())
         sky_maps.append(sky.numpy() if sky is not None else None)
-    depth_states_all, normal_states_all = np.concatenate(depth_states), np.concatenate(normal_states)
-    sky_all = np.concatenate(sky_maps) if sky_maps and sky_maps[0] is not None else None
-    metadata = {"method": "ndn", "weights": str(weights), "ddim_steps": str(steps or config.diffusion.sample_steps),
-                "seed": str(seed), "depth_state": config.diffusion.depth_state}
+    return _ScenePrediction(
+        names=list(triples.names), depth_states=np.concatenate(depth_states), normal_states=np.concatenate(normal_states),
+        sky=np.concatenate(sky_maps) if sky_maps and sky_maps[0] is not None else None, reference=reference,
+        stereo=stereo, config=config, had_stereo=evidence is not None and bool(evidence[:, 3].any()))
+
+
+def _view_maps(prediction: _ScenePrediction, index: int,
+               image: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, bool]:
+    """View ``index`` of a prediction at the image's size: (depth, unit normals, surface mask
+    without the sky, sky mask or None, whether the depth is metric)."""
+    from .evidence import depth_from_state
+
+    config = prediction.config
+    log_range = config.diffusion.log_depth_range
+    state = prediction.depth_states[index, 0]
+    reference = prediction.reference
+    # metric where the view had evidence (its reference depth is known), else relative
+    metric = bool(reference is not None and float(reference[index]) > 0)
+    if metric:
+        in_metres = depth_from_state(torch.from_numpy(state)[None, None], reference[index:index + 1], log_range)
+        in_metres = pin_to_labels(in_metres[0, 0].numpy(), prediction.stereo[index])
+        depth, normal, mask = metric_maps(in_metres, prediction.normal_states[index], image)
+    else:
+        depth, normal, mask = maps_from_states(state, prediction.normal_states[index], image,
+                                               kind=config.diffusion.depth_state, log_range=log_range)
+    sky = None
+    if prediction.sky is not None:
+        sky = upsample_probability(prediction.sky[index, 0], image) > 0.5
+        mask &= ~sky
+        depth, normal = np.where(mask, depth, 0.0).astype(np.float32), np.where(mask[..., None], normal, 0.0)
+    return depth, normal, mask, sky, metric
+
+
+def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *, normal_weights: str | Path | None = None,
+                     steps: int | None = None, seed: int = 0, batch_size: int = 4,
+                     progress: ProgressCallback = no_progress) -> int:
+    """Predict and write ``SCENE/priors/ndn/`` for every view of the scene; returns the view count.
+
+    ``weights``: the depth network, a weights/checkpoint file or a model folder (``weights.pt``
+    or latest checkpoint); ``normal_weights``: the normals network (``"same"``: the depth
+    network's own). None for both means the pair shipped with the package (or the environment
+    variables): :func:`.shipped.resolve_prior_networks` says which.
+
+    The depth network writes depth, the surface mask and the sky; the normals network, where
+    it sees a surface (outside its own sky), replaces the normals (docs/ndn.md: its normals
+    measured better on every evaluation set, its depth did not).
+
+    Weights that read evidence get each view's SfM points and, where ``priors/labels`` exists,
+    its stereo labels (:func:`scene_evidence`); their depth is then written in metres, fitted to
+    the view's labels where it has some (:func:`pin_to_labels`; a view without any evidence
+    stays relative). Weights with a sky head mark the sky: their pixels
+    with sky probability above one half are left out of the mask and written as ``sky``.
+    The headers record both networks and their content digests (``weights_sha``,
+    ``normal_weights_sha``) and whether they were the package's own (``networks``).
+    """
+    import os
+    import shutil
+    import tempfile
+
+    from ..formats.imageio import read_image
+    from ..io_utils import atomic_directory
+    from ..priors import prior_dir, write_prior_maps
+
+    from .shipped import resolve_prior_networks, weights_digest
+
+    scene_dir = Path(scene_dir)
+    networks = resolve_prior_networks(weights, normal_weights)
+    depth_net = _predict_scene(scene_dir, networks.depth, steps=steps, seed=seed, batch_size=batch_size,
+                               stage="ndn-infer", progress=progress)
+    normal_net = None
+    if networks.normals is not None:
+        normal_net = _predict_scene(scene_dir, networks.normals, steps=None, seed=seed, batch_size=batch_size,
+                                    stage="ndn-normals", progress=progress)
+        if normal_net.names != depth_net.names:
+            raise AssertionError("both networks read the scene's views in the same order")
+    config = depth_net.config
+    total = len(depth_net.names)
+    metadata = {"method": "ndn", "weights": str(networks.depth), "weights_sha": weights_digest(networks.depth),
+                "ddim_steps": str(steps or config.diffusion.sample_steps), "seed": str(seed),
+                "depth_state": config.diffusion.depth_state, "networks": "default" if networks.default else "chosen"}
     if config.diffusion.depth_state == "log":
         metadata["log_depth_range"] = str(config.diffusion.log_depth_range)
     if config.model.evidence:
-        metadata["evidence"] = "sfm points" + (" + stereo labels" if evidence is not None and bool(evidence[:, 3].any())
-                                               else "")
+        metadata["evidence"] = "sfm points" + (" + stereo labels" if depth_net.had_stereo else "")
+    if networks.normals is not None:
+        metadata["normal_weights"] = str(networks.normals)
+        metadata["normal_weights_sha"] = weights_digest(networks.normals)
     # all maps go to a staging folder that replaces priors/ndn only when complete: a failure
     # never leaves a mix of old and new views
     priors = SceneDir(scene_dir).priors
     priors.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=".ndn.work.", dir=priors))
     try:
-        for index, name in enumerate(triples.names):
+        for index, name in enumerate(depth_net.names):
             image = read_image(SceneDir(scene_dir).image(name))
             image = np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
-            state = depth_states_all[index, 0]
-            # metric where the view had evidence (its reference depth is known), else relative
-            metric = bool(reference is not None and float(reference[index]) > 0)
-            if metric:
-                in_metres = depth_from_state(torch.from_numpy(state)[None, None], reference[index:index + 1], log_range)
-                in_metres = pin_to_labels(in_metres[0, 0].numpy(), stereo[index])
-                depth, normal, mask = metric_maps(in_metres, normal_states_all[index], image)
-            else:
-                depth, normal, mask = maps_from_states(state, normal_states_all[index], image,
-                                                       kind=config.diffusion.depth_state, log_range=log_range)
-            sky = None
-            if sky_all is not None:
-                sky = upsample_probability(sky_all[index, 0], image) > 0.5
-                mask &= ~sky
-                depth, normal = np.where(mask, depth, 0.0).astype(np.float32), np.where(mask[..., None], normal, 0.0)
+            depth, normal, mask, sky, metric = _view_maps(depth_net, index, image)
+            if normal_net is not None:
+                _, better, sees_surface, _, _ = _view_maps(normal_net, index, image)
+                normal = np.where((sees_surface & mask)[..., None], better, normal).astype(np.float32)
             write_prior_maps(work, "ndn", name, depth=depth, normal=normal, mask=mask, relative_depth=not metric,
                              units="m" if metric else "relative", metadata=metadata, mask_kind="surface", sky=sky)
         with atomic_directory(prior_dir(scene_dir, "ndn"), overwrite=True) as staging:
@@ -206,6 +268,51 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
         shutil.rmtree(work, ignore_errors=True)
     progress(ProgressEvent(total, total, "ndn-infer", kind="done"))
     return total
+
+
+def ndn_priors_header(scene_dir: str | Path) -> dict[str, str]:
+    """The header of the scene's first ``priors/ndn`` depth map (what :func:`write_ndn_priors`
+    records: the networks, their digests, the sampling); empty when there is none or it cannot
+    be read."""
+    from ..formats.imageio import read_depth_exr
+
+    folder = SceneDir(scene_dir).prior_maps("ndn", "depth")
+    maps = sorted(folder.glob("*.exr")) if folder.is_dir() else []
+    try:
+        return dict(read_depth_exr(maps[0])[1]) if maps else {}
+    except Exception:  # noqa: BLE001 - provenance only: an unreadable header reads as unknown
+        return {}
+
+
+def outdated_ndn_priors(scene_dir: str | Path) -> str | None:
+    """Why the scene's ``priors/ndn`` should be predicted again, or None to keep them.
+
+    Only priors the package's own networks made are judged (a user's chosen weights are kept):
+    they are outdated when the package's networks have changed since (another digest, or a
+    folder from before the normals network shipped). Nothing is outdated while the
+    environment names other weights."""
+    from ..errors import CheckpointError
+    from .shipped import SHIPPED_WEIGHTS, resolve_prior_networks, weights_digest
+
+    header = ndn_priors_header(scene_dir)
+    if not header:
+        return None
+    try:
+        networks = resolve_prior_networks()
+    except CheckpointError:
+        return None  # the package lacks a network: predicting again could not do better
+    if not networks.default:
+        return None
+    recorded = header.get("networks")
+    by_package = recorded == "default" if recorded is not None else \
+        bool(header.get("weights")) and Path(header["weights"]).resolve() == SHIPPED_WEIGHTS.resolve()
+    if not by_package:
+        return None
+    expected = {"weights_sha": weights_digest(networks.depth),
+                "normal_weights_sha": weights_digest(networks.normals) if networks.normals else None}
+    if any(header.get(key) != value for key, value in expected.items()):
+        return "the package's NDN weights changed since they were predicted"
+    return None
 
 
 def pin_to_labels(depth: np.ndarray, labels: np.ndarray) -> np.ndarray:

@@ -300,9 +300,8 @@ def _compute_source(scene: Path, source: str, progress: ProgressCallback) -> Opt
             run_label_job(LabelJob(scene=scene, reconstruct=True), progress)
         elif source == PriorSource.NDN:
             from ..ndn.infer import write_ndn_priors
-            from ..ndn.shipped import resolve_default_weights
 
-            write_ndn_priors(scene, resolve_default_weights(None), progress=progress)
+            write_ndn_priors(scene, progress=progress)  # the shipped networks, unless the environment names others
         else:
             from ..colmap import read_model
             from .sfm import write_sfm_priors
@@ -310,6 +309,16 @@ def _compute_source(scene: Path, source: str, progress: ProgressCallback) -> Opt
             write_sfm_priors(scene, read_model(scene), progress=progress)
     except ESGSError as error:
         return f"{source} priors failed: {error.message}"
+    return None
+
+
+def _outdated(scene: Path, source: str) -> Optional[str]:
+    """Why a source's existing folder must be computed again though the images did not change
+    (the package's NDN networks changed since it was predicted), or None."""
+    if source == PriorSource.NDN:
+        from ..ndn.infer import outdated_ndn_priors
+
+        return outdated_ndn_priors(scene)
     return None
 
 
@@ -341,8 +350,9 @@ def ensure_auto_priors(scene: str | Path, progress: ProgressCallback = no_progre
                                                   (PriorSource.NDN, settings.ndn)) if on]
     skipped: dict[str, str] = {}
     for source in wanted:
-        if force or stale_inputs or not folder.has_prior_maps(source, "depth"):
-            why = "the images or the model changed" if stale_inputs else "missing"
+        outdated = _outdated(scene, source) if folder.has_prior_maps(source, "depth") else None
+        if force or stale_inputs or outdated or not folder.has_prior_maps(source, "depth"):
+            why = "the images or the model changed" if stale_inputs else outdated or "missing"
             _say(progress, f"auto priors: computing {source} priors ({why})")
             reason = _compute_source(scene, source, progress)
             if reason:

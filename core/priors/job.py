@@ -22,7 +22,11 @@ class PriorsSettings:
     method: str = field(default="sfm", metadata={"help": "prior source to compute", "choices": METHODS})
     max_error_px: float = field(default=2.0, metadata={"help": "sfm: drop points with a larger reprojection error"})
     min_track_length: int = field(default=2, metadata={"help": "sfm: drop points seen in fewer views"})
-    weights: Optional[Path] = field(default=None, metadata={"help": "ndn: weights file or model folder (default: shipped)"})
+    weights: Optional[Path] = field(default=None, metadata={
+        "help": "ndn: depth network, a weights file or model folder (default: shipped)"})
+    normal_weights: Optional[str] = field(default=None, metadata={
+        "help": "ndn: normals network, a weights file or model folder, or 'same' for the depth network's own "
+                "(default: the shipped completion network when the depth network is the shipped one)"})
     steps: Optional[int] = field(default=None, metadata={"help": "ndn: DDIM steps (default: the model's)"})
     seed: int = field(default=0, metadata={"help": "ndn: seed of the starting noise"})
     force: bool = field(default=False, metadata={"help": "auto: recompute even when the cached priors/auto still holds"})
@@ -34,8 +38,8 @@ class PriorsSettings:
             raise ConfigError(f"unknown prior method {self.method!r}", hint=f"choose one of {', '.join(METHODS)}")
 
 
-def compute_priors(settings: PriorsSettings, progress: ProgressCallback) -> tuple[int, Optional[Path]]:
-    """Write ``SCENE/priors/<method>/``; returns (views written, NDN weights used or None)."""
+def compute_priors(settings: PriorsSettings, progress: ProgressCallback) -> tuple[int, Optional[str]]:
+    """Write ``SCENE/priors/<method>/``; returns (views written, the NDN weights used, in words, or None)."""
     settings.validate()
     if settings.method == "auto":
         from .auto import ensure_auto_priors
@@ -44,12 +48,13 @@ def compute_priors(settings: PriorsSettings, progress: ProgressCallback) -> tupl
         return int(report["summary"]["views"]), None
     if settings.method == "ndn":
         from ..ndn.infer import write_ndn_priors
-        from ..ndn.shipped import resolve_default_weights
+        from ..ndn.shipped import resolve_prior_networks
 
-        weights = resolve_default_weights(settings.weights)
-        count = write_ndn_priors(settings.scene, weights, steps=settings.steps, seed=settings.seed,
-                                 progress=progress)
-        return count, weights
+        networks = resolve_prior_networks(settings.weights, settings.normal_weights)
+        count = write_ndn_priors(settings.scene, settings.weights, normal_weights=settings.normal_weights,
+                                 steps=settings.steps, seed=settings.seed, progress=progress)
+        used = str(networks.depth) + (f"; normals: {networks.normals}" if networks.normals else "")
+        return count, used
     from ..colmap import read_model
     from .sfm import write_sfm_priors
 
@@ -70,4 +75,4 @@ def child_job(data: dict, context: Any) -> dict:
     folder = SceneDir(settings.scene).prior(settings.method)
     line = f"wrote {settings.method} priors for {count} views to {folder}"
     context.progress(ProgressEvent(count, count, f"{settings.method} priors", kind="done", message=line))
-    return {"views": count, "weights": None if weights is None else str(weights), "folder": str(folder)}
+    return {"views": count, "weights": weights, "folder": str(folder)}

@@ -241,7 +241,8 @@ def test_ndn_priors_come_from_the_shipped_weights_and_are_reused(ndn_scene):
         assert maps.mask.any() and np.allclose(lengths, 1.0, atol=1e-3)
     # the plane is seen from above: the predicted normals face the cameras (negative z)
     assert np.mean(maps.normal[maps.mask][:, 2]) < 0
-    assert report._ndn_weights(scene).startswith("the weights shipped in the package")
+    assert report._ndn_weights(scene).startswith("the depth network shipped in the package")
+    assert "normals from the shipped completion network" in report._ndn_weights(scene)
     again = []
     demo.make_priors(DemoConfig(out=scene.parent, priors="ndn"), scene, again.append)
     assert [e.kind for e in again] == ["message"] and "reusing" in again[0].message
@@ -301,7 +302,8 @@ def test_tiny_demo_runs_every_stage_and_reuses_finished_work(tmp_path, monkeypat
     report_path = demo.run_demo(config, progress=events.append)
     text = report_path.read_text()
     assert "| ESGS |" in text and "| 3DGS |" in text and "| `auto` prior |" in text
-    assert "The `auto` priors fuse" in text and "weights shipped in the package" in text
+    assert "The `auto` priors fuse" in text and "depth network shipped in the package" in text
+    assert "normals from the shipped completion network" in text
     # 4 renders of 96x54 give SIFT nothing to triangulate: the demo says so and keeps the exact points
     assert any("no SfM points could be triangulated" in (e.message or "") for e in events)
     assert "generator's exact surface samples" in text
