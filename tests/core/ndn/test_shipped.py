@@ -98,3 +98,48 @@ def test_shipped_weights_reproduce_the_model_card_on_the_heldout_slice():
     row = "| heldout_slice | " + " | ".join(fmt(key, expected["scores"][key]) for key in TOLERANCE) + " |"
     assert row in card
     assert f"training step **{expected['step']}**" in card
+
+
+COMPLETION_CARD = REPO / "docs" / "ndn_completion_model_card.md"
+COMPLETION_TOLERANCE = {"normal_mean_deg": 0.5, "normal_within_11_25": 0.01, "abs_rel_metric": 0.005,
+                        "delta1_metric": 0.01}
+
+
+def completion_fmt(key: str, value: float) -> str:
+    """benchmarks/ship_completion.py's number format."""
+    return f"{value:.2f}" if key == "normal_mean_deg" else f"{100 * value:.1f} %" \
+        if key.startswith(("normal_w", "delta")) else f"{value:.4f}"
+
+
+def test_shipped_normal_weights_are_a_small_half_precision_evidence_network():
+    path = shipped.shipped_normal_weights()
+    assert path.stat().st_size < 8e6
+    payload = torch.load(path, map_location="cpu", weights_only=True)
+    assert payload["dtype"] == "float16" and "optimizer" not in payload
+    model, _, config, _ = load_checkpoint(path)
+    assert config.model.evidence and config.model.sky and config.diffusion.prediction == "regression"
+    assert parameter_count(model) <= 5_000_000 and config.model.working_size <= 128
+
+
+def test_shipped_normal_weights_reproduce_their_model_card_on_the_slice_with_evidence():
+    expected = json.loads((FIXTURES / "completion_slice_scores.json").read_text())
+    weights = shipped.shipped_normal_weights()
+    assert hashlib.sha256(weights.read_bytes()).hexdigest() == expected["weights_sha256"], \
+        "the shipped normal weights changed without re-running benchmarks/ship_completion.py"
+    with np.load(FIXTURES / "completion_slice.npz", allow_pickle=False) as data:
+        arrays = {key: data[key] for key in data.files if key != "names"}
+    assert len(arrays["views"]) == len(expected["names"]) >= 2 and arrays["stereo_depth"].any()
+    model, diffusion, _, payload = load_checkpoint(weights)
+    assert payload["step"] == expected["step"]
+    torch.set_num_threads(1)
+    scores = mean_scores(evaluate_arrays(model, diffusion, arrays, seed=expected["seed"],
+                                         evidence_mode=expected["evidence"]))
+    for key, tolerance in COMPLETION_TOLERANCE.items():
+        assert abs(scores[key] - expected["scores"][key]) <= tolerance, (key, scores[key], expected["scores"][key])
+    # without the evidence the same network answers differently: the slice really tests it
+    blind = mean_scores(evaluate_arrays(model, diffusion, arrays, seed=expected["seed"], evidence_mode="none"))
+    assert "abs_rel_metric" not in blind and abs(blind["normal_mean_deg"] - scores["normal_mean_deg"]) > 0.01
+    card = COMPLETION_CARD.read_text()
+    row = "| completion_slice | " + " | ".join(completion_fmt(k, expected["scores"][k]) for k in COMPLETION_TOLERANCE) + " |"
+    assert row in card
+    assert f"training step **{expected['step']}**" in card
