@@ -15,6 +15,11 @@ run is inflated by waiting for a core, while its CPU time is what an idle core w
 
 Weights that read evidence get SfM-like evidence (a point in every 20th pixel; its content does
 not change the cost) and, with a sky head, their sky map is up-sampled too.
+
+``--scene SCENE`` times what a user runs instead: ``write_ndn_priors`` on the scene's views end
+to end (reading images and evidence, both shipped networks, upsampling, writing), once with the
+default pair (depth network + normals network) and once with the depth network alone
+(``--normal-weights same``), on a copy of the scene; seconds per view, wall and CPU.
 """
 from __future__ import annotations
 
@@ -33,7 +38,10 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1, help="torch threads (0 = torch's default)")
     parser.add_argument("--json", default=None, help="also write the lines as JSON here")
+    parser.add_argument("--scene", default=None, help="time write_ndn_priors on this scene folder instead")
     args = parser.parse_args()
+    if args.scene:
+        return time_scene(args)
 
     import os
 
@@ -103,6 +111,52 @@ def main() -> int:
         atomic_write_json(args.json, {"what": "NDN inference seconds per view (benchmarks/bench_ndn.py)",
                                       "command": " ".join(["python", *sys.argv]), "machine": platform.node(),
                                       "weights": str(weights), "threads": torch.get_num_threads(),
+                                      "load_average": os.getloadavg()[0], "lines": lines})
+    return 0
+
+
+def time_scene(args: argparse.Namespace) -> int:
+    """``--scene``: ``write_ndn_priors`` end to end, the shipped pair against the depth network alone."""
+    import os
+    import platform
+    import shutil
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    import torch
+
+    from esgs.core.formats.scene_dir import SceneDir
+    from esgs.core.io_utils import atomic_write_json
+    from esgs.core.ndn.infer import write_ndn_priors
+    from esgs.core.ndn.shipped import resolve_prior_networks
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    lines = []
+    with tempfile.TemporaryDirectory() as folder:
+        scene = Path(folder) / "scene"
+        shutil.copytree(args.scene, scene)
+        shutil.rmtree(SceneDir(scene).prior("ndn"), ignore_errors=True)
+        views = len([p for p in SceneDir(scene).images.iterdir() if p.is_file()])
+        for label, normal_weights in (("depth + normals networks (default)", None), ("depth network alone", "same")):
+            networks = resolve_prior_networks(args.weights, normal_weights)
+            best_wall = best_cpu = float("inf")
+            for _ in range(args.repeats):
+                started, started_cpu = time.perf_counter(), time.process_time()
+                write_ndn_priors(scene, args.weights, normal_weights=normal_weights)
+                best_wall = min(best_wall, (time.perf_counter() - started) / views)
+                best_cpu = min(best_cpu, (time.process_time() - started_cpu) / views)
+            print(f"{label}: {best_wall:.3f} s per view wall, {best_cpu:.3f} s CPU ({views} views, "
+                  f"torch threads {torch.get_num_threads()}, load average {os.getloadavg()[0]:.1f})")
+            lines.append({"networks": label, "depth_weights": str(networks.depth),
+                          "normal_weights": str(networks.normals) if networks.normals else None, "views": views,
+                          "wall_s_per_view": round(best_wall, 4), "cpu_s_per_view": round(best_cpu, 4)})
+    if args.json:
+        atomic_write_json(args.json, {"what": "write_ndn_priors seconds per view on a scene (benchmarks/bench_ndn.py "
+                                              "--scene), the shipped pair against the depth network alone",
+                                      "command": " ".join(["python", *sys.argv]), "machine": platform.node(),
+                                      "scene": str(args.scene), "threads": torch.get_num_threads(),
                                       "load_average": os.getloadavg()[0], "lines": lines})
     return 0
 

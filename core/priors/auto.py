@@ -4,8 +4,9 @@
 
 1. **labels** (``esgs labels --reconstruct``: a mesh rebuilt by multi-view stereo, rendered):
    metric and sharp where stereo held, absent where the rebuilt mesh has holes;
-2. **ndn** (the diffusion prior): dense but only relative; pinned to metric per view with a
-   robust scale and shift fitted to the view's own SfM points;
+2. **ndn** (the learned prior: the diffusion NDN's depth, the completion network's normals;
+   :func:`..ndn.infer.write_ndn_priors`): dense but only relative; pinned to metric per view
+   with a robust scale and shift fitted to the view's own SfM points;
 3. **sfm** (the triangulated points): sparse, metric, verified by triangulation: the floor
    where neither dense source has a value.
 
@@ -27,7 +28,8 @@ rule documented in docs/priors.md ("The auto source"):
 What each source contributed, its coverage and its error against the SfM points are written
 to ``priors/auto/auto.json``, with a fingerprint (contents, not times: a scene copied to
 another machine keeps it) of the images, the model and the sources used: :func:`ensure_auto_priors` reuses the folder while the fingerprint holds, re-fuses when a
-source changed, and recomputes the sources when the images or the model changed.
+source changed, and recomputes the sources when the images or the model changed (and the
+``ndn`` source when the package's own networks made it and have changed since).
 """
 from __future__ import annotations
 
