@@ -38,7 +38,10 @@ METHODS = names(PriorSource.computed())
 #: ``core/ndn/shipped.py``'s SHIPPED_WEIGHTS (a test checks), which cannot be imported here
 #: because it imports torch and Blender's Python has none
 SHIPPED_NDN_WEIGHTS = Path(__file__).resolve().parents[1] / "core" / "ndn" / "weights" / "ndn_mars.pt"
+#: the normals network loaded beside them when no weights are named (``SHIPPED_NORMAL_WEIGHTS``)
+SHIPPED_NDN_NORMAL_WEIGHTS = SHIPPED_NDN_WEIGHTS.with_name("ndn_completion.pt")
 NDN_WEIGHTS_VARIABLE = "ESGS_NDN_WEIGHTS"
+NDN_NORMAL_WEIGHTS_VARIABLE = "ESGS_NDN_NORMAL_WEIGHTS"
 #: Tests replace the command prefix (``[python, -m, esgs.core.runtime.child]``) with a fake one.
 COMMAND_OVERRIDE: Optional[list[str]] = None
 
@@ -121,6 +124,11 @@ def check_scene(scene_dir: str | Path, method: str, weights: str | Path | None =
             raise CheckpointError("NDN weights not found", path=path,
                                   hint="choose a weights file or model folder, or reinstall the extension "
                                        "(it ships weights)")
+        # the shipped depth network comes with the shipped normals network (core/ndn/shipped.py)
+        if path == SHIPPED_NDN_WEIGHTS and not os.environ.get(NDN_NORMAL_WEIGHTS_VARIABLE) \
+                and not SHIPPED_NDN_NORMAL_WEIGHTS.exists():
+            raise CheckpointError("the extension's NDN normal weights are missing", path=SHIPPED_NDN_NORMAL_WEIGHTS,
+                                  hint="reinstall the extension (it ships both networks)")
 
 
 def start_priors(scene_dir: str | Path, method: str = "auto", *, weights: str | Path | None = None,

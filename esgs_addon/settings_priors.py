@@ -19,14 +19,14 @@ class ESGS_PG_priors(bpy.types.PropertyGroup):
         items=(("auto", "Auto", "Auto: best of stereo labels, NDN and SfM per pixel, with a confidence map; "
                                 "computes the sources it lacks first (stereo labels take minutes) and reuses "
                                 "them while the images hold"),
-               ("ndn", "NDN", "Dense relative depth and normals from the NDN diffusion network "
-                              "(about 1-2 s per view on a CPU)"),
+               ("ndn", "NDN", "Dense relative depth from the NDN diffusion network and normals from the "
+                              "completion network, both shipped (about 2 s per view on a CPU)"),
                ("sfm", "SfM", "Sparse depth at the COLMAP points each view observes (seconds)")),
         default="auto")
     ndn_weights: bpy.props.StringProperty(
         name="NDN weights", subtype="FILE_PATH",
-        description="NDN weights file or model folder (empty: $ESGS_NDN_WEIGHTS, else the weights shipped "
-                    "with the extension)")
+        description="NDN weights file or model folder; named weights write depth and normals alone (empty: "
+                    "$ESGS_NDN_WEIGHTS, else the two networks shipped with the extension)")
 
     # live state, written by the job poller
     status: bpy.props.StringProperty(name="Status", default="")

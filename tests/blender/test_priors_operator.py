@@ -204,4 +204,19 @@ def test_cancel_stops_the_child_and_writes_nothing(tmp_path):
 def test_default_weights_path_matches_the_engine():
     shipped = pytest.importorskip("esgs.core.ndn.shipped")
     assert priors_job.SHIPPED_NDN_WEIGHTS == shipped.SHIPPED_WEIGHTS
+    assert priors_job.SHIPPED_NDN_NORMAL_WEIGHTS == shipped.SHIPPED_NORMAL_WEIGHTS
+    assert priors_job.NDN_NORMAL_WEIGHTS_VARIABLE == shipped.NORMAL_WEIGHTS_ENVIRONMENT_VARIABLE
     assert priors_job.default_ndn_weights("x.pt").name == "x.pt"
+
+
+def test_a_missing_shipped_normals_network_is_refused_before_any_process(ndn_scene, tmp_path, monkeypatch):
+    scene, _ = ndn_scene
+    monkeypatch.delenv(priors_job.NDN_WEIGHTS_VARIABLE, raising=False)
+    monkeypatch.delenv(priors_job.NDN_NORMAL_WEIGHTS_VARIABLE, raising=False)
+    priors_job.check_scene(scene, "ndn")  # both shipped networks are there
+    monkeypatch.setattr(priors_job, "SHIPPED_NDN_NORMAL_WEIGHTS", tmp_path / "gone.pt")
+    with pytest.raises(priors_job.CheckpointError, match="normal weights are missing"):
+        priors_job.check_scene(scene, "ndn")
+    # a named normals network (or 'same') does not need the shipped one
+    monkeypatch.setenv(priors_job.NDN_NORMAL_WEIGHTS_VARIABLE, "same")
+    priors_job.check_scene(scene, "ndn")
