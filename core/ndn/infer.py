@@ -194,7 +194,7 @@ def _view_maps(prediction: _ScenePrediction, index: int,
 
 
 def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *, normal_weights: str | Path | None = None,
-                     steps: int | None = None, seed: int = 0, batch_size: int = 4,
+                     steps: int | None = None, seed: int = 0, batch_size: int = 4, sky_from_normals: bool = False,
                      progress: ProgressCallback = no_progress) -> int:
     """Predict and write ``SCENE/priors/ndn/`` for every view of the scene; returns the view count.
 
@@ -245,6 +245,7 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
     if config.model.evidence:
         metadata["evidence"] = "sfm points" + (" + stereo labels" if depth_net.had_stereo else "")
     if networks.normals is not None:
+        metadata["sky_from"] = "depth and normals networks" if sky_from_normals else "depth network"
         metadata["normal_weights"] = str(networks.normals)
         metadata["normal_weights_sha"] = weights_digest(networks.normals)
     # all maps go to a staging folder that replaces priors/ndn only when complete: a failure
@@ -258,8 +259,13 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
             image = np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
             depth, normal, mask, sky, metric = _view_maps(depth_net, index, image)
             if normal_net is not None:
-                _, better, sees_surface, _, _ = _view_maps(normal_net, index, image)
+                _, better, sees_surface, normal_sky, _ = _view_maps(normal_net, index, image)
                 normal = np.where((sees_surface & mask)[..., None], better, normal).astype(np.float32)
+                if sky_from_normals and normal_sky is not None:
+                    sky = normal_sky if sky is None else sky | normal_sky
+                    mask &= ~sky
+                    depth = np.where(mask, depth, 0.0).astype(np.float32)
+                    normal = np.where(mask[..., None], normal, 0.0).astype(np.float32)
             write_prior_maps(work, "ndn", name, depth=depth, normal=normal, mask=mask, relative_depth=not metric,
                              units="m" if metric else "relative", metadata=metadata, mask_kind="surface", sky=sky)
         with atomic_directory(prior_dir(scene_dir, "ndn"), overwrite=True) as staging:

@@ -101,6 +101,10 @@ def test_where_the_normals_network_sees_sky_the_depth_networks_normals_stay(scen
     assert maps.mask.any()
     assert maps.sky is None or not maps.sky.any()
     np.testing.assert_allclose(maps.normal[maps.mask], np.broadcast_to([0, 0, -1.0], (maps.mask.sum(), 3)), atol=1e-5)
+    # asked to, the normals network's sky is written as sky, in the trainer's format: no surface there
+    write_ndn_priors(scene, depth, normal_weights=sky_everywhere, sky_from_normals=True)
+    maps = load_prior_maps(scene, "ndn", "view_000.png")
+    assert maps.sky.all() and not maps.mask.any() and not maps.depth.any() and not maps.normal.any()
 
 
 def test_priors_of_the_package_are_outdated_when_its_networks_change_and_auto_predicts_again(scene, pair,
