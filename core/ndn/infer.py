@@ -248,6 +248,8 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
         metadata["sky_from"] = "depth and normals networks" if sky_from_normals else "depth network"
         metadata["normal_weights"] = str(networks.normals)
         metadata["normal_weights_sha"] = weights_digest(networks.normals)
+        if normal_net.config.model.evidence:
+            metadata["normal_evidence"] = "sfm points" + (" + stereo labels" if normal_net.had_stereo else "")
     # all maps go to a staging folder that replaces priors/ndn only when complete: a failure
     # never leaves a mix of old and new views
     priors = SceneDir(scene_dir).priors
@@ -295,8 +297,9 @@ def outdated_ndn_priors(scene_dir: str | Path) -> str | None:
 
     Only priors the package's own networks made are judged (a user's chosen weights are kept):
     they are outdated when the package's networks have changed since (another digest, or a
-    folder from before the normals network shipped). Nothing is outdated while the
-    environment names other weights."""
+    folder from before the normals network shipped), or when the normals network read no
+    stereo labels and the scene has them now. Nothing is outdated while the environment names
+    other weights."""
     from ..errors import CheckpointError
     from .shipped import SHIPPED_WEIGHTS, resolve_prior_networks, weights_digest
 
@@ -318,6 +321,10 @@ def outdated_ndn_priors(scene_dir: str | Path) -> str | None:
                 "normal_weights_sha": weights_digest(networks.normals) if networks.normals else None}
     if any(header.get(key) != value for key, value in expected.items()):
         return "the package's NDN weights changed since they were predicted"
+    # the normals network reads the stereo labels when they exist (what was measured): priors
+    # predicted before the labels were made are predicted again once they are
+    if header.get("normal_evidence") == "sfm points" and SceneDir(scene_dir).has_prior_maps("labels", "depth"):
+        return "stereo labels exist now, which the normals network reads"
     return None
 
 

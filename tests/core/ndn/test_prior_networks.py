@@ -143,3 +143,19 @@ def test_priors_of_the_package_are_outdated_when_its_networks_change_and_auto_pr
     assert ndn_priors_header(scene)["networks"] == "default" and outdated_ndn_priors(scene) is None
     maps = load_prior_maps(scene, "ndn", "view_000.png")
     np.testing.assert_allclose(maps.normal[maps.mask], np.broadcast_to([0, 0.6, -0.8], (maps.mask.sum(), 3)), atol=1e-4)
+
+
+def test_priors_predicted_before_the_stereo_labels_are_predicted_again_once_they_exist(scene, pair):
+    from esgs.core.ndn.infer import ndn_priors_header, outdated_ndn_priors, write_ndn_priors
+    from esgs.core.priors import load_prior_maps, write_prior_maps
+
+    write_ndn_priors(scene)
+    assert ndn_priors_header(scene)["normal_evidence"] == "sfm points" and outdated_ndn_priors(scene) is None
+    for index in range(4):
+        name = f"view_{index:03d}.png"
+        gt = load_prior_maps(scene, "gt", name)
+        write_prior_maps(scene, "labels", name, depth=gt.depth, mask=gt.mask)
+    assert "stereo labels" in outdated_ndn_priors(scene)
+    write_ndn_priors(scene)
+    assert ndn_priors_header(scene)["normal_evidence"] == "sfm points + stereo labels"
+    assert outdated_ndn_priors(scene) is None
