@@ -194,7 +194,7 @@ def _view_maps(prediction: _ScenePrediction, index: int,
 
 
 def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *, normal_weights: str | Path | None = None,
-                     steps: int | None = None, seed: int = 0, batch_size: int = 4, sky_from_normals: bool = False,
+                     steps: int | None = None, seed: int = 0, batch_size: int = 4, sky_from_normals: bool = True,
                      progress: ProgressCallback = no_progress) -> int:
     """Predict and write ``SCENE/priors/ndn/`` for every view of the scene; returns the view count.
 
@@ -205,7 +205,9 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
 
     The depth network writes depth, the surface mask and the sky; the normals network, where
     it sees a surface (outside its own sky), replaces the normals (docs/ndn.md: its normals
-    measured better on every evaluation set, its depth did not).
+    measured better on every evaluation set, its depth did not), and with ``sky_from_normals``
+    (the default) its sky is added to the sky: it marks the sky of rover views at 0.999
+    precision, and training on scenes without ground truth gains from it (docs/ndn.md).
 
     Weights that read evidence get each view's SfM points and, where ``priors/labels`` exists,
     its stereo labels (:func:`scene_evidence`); their depth is then written in metres, fitted to
@@ -318,9 +320,12 @@ def outdated_ndn_priors(scene_dir: str | Path) -> str | None:
     if not by_package:
         return None
     expected = {"weights_sha": weights_digest(networks.depth),
-                "normal_weights_sha": weights_digest(networks.normals) if networks.normals else None}
-    if any(header.get(key) != value for key, value in expected.items()):
+                "normal_weights_sha": weights_digest(networks.normals) if networks.normals else None,
+                "sky_from": "depth and normals networks" if networks.normals else None}
+    if any(header.get(key) != value for key, value in expected.items() if key != "sky_from"):
         return "the package's NDN weights changed since they were predicted"
+    if header.get("sky_from") != expected["sky_from"]:
+        return "the package's normals network marks the sky now"
     # the normals network reads the stereo labels when they exist (what was measured): priors
     # predicted before the labels were made are predicted again once they are
     if header.get("normal_evidence") == "sfm points" and SceneDir(scene_dir).has_prior_maps("labels", "depth"):

@@ -47,7 +47,8 @@ class TrainConfig:
     width: int = field(default=0, metadata=_help("target image width in pixels; overrides --resolution when > 0"))
     test_every: int = field(default=8, metadata=_help("every Nth image (sorted by name, index %% N == 0) is held out; 0 = no test split"))
     mask_source: str = field(default="auto", metadata=_help(
-        "priors/<source>/mask/ to use as sky masks: a source name, 'auto' (first found of gt, labels, ndn; never the sparse sfm masks) or 'none'"))
+        "priors/<source>/mask/ to use as sky masks: a source name, 'auto' (gt; else a source whose sky maps mark sky, "
+        "such as ndn's; else the first found of labels, ndn; never the sparse sfm masks) or 'none'"))
     mask_photometric: bool = field(default=False, metadata=_help(
         "legacy: masked pixels leave the photometric loss (how runs saved before the sky model trained; "
         "their sky then renders as the background)"))

@@ -114,21 +114,41 @@ def _resize(image: np.ndarray, size: tuple[int, int], nearest: bool = False) -> 
 
 
 def find_mask_source(scene: Path, requested: str) -> Optional[str]:
-    """The priors source whose mask/ folder to use: requested name, first found for 'auto', None for 'none'."""
+    """The priors source whose mask/ folder to use: the requested name; for 'auto' gt, else a source
+    whose sky maps mark sky somewhere (ndn), else the first dense mask found; None for 'none'."""
     if requested == "none":
         return None
     folder = SceneDir(scene)
     if requested == "auto":
         # only dense masks: sfm's marks the sparse pixels with a depth sample, and using it for
         # the photometric loss would blank most of the image
-        for source in PriorSource.auto_mask_order():
-            if folder.has_prior_maps(source, "mask"):
+        found = [source for source in PriorSource.auto_mask_order() if folder.has_prior_maps(source, "mask")]
+        if not found or found[0] is PriorSource.GT:
+            return found[0].value if found else None  # the scene's exact masks when it has them
+        # then a source that marked sky in its sky/ maps (ndn, with the normals network's sky)
+        # before a mask that only says where a source has values (labels): the trainer's sky
+        # terms need the sky marked (measured on scenes without ground truth: docs/training.md,
+        # "Sky masks from the normals network")
+        for source in found:
+            if source.masks_sky and _marks_sky_somewhere(folder, source):
                 return source.value
-        return None
+        return found[0].value
     if not folder.has_prior_maps(requested, "mask"):
         raise DatasetError(f"no mask folder for prior source {requested!r}", path=folder.prior_maps(requested, "mask"),
                            hint="use --mask-source auto or none")
     return requested
+
+
+def _marks_sky_somewhere(folder: SceneDir, source: PriorSource) -> bool:
+    """Whether ``priors/<source>/sky/`` holds a map with at least one sky pixel (read until one does)."""
+    import cv2
+
+    sky = folder.prior_maps(source, "sky")
+    for path in sorted(sky.glob("*.png")) if sky.is_dir() else []:
+        raw = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if raw is not None and int(raw.max()) > 127:
+            return True
+    return False
 
 
 def _read_mask(path: Path) -> np.ndarray:

@@ -95,14 +95,14 @@ def test_where_the_normals_network_sees_sky_the_depth_networks_normals_stay(scen
 
     depth, _ = pair
     sky_everywhere = _constant(tmp_path / "sky.pt", (0.0, -0.6, -0.8), evidence=True, sky_logit=5.0)
-    write_ndn_priors(scene, depth, normal_weights=sky_everywhere)
+    write_ndn_priors(scene, depth, normal_weights=sky_everywhere, sky_from_normals=False)
     maps = load_prior_maps(scene, "ndn", "view_000.png")
     # the depth network's mask and sky (it has no sky head: none) are kept; its normals too
     assert maps.mask.any()
     assert maps.sky is None or not maps.sky.any()
     np.testing.assert_allclose(maps.normal[maps.mask], np.broadcast_to([0, 0, -1.0], (maps.mask.sum(), 3)), atol=1e-5)
-    # asked to, the normals network's sky is written as sky, in the trainer's format: no surface there
-    write_ndn_priors(scene, depth, normal_weights=sky_everywhere, sky_from_normals=True)
+    # by default the normals network's sky is written as sky, in the trainer's format: no surface there
+    write_ndn_priors(scene, depth, normal_weights=sky_everywhere)
     maps = load_prior_maps(scene, "ndn", "view_000.png")
     assert maps.sky.all() and not maps.mask.any() and not maps.depth.any() and not maps.normal.any()
 
@@ -116,6 +116,10 @@ def test_priors_of_the_package_are_outdated_when_its_networks_change_and_auto_pr
     depth, normals = pair
     write_ndn_priors(scene)
     assert outdated_ndn_priors(scene) is None
+    # priors of the package's pair from before its normals network marked the sky
+    write_ndn_priors(scene, sky_from_normals=False)
+    assert "marks the sky" in outdated_ndn_priors(scene)
+    write_ndn_priors(scene)
     # the package ships other normal weights: the same path, other contents
     _constant(normals, (0.0, 0.6, -0.8), evidence=True)
     assert "changed" in outdated_ndn_priors(scene)

@@ -119,3 +119,24 @@ def test_auto_mask_never_takes_sparse_sfm_masks(tmp_path):
     (tmp_path / "priors" / "gt" / "mask").mkdir(parents=True)
     assert find_mask_source(tmp_path, "auto") == "gt"
     assert find_mask_source(tmp_path, "sfm") == "sfm"  # still possible when asked for by name
+
+
+def test_auto_mask_prefers_a_source_that_marks_the_sky_over_a_coverage_mask(tmp_path):
+    """Without gt, ndn's masks come before the labels' once its sky maps mark some sky (the
+    trainer's sky terms need it); without any sky marked, the order is gt, labels, ndn."""
+    from esgs.core.priors import write_prior_maps
+    from esgs.core.train.dataset import find_mask_source
+
+    surface = np.ones((6, 8), bool)
+    write_prior_maps(tmp_path, "labels", "a.png", depth=np.ones((6, 8), np.float32), mask=surface)
+    write_prior_maps(tmp_path, "ndn", "a.png", depth=np.ones((6, 8), np.float32), mask=surface,
+                     relative_depth=True, units="relative", mask_kind="surface", sky=np.zeros((6, 8), bool))
+    assert find_mask_source(tmp_path, "auto") == "labels"  # ndn's sky maps mark nothing
+    sky = np.zeros((6, 8), bool)
+    sky[0, :] = True
+    write_prior_maps(tmp_path, "ndn", "b.png", depth=np.ones((6, 8), np.float32), mask=~sky,
+                     relative_depth=True, units="relative", mask_kind="surface", sky=sky)
+    assert find_mask_source(tmp_path, "auto") == "ndn"
+    write_prior_maps(tmp_path, "gt", "a.png", depth=np.ones((6, 8), np.float32), mask=surface)
+    assert find_mask_source(tmp_path, "auto") == "gt"  # the scene's exact masks first, as before
+    assert find_mask_source(tmp_path, "labels") == "labels"
