@@ -102,11 +102,12 @@ def card(weights: Path, slice_scores: dict) -> str:
         "against this card.", "",
         "## What it does in the product", "",
         "`esgs priors --method ndn` (and so `priors/auto`, the default prior of `esgs train --esgs`) runs two "
-        "networks: the diffusion NDN (`ndn_mars.pt`, docs/ndn_model_card.md) writes depth, the surface mask and "
-        "the sky; this network writes the **normals** wherever it sees a surface. It reads, besides the three "
-        "views, the view's SfM points and (when `priors/labels` exists) its stereo labels. Its depth and sky "
-        "outputs are not used yet: its depth measured worse than the NDN's on two of the four sets below, and "
-        "its sky was not checked downstream (docs/ndn.md).", "",
+        "networks: the diffusion NDN (`ndn_mars.pt`, docs/ndn_model_card.md) writes depth and the surface mask; "
+        "this network writes the **normals** wherever it sees a surface, and the **sky** (probability above one "
+        "half), which the trainer then takes as its sky mask on scenes without ground truth. It reads, besides "
+        "the three views, the view's SfM points and (when `priors/labels` exists) its stereo labels. Its depth "
+        "is not used: it measured worse than the NDN's on two of the four sets below (docs/ndn.md, \"Shipped as "
+        "the normals network, and its sky\").", "",
         "## Model", "",
         f"- UNet, {parameter_count(model):,} parameters, working size {config.model.working_size} px, "
         f"{config.model.levels} levels, base width {config.model.base_channels}; inputs: three views, the SfM "
@@ -178,7 +179,7 @@ def main() -> int:
             cut_slice(args.work)
         SLICE_SCORES.write_text(json.dumps(score_slice(SHIPPED_NORMAL_WEIGHTS), indent=2) + "\n")
     CARD.write_text(card(SHIPPED_NORMAL_WEIGHTS, json.loads(SLICE_SCORES.read_text())))
-    print(f"wrote {SHIPPED_NORMAL_WEIGHTS}, {SLICE_SCORES} and {CARD}")
+    print(f"wrote {CARD}" if args.card_only else f"wrote {SHIPPED_NORMAL_WEIGHTS}, {SLICE_SCORES} and {CARD}")
     return 0
 
 

@@ -9,7 +9,8 @@ them back to float32):
 - ``core/ndn/weights/ndn_completion.pt``, the **normals** network: the evidence-conditioned
   completion network (reads the view's SfM points and stereo labels;
   docs/ndn_completion_model_card.md). Its normals replace the depth network's wherever it
-  sees a surface: measured better on every evaluation set, while its depth is not (docs/ndn.md).
+  sees a surface (measured better on every evaluation set, while its depth is not), and its
+  sky is written as sky (docs/ndn.md).
 
 ``esgs priors --method ndn``, :func:`.infer.write_ndn_priors` and ``priors/auto`` use both
 when no weights are named (:func:`resolve_prior_networks`). Naming weights (``--weights`` or
