@@ -312,13 +312,11 @@ def _auto_priors_paragraph(scene: Path) -> str:
 
 def _ndn_weights(scene: Path) -> str:
     """Which NDN weights wrote the scene's ndn priors, from a depth map's EXR header."""
-    from ..ndn.infer import ndn_priors_header
-    from ..ndn.shipped import SHIPPED_WEIGHTS
+    from ..ndn.infer import made_by_package, ndn_priors_header
 
     header = ndn_priors_header(scene)
     weights, normals = header.get("weights", ""), header.get("normal_weights", "")
-    if header.get("networks") == "default" or (weights and not normals
-                                               and Path(weights).resolve() == SHIPPED_WEIGHTS.resolve()):
+    if made_by_package(header):
         text = ("the depth network shipped in the package, trained on our synthetic Mars scenes only; see "
                 "docs/ndn_model_card.md")
         if normals:

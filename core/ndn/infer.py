@@ -71,20 +71,27 @@ def maps_from_states(depth_state: np.ndarray, normal_state: np.ndarray,
     ``log_depth_range``), ``normal_state`` [3, h, w]; with ``guide_rgb`` [H, W, 3] the maps
     are upsampled to its size under its guidance, otherwise kept at the working size.
     """
+    relative = state_to_relative_depth(depth_state, kind, log_range)
+    if guide_rgb is not None:
+        relative = np.clip(guided_upsample(relative, guide_rgb), *relative_depth_bounds(kind, log_range))
+    normal, mask = unit_normals(normal_state, guide_rgb)
+    return np.where(mask, relative, 0.0).astype(np.float32), np.where(mask[..., None], normal, 0.0), mask
+
+
+def unit_normals(normal_state: np.ndarray, guide_rgb: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A normal state [3, h, w] -> (unit normals [H, W, 3], surface mask [H, W]): the surface is
+    where the predicted normal is longer than :data:`SURFACE_NORMAL_LENGTH`; with ``guide_rgb``
+    [H, W, 3] both are brought to its size (normals image-guided, the mask nearest)."""
     import cv2
 
-    relative = state_to_relative_depth(depth_state, kind, log_range)
     normal = normal_state.transpose(1, 2, 0)
     surface = (np.linalg.norm(normal, axis=-1) > SURFACE_NORMAL_LENGTH).astype(np.uint8)
     if guide_rgb is not None:
         height, width = guide_rgb.shape[:2]
-        relative = np.clip(guided_upsample(relative, guide_rgb), *relative_depth_bounds(kind, log_range))
         normal = guided_upsample(normal, guide_rgb)
         surface = cv2.resize(surface, (width, height), interpolation=cv2.INTER_NEAREST)
     length = np.linalg.norm(normal, axis=-1, keepdims=True)
-    normal = np.where(length > 1e-6, normal / np.maximum(length, 1e-6), 0.0).astype(np.float32)
-    mask = surface.astype(bool)
-    return np.where(mask, relative, 0.0).astype(np.float32), np.where(mask[..., None], normal, 0.0), mask
+    return np.where(length > 1e-6, normal / np.maximum(length, 1e-6), 0.0).astype(np.float32), surface.astype(bool)
 
 
 def scene_evidence(scene_dir: str | Path, triples: SceneTriples, *,
@@ -185,12 +192,16 @@ def _view_maps(prediction: _ScenePrediction, index: int,
     else:
         depth, normal, mask = maps_from_states(state, prediction.normal_states[index], image,
                                                kind=config.diffusion.depth_state, log_range=log_range)
-    sky = None
-    if prediction.sky is not None:
-        sky = upsample_probability(prediction.sky[index, 0], image) > 0.5
+    sky = _sky_mask(prediction, index, image)
+    if sky is not None:
         mask &= ~sky
         depth, normal = np.where(mask, depth, 0.0).astype(np.float32), np.where(mask[..., None], normal, 0.0)
     return depth, normal, mask, sky, metric
+
+
+def _sky_mask(prediction: _ScenePrediction, index: int, image: np.ndarray) -> np.ndarray | None:
+    """View ``index``'s sky (probability above one half) at the image's size; None without a sky head."""
+    return None if prediction.sky is None else upsample_probability(prediction.sky[index, 0], image) > 0.5
 
 
 def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *, normal_weights: str | Path | None = None,
@@ -263,7 +274,11 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
             image = np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
             depth, normal, mask, sky, metric = _view_maps(depth_net, index, image)
             if normal_net is not None:
-                _, better, sees_surface, normal_sky, _ = _view_maps(normal_net, index, image)
+                # its normals and sky only (its depth is not used): no depth fit or upsampling
+                better, sees_surface = unit_normals(normal_net.normal_states[index], image)
+                normal_sky = _sky_mask(normal_net, index, image)
+                if normal_sky is not None:
+                    sees_surface &= ~normal_sky
                 normal = np.where((sees_surface & mask)[..., None], better, normal).astype(np.float32)
                 if sky_from_normals and normal_sky is not None:
                     sky = normal_sky if sky is None else sky | normal_sky
@@ -294,6 +309,18 @@ def ndn_priors_header(scene_dir: str | Path) -> dict[str, str]:
         return {}
 
 
+def made_by_package(header: dict[str, str]) -> bool:
+    """Whether ``priors/ndn`` with this header (:func:`ndn_priors_header`) came from the package's
+    own networks: recorded as such, or (folders from before the record) the shipped depth network
+    named as the weights and no normals network."""
+    from .shipped import SHIPPED_WEIGHTS
+
+    if "networks" in header:
+        return header["networks"] == "default"
+    return bool(header.get("weights")) and "normal_weights" not in header \
+        and Path(header["weights"]).resolve() == SHIPPED_WEIGHTS.resolve()
+
+
 def outdated_ndn_priors(scene_dir: str | Path) -> str | None:
     """Why the scene's ``priors/ndn`` should be predicted again, or None to keep them.
 
@@ -303,7 +330,7 @@ def outdated_ndn_priors(scene_dir: str | Path) -> str | None:
     stereo labels and the scene has them now. Nothing is outdated while the environment names
     other weights."""
     from ..errors import CheckpointError
-    from .shipped import SHIPPED_WEIGHTS, resolve_prior_networks, weights_digest
+    from .shipped import resolve_prior_networks, weights_digest
 
     header = ndn_priors_header(scene_dir)
     if not header:
@@ -314,10 +341,7 @@ def outdated_ndn_priors(scene_dir: str | Path) -> str | None:
         return None  # the package lacks a network: predicting again could not do better
     if not networks.default:
         return None
-    recorded = header.get("networks")
-    by_package = recorded == "default" if recorded is not None else \
-        bool(header.get("weights")) and Path(header["weights"]).resolve() == SHIPPED_WEIGHTS.resolve()
-    if not by_package:
+    if not made_by_package(header):
         return None
     expected = {"weights_sha": weights_digest(networks.depth),
                 "normal_weights_sha": weights_digest(networks.normals) if networks.normals else None,
@@ -356,16 +380,9 @@ def metric_maps(depth: np.ndarray, normal_state: np.ndarray,
                 guide_rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One view's metric depth [h, w] and normal state [3, h, w] -> (depth [H, W] in metres,
     unit normals [H, W, 3], surface mask [H, W]) at the guide's size, as :func:`maps_from_states`."""
-    import cv2
-
-    height, width = guide_rgb.shape[:2]
-    normal = guided_upsample(normal_state.transpose(1, 2, 0), guide_rgb)
-    surface = cv2.resize((np.linalg.norm(normal_state, axis=0) > SURFACE_NORMAL_LENGTH).astype(np.uint8),
-                         (width, height), interpolation=cv2.INTER_NEAREST).astype(bool)
+    normal, surface = unit_normals(normal_state, guide_rgb)
     # depth is up-sampled in log space: a guided filter's averages must not mix near and far linearly
     depth = np.exp(guided_upsample(np.log(np.maximum(depth, 1e-6)), guide_rgb))
-    length = np.linalg.norm(normal, axis=-1, keepdims=True)
-    normal = np.where(length > 1e-6, normal / np.maximum(length, 1e-6), 0.0).astype(np.float32)
     return np.where(surface, depth, 0.0).astype(np.float32), np.where(surface[..., None], normal, 0.0), surface
 
 
