@@ -1,7 +1,8 @@
 """Ship the completion network as the package's normals network, in one command.
 
     .venv/bin/python benchmarks/ship_completion.py benchmarks/weights/completion_2026-11-29_step2000.pt \\
-        [--work /work/runs/hf/work] [--card-only]
+        [--work /work/runs/hf/work] [--card-only] [--fine-tune TRAINING_JSON] [--evaluation EVALUATION_JSON] \\
+        [--navcam NAVCAM_SKY_JSON]
 
 It (1) copies the float16 weights (or exports a training checkpoint) to
 ``core/ndn/weights/ndn_completion.pt``, (2) cuts a three-view slice with its evidence (SfM cells
@@ -82,12 +83,16 @@ def _row(rows: dict, name: str) -> str:
     return f"{scores['abs_rel_metric']:.3f} / {scores['delta1_metric']:.3f} / {scores['normal_mean_deg']:.1f}"
 
 
-def card(weights: Path, slice_scores: dict) -> str:
+def card(weights: Path, slice_scores: dict, *, evaluation_path: Path = EVALUATION, fine_tune: Path | None = None,
+         navcam: Path | None = None) -> str:
+    """The model card's text. ``fine_tune``: the training record of a continuation of the base run
+    (its config, CPU hours and why); ``navcam``: ``benchmarks/ndn_navcam_sky.py``'s result, whose
+    ``shipped`` entry says how much of the real Navcam frames' sky the shipped file finds."""
     from esgs.core.ndn.checkpoint import load_checkpoint
     from esgs.core.ndn.model import parameter_count
 
     training = json.loads(TRAINING.read_text())
-    evaluation = json.loads(EVALUATION.read_text())
+    evaluation = json.loads(evaluation_path.read_text())
     model, _, config, payload = load_checkpoint(weights)
     sets = evaluation["sets"]
     labels = {"heldout": "held-out synthetic", "landform": "real mesh (landform)", "rover": "rover horizon",
@@ -124,10 +129,10 @@ def card(weights: Path, slice_scores: dict) -> str:
         f"learning rate {training['config']['train']['learning_rate']} (cosine), evidence dropped at random "
         "per sample; 3.7 CPU-hours on 2 threads; the step was chosen on the validation score of the tuning set "
         "alone;",
-        f"- record: `{TRAINING.relative_to(REPO)}`.", "",
+        f"- record: `{TRAINING.relative_to(REPO)}`.", *_fine_tune_lines(fine_tune), "",
         "## Full-image scores (every surface pixel; metric AbsRel / δ1, no alignment / normal mean error in "
         "degrees)", "",
-        f"From `{EVALUATION.relative_to(REPO)}` (command inside; none of these scenes was trained on). The "
+        f"From `{evaluation_path.resolve().relative_to(REPO)}` (command inside; none of these scenes was trained on). The "
         "evaluation ran the training checkpoint; the shipped file is its float16 export (the slice below is "
         "scored with the shipped file).", "",
         "| row | " + " | ".join(f"{labels.get(name, name)} ({len(sets[name]['views'])} views)" for name in sets) + " |",
@@ -141,14 +146,34 @@ def card(weights: Path, slice_scores: dict) -> str:
               "| slice | " + " | ".join(SCORES) + " |", "|---|" + "---|" * len(SCORES),
               "| completion_slice | " + " | ".join(fmt(key, slice_scores["scores"][key]) for key in SCORES) + " |",
               "", "## Limits", "",
-              "- trained on synthetic scenes and one real mesh only; the real Navcam frames were not in training "
-              "and its sky head does not find their sky (docs/ndn.md);",
+              "- trained on synthetic scenes and one real mesh only; " + _navcam_line(navcam),
               "- the normals are in the camera frame of each view at 128 px, brought to the image size by an "
               "image-guided filter: thin structures below a few pixels at 128 px are smoothed.", "",
               "## Reproduce", "", "```",
               f"{sys.executable.replace(str(REPO) + '/', '')} benchmarks/ship_completion.py {weights_argument(weights)}",
               "```", ""]
     return "\n".join(lines)
+
+
+def _fine_tune_lines(record: Path | None) -> list[str]:
+    if record is None:
+        return []
+    fine = json.loads(record.read_text())
+    train = fine["config"]["train"]
+    return [f"- then continued from that step to step {train['steps']} ({fine['steps_run']} steps, learning rate "
+            f"{train['learning_rate']} cosine, weight average decay {train['ema_decay']}) with repainted skies "
+            f"(`--sky-looks {train['sky_looks']}`, `--augment {train['augment']}`): {fine['why']}; "
+            f"{fine['cpu_hours']:.1f} CPU-hours; record: `{record.resolve().relative_to(REPO)}`."]
+
+
+def _navcam_line(result: Path | None) -> str:
+    if result is None:
+        return "the real Navcam frames were not in training and its sky head does not find their sky (docs/ndn.md);"
+    shipped = json.loads(result.read_text())["results"]["shipped"]
+    return (f"the real Navcam frames were not in training; on them its sky covers {100 * shipped['recall']:.0f} % of "
+            f"the sky a brightness rule marks (precision {100 * shipped['precision']:.0f} %, sky marked on "
+            f"{shipped['frames_with_any_sky_marked']} of {shipped['frames_with_sky']} frames with sky; "
+            f"`{result.resolve().relative_to(REPO)}`, docs/ndn.md);")
 
 
 def weights_argument(weights: Path) -> str:
@@ -164,6 +189,10 @@ def main() -> int:
     parser.add_argument("--work", type=Path, default=Path("/work/runs/hf/work"),
                         help="benchmarks/ndn_completion.py's prepared scene copies (only to cut the slice once)")
     parser.add_argument("--card-only", action="store_true", help="rewrite the card from the slice scores on file")
+    parser.add_argument("--evaluation", type=Path, default=EVALUATION,
+                        help="benchmarks/ndn_completion.py's JSON with the shipped+cand_normals:auto row")
+    parser.add_argument("--fine-tune", type=Path, default=None, help="training record of a continuation")
+    parser.add_argument("--navcam", type=Path, default=None, help="benchmarks/ndn_navcam_sky.py's JSON")
     args = parser.parse_args()
     from esgs.core.ndn.shipped import SHIPPED_NORMAL_WEIGHTS, export_weights
 
@@ -178,7 +207,8 @@ def main() -> int:
         if not SLICE.exists():
             cut_slice(args.work)
         SLICE_SCORES.write_text(json.dumps(score_slice(SHIPPED_NORMAL_WEIGHTS), indent=2) + "\n")
-    CARD.write_text(card(SHIPPED_NORMAL_WEIGHTS, json.loads(SLICE_SCORES.read_text())))
+    CARD.write_text(card(SHIPPED_NORMAL_WEIGHTS, json.loads(SLICE_SCORES.read_text()), evaluation_path=args.evaluation,
+                         fine_tune=args.fine_tune, navcam=args.navcam))
     print(f"wrote {CARD}" if args.card_only else f"wrote {SHIPPED_NORMAL_WEIGHTS}, {SLICE_SCORES} and {CARD}")
     return 0
 

@@ -128,6 +128,10 @@ class NDNTrainConfig:
         "help": "probability that a batch's triples are each seen through a window of 60-100 %% of the image, zoomed "
                 "back (the same window for a triple's views, targets and evidence): horizons and sky bands anywhere "
                 "in the frame; 0 = off (runs saved before it existed resume with 0)"})
+    sky_looks: float = field(default=0.0, metadata={
+        "help": "probability that a triple's sky is repainted (any brightness from dim to clipped white, grey or "
+                "tinted, a gradient and sometimes glare; one colour for its three views): the sky head learns where "
+                "the sky is rather than the generator's sky colour; 0 = off (runs saved before it existed resume with 0)"})
     init: str = field(default="", metadata={
         "help": "fine-tune: start from this checkpoint's weights and optimiser moments (steps continue from "
                 "its step; the schedule spans from there to --steps); ignored when --resume finds a checkpoint"})
@@ -148,6 +152,8 @@ class NDNTrainConfig:
             raise ConfigError(f"min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
         if not 0.0 <= self.augment <= 1.0:
             raise ConfigError(f"augment must be a probability in [0, 1], got {self.augment}")
+        if not 0.0 <= self.sky_looks <= 1.0:
+            raise ConfigError(f"sky_looks must be a probability in [0, 1], got {self.sky_looks}")
         if not 0.0 <= self.crop_zoom <= 1.0:
             raise ConfigError(f"crop_zoom must be a probability in [0, 1], got {self.crop_zoom}")
         if not 0.0 <= self.ema_decay < 1.0:

@@ -248,10 +248,13 @@ def write_shard(path: str | Path, triples: SceneTriples, metadata: dict) -> None
                                 metadata=np.array(json.dumps(metadata)), **optional)
 
 
-def load_shards(data_dir: str | Path, split: str = "train", *, with_scenes: bool = False) -> dict[str, np.ndarray]:
+def load_shards(data_dir: str | Path, split: str = "train", *, with_scenes: bool = False,
+                with_view_sky: bool = False) -> dict[str, np.ndarray]:
     """Concatenate the shards of one split: views, depth, normal, mask (see the module docstring),
     and ``sfm_depth`` when every shard has it; with ``with_scenes`` also ``scene`` [N] (str), the
-    shard each triple came from (its file stem).
+    shard each triple came from (its file stem); with ``with_view_sky`` also ``view_sky``
+    [N, 3, h, w] bool, the sky of each of a triple's three views, False throughout for a triple
+    whose neighbours are not centres of the same shard (:func:`.sky_looks.sky_of_views`).
 
     Shards with different working resolutions cannot be batched together: a mix raises
     :class:`DatasetError`.
@@ -264,6 +267,7 @@ def load_shards(data_dir: str | Path, split: str = "train", *, with_scenes: bool
     arrays: dict[str, list[np.ndarray]] = {"views": [], "depth": [], "normal": [], "mask": []}
     scenes: list[np.ndarray] = []
     points: list[np.ndarray] = []
+    view_sky: list[np.ndarray] = []
     for path in paths:
         with np.load(path, allow_pickle=False) as shard:
             if "format" not in shard or str(shard["format"]) != SHARD_FORMAT:
@@ -273,6 +277,11 @@ def load_shards(data_dir: str | Path, split: str = "train", *, with_scenes: bool
             if "sfm_depth" in shard:
                 points.append(shard["sfm_depth"])
             scenes.append(np.full(len(shard["views"]), path.stem))
+            if with_view_sky:
+                from .sky_looks import sky_of_views
+
+                sky, known = sky_of_views(shard["views"], shard["mask"])
+                view_sky.append(sky & known[:, None, None, None])
     shapes = {array.shape[-2:] for array in arrays["views"]}
     if len(shapes) != 1:
         raise DatasetError(f"shards have different working resolutions {sorted(shapes)}", path=data_dir / "shards",
@@ -282,6 +291,8 @@ def load_shards(data_dir: str | Path, split: str = "train", *, with_scenes: bool
         loaded["sfm_depth"] = np.concatenate(points)
     if with_scenes:
         loaded["scene"] = np.concatenate(scenes)
+    if with_view_sky:
+        loaded["view_sky"] = np.concatenate(view_sky)
     return loaded
 
 

@@ -34,6 +34,8 @@ from .data import LOG_DEPTH_RANGE, check_disjoint_splits, depth_to_state, load_s
 from .checkpoint import (CHECKPOINT_FORMAT, _read_checkpoint, build_model, checkpoint_config,  # noqa: F401
                          latest_checkpoint, load_checkpoint, resolve_weights, save_checkpoint)
 from .model import NDNUNet
+from .sky_looks import relight_sky
+
 
 def learning_rate_at(step: int, config: NDNTrainConfig, start_step: int = 0) -> float:
     """The learning rate of optimiser step ``step`` (1-based, counted over the whole training
@@ -166,7 +168,7 @@ def resume_source(model_dir: str | Path) -> Path | None:
 
 # Training settings that did not exist when some runs were started, with the value those runs
 # trained with: a saved config.json without the key resumes with this, not today's default.
-SETTINGS_BEFORE_THEY_EXISTED = {"augment": 0.0, "crop_zoom": 0.0}
+SETTINGS_BEFORE_THEY_EXISTED = {"augment": 0.0, "crop_zoom": 0.0, "sky_looks": 0.0}
 
 
 def saved_train_config(model_dir: str | Path) -> NDNTrainConfig | None:
@@ -203,6 +205,8 @@ def training_tensors(arrays: dict[str, np.ndarray], depth_state: str = "affine",
                "metric": torch.from_numpy(arrays["depth"].astype(np.float32))}
     if "sfm_depth" in arrays:
         tensors["sfm"] = torch.from_numpy(arrays["sfm_depth"].astype(np.float32))
+    if "view_sky" in arrays:
+        tensors["view_sky"] = torch.from_numpy(arrays["view_sky"])
     return tensors
 
 
@@ -370,7 +374,7 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
         torch.manual_seed(train_config.seed)
         model, diffusion = build_model(config)
         payload, schedule_start = {}, 0
-    arrays = load_shards(data_dir, "train")
+    arrays = load_shards(data_dir, "train", with_view_sky=train_config.sky_looks > 0)
     multiple = 2 ** (config.model.levels - 1)
     if arrays["views"].shape[-1] % multiple or arrays["views"].shape[-2] % multiple:
         raise CheckpointError(f"data resolution {arrays['views'].shape[-1]}x{arrays['views'].shape[-2]} is not a "
@@ -498,6 +502,10 @@ def _take_step(run: _TrainingRun, learning_rate: float) -> dict[str, float]:
     flip = bool(torch.rand((), generator=generator) < 0.5)
     if flip:
         views, depth, normal = flip_horizontally(views, depth, normal)
+    if train_config.sky_looks > 0:  # before the photometric change, which may then grey the new sky
+        view_sky = data["view_sky"][index]
+        views = relight_sky(views, view_sky.flip(-1) if flip else view_sky, generator,
+                            probability=train_config.sky_looks)
     if train_config.augment > 0 and bool(torch.rand((), generator=generator) < train_config.augment):
         views = augment_photometric(views, generator)
     extra_inputs: dict[str, torch.Tensor] = {}
