@@ -86,7 +86,7 @@ def _row(rows: dict, name: str) -> str:
 def card(weights: Path, slice_scores: dict, *, evaluation_path: Path = EVALUATION, fine_tune: Path | None = None,
          navcam: Path | None = None) -> str:
     """The model card's text. ``fine_tune``: the training record of a continuation of the base run
-    (its config, CPU hours and why); ``navcam``: ``benchmarks/ndn_navcam_sky.py``'s result, whose
+    (its config, CPU hours and why); ``navcam``: ``benchmarks/ndn_sky_masks.py``'s result, whose
     ``shipped`` entry says how much of the real Navcam frames' sky the shipped file finds."""
     from esgs.core.ndn.checkpoint import load_checkpoint
     from esgs.core.ndn.model import parameter_count
@@ -192,7 +192,7 @@ def main() -> int:
     parser.add_argument("--evaluation", type=Path, default=EVALUATION,
                         help="benchmarks/ndn_completion.py's JSON with the shipped+cand_normals:auto row")
     parser.add_argument("--fine-tune", type=Path, default=None, help="training record of a continuation")
-    parser.add_argument("--navcam", type=Path, default=None, help="benchmarks/ndn_navcam_sky.py's JSON")
+    parser.add_argument("--navcam", type=Path, default=None, help="benchmarks/ndn_sky_masks.py's JSON")
     args = parser.parse_args()
     from esgs.core.ndn.shipped import SHIPPED_NORMAL_WEIGHTS, export_weights
 

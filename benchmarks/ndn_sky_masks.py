@@ -1,11 +1,14 @@
-"""Does the sky head find the sky in real Curiosity Navcam frames? Scores against rough reference masks.
+"""The sky masks `esgs priors --method ndn` writes, scored against a reference: real Navcam frames or a rendered scene.
 
 The frames of ``../shared/data/mars_navcam_pan`` come without sky masks, so this script draws
-rough ones by a rule: pixels that are bright and flat (Gaussian-blurred grey above
-``--bright``, gradient below ``--flat``) and connected to the frame's top (row 10: the
+rough ones by a rule (:func:`rough_sky`): pixels that are bright and flat (Gaussian-blurred
+grey above 140, gradient magnitude below 10) and connected to the frame's top (row 10: the
 frames have a dark border of a few rows). The rule misses thin slivers of sky and some skies
 near the sun, and can take in flat bright haze at the horizon, so it is a reference to check
 by eye (``--overlay`` draws it in red on every frame), not ground truth.
+
+With ``--reference gt`` the reference is instead a scene's exact sky (where ``priors/gt`` has
+no surface), for rendered scenes.
 
 Each set of weights is run as ``esgs priors --method ndn`` runs it (``_predict_scene``: the
 station's own evidence, none for a rotation-only station; the probability upsampled with the
@@ -14,8 +17,8 @@ precision / recall / IoU over all frames, the mean IoU over frames whose referen
 2 % sky, the share of sky marked on frames whose reference has none, and per frame figures.
 
     esgs dataset rotation-only ../shared/data/mars_navcam_pan/images --out STATION --focal-px 621
-    .venv/bin/python benchmarks/ndn_navcam_sky.py STATION --weights shipped=core/ndn/weights/ndn_completion.pt \\
-        candidate=PATH --out benchmarks/results/ndn_navcam_sky_DATE.json --overlay docs/images/navcam_sky_reference.png
+    .venv/bin/python benchmarks/ndn_sky_masks.py STATION --weights shipped=core/ndn/weights/ndn_completion.pt \\
+        candidate=PATH --out benchmarks/results/ndn_sky_masks_navcam_DATE.json --overlay docs/images/navcam_sky_reference.png
 """
 from __future__ import annotations
 
@@ -122,6 +125,8 @@ def main() -> int:
     parser.add_argument("--weights", nargs="+", required=True, metavar="LABEL=PATH")
     parser.add_argument("--out", type=Path, required=True, help="JSON file to write")
     parser.add_argument("--overlay", type=Path, default=None, help="PNG of the reference masks")
+    parser.add_argument("--reference", choices=("rule", "gt"), default="rule",
+                        help="rule: bright, flat and connected to the top (real frames); gt: no surface in priors/gt")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
 
@@ -135,6 +140,11 @@ def main() -> int:
     scene = SceneDir(args.scene)
     reference = {}
     for path in sorted(p for p in (args.scene / "images").iterdir() if p.is_file()):
+        if args.reference == "gt":
+            from esgs.core.priors import load_prior_maps
+
+            reference[path.name] = ~load_prior_maps(args.scene, "gt", path.name).mask
+            continue
         grey = read_image(scene.image(path.name))
         reference[path.name] = rough_sky(grey if grey.ndim == 2 else grey[..., 0])
     if args.overlay:
@@ -154,8 +164,8 @@ def main() -> int:
         "date": datetime.date.today().isoformat(),
         "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
         "station": str(args.scene),
-        "reference": {"rule": "rough_sky: blurred grey > 140, gradient < 10, connected to row 10",
-                      "frames": len(reference)},
+        "reference": {"rule": "rough_sky: blurred grey > 140, gradient < 10, connected to row 10"
+                      if args.reference == "rule" else "exact: no surface in priors/gt", "frames": len(reference)},
         "results": results,
     })
     print(f"wrote {args.out}")
