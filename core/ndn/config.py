@@ -8,6 +8,7 @@ from ..errors import ConfigError
 # the depth diffusion state: "affine" per view (the shipped weights) or scale-normalised "log"
 # depth (see core/ndn/data.py, depth_to_state)
 DEPTH_STATES = ("affine", "log")
+PANORAMA_INPUTS = ("neighbours", "centre")  # NDNModelConfig.panorama_input
 
 
 @dataclass
@@ -23,8 +24,14 @@ class NDNModelConfig:
                 "4 channels; core/ndn/evidence.py) and predicts depth in metres about it; needs the log depth state"})
     sky: bool = field(default=False, metadata={
         "help": "a sky head: the depth branch also predicts a per-pixel sky logit (trained on the no-surface pixels)"})
+    panorama_input: str = field(default="neighbours", metadata={
+        "help": "what the network reads as neighbours on a scene shot from one camera centre (a panorama, whose "
+                "neighbours are rotations that training never shows): neighbours, or centre (the view itself "
+                "three times; set by training with --monocular)"})
 
     def validate(self) -> None:
+        if self.panorama_input not in PANORAMA_INPUTS:
+            raise ConfigError(f"panorama_input must be one of {PANORAMA_INPUTS}, got {self.panorama_input!r}")
         if self.base_channels < 4 or self.base_channels % 4:
             raise ConfigError(f"base_channels must be a positive multiple of 4, got {self.base_channels}")
         if not 1 <= self.levels <= 5:
@@ -132,6 +139,10 @@ class NDNTrainConfig:
         "help": "probability that a triple's sky is repainted (any brightness from dim to clipped white, grey or "
                 "tinted, a gradient and sometimes glare; one colour for its three views): the sky head learns where "
                 "the sky is rather than the generator's sky colour; 0 = off (runs saved before it existed resume with 0)"})
+    monocular: float = field(default=0.0, metadata={
+        "help": "probability that a triple's two neighbours are replaced by its centre view (no parallax): the "
+                "network learns to read one view alone, and reads scenes shot from one camera centre that way "
+                "(its panorama_input becomes centre); 0 = off (runs saved before it existed resume with 0)"})
     init: str = field(default="", metadata={
         "help": "fine-tune: start from this checkpoint's weights and optimiser moments (steps continue from "
                 "its step; the schedule spans from there to --steps); ignored when --resume finds a checkpoint"})
@@ -152,6 +163,8 @@ class NDNTrainConfig:
             raise ConfigError(f"min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
         if not 0.0 <= self.augment <= 1.0:
             raise ConfigError(f"augment must be a probability in [0, 1], got {self.augment}")
+        if not 0.0 <= self.monocular <= 1.0:
+            raise ConfigError(f"monocular must be a probability in [0, 1], got {self.monocular}")
         if not 0.0 <= self.sky_looks <= 1.0:
             raise ConfigError(f"sky_looks must be a probability in [0, 1], got {self.sky_looks}")
         if not 0.0 <= self.crop_zoom <= 1.0:

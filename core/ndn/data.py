@@ -29,6 +29,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -37,6 +38,9 @@ from ..io_utils import atomic_path, atomic_write_json
 from ..progress import ProgressCallback, ProgressEvent, no_progress
 from ..formats.scene_dir import SceneDir
 from .config import DEPTH_STATES, NDNDataConfig
+
+if TYPE_CHECKING:
+    import torch
 
 SHARD_FORMAT = "esgs-ndn-shard-1"
 TRAIN_PRESETS = NDNDataConfig().presets  # every preset without sky
@@ -169,6 +173,17 @@ class SceneTriples:
     normal: np.ndarray | None = None  # [N, 3, h, w] float32
     mask: np.ndarray | None = None  # [N, h, w] bool
     sfm_depth: np.ndarray | None = None  # [N, h, w] float32, triangulated points (0 = none)
+    one_centre: bool = False  # every view shot from one camera centre (a panorama: neighbours are rotations)
+
+
+def centre_as_neighbours(views: "torch.Tensor", which: "torch.Tensor | None" = None) -> "torch.Tensor":
+    """Triples [B, 9, h, w] with the centre view in the neighbours' places, for the triples where
+    ``which`` [B] (bool) is true, all when None: what a network with ``panorama_input = "centre"``
+    reads, and what ``--monocular`` trains it on."""
+    import torch  # deferred: the data builder runs without torch
+
+    alone = views[:, :3].repeat(1, 3, 1, 1)
+    return alone if which is None else torch.where(which.view(-1, 1, 1, 1), alone, views)
 
 
 def scene_triples(scene_dir: str | Path, working_size: int, multiple: int, *, with_targets: bool = True,
@@ -192,6 +207,7 @@ def scene_triples(scene_dir: str | Path, working_size: int, multiple: int, *, wi
     centres = np.stack([image.camera_center() for image in images])
     directions = np.stack([image.rotation_matrix()[2] for image in images])  # camera z axis in the world
     neighbours = neighbour_indices(centres, directions)
+    one_centre = bool(np.abs(centres - centres.mean(axis=0)).max() <= 1e-6 * max(1.0, float(np.abs(centres).max())))
     rgb_small, sizes, depth, normal, mask = [], [], [], [], []
     for image in images:
         path = scene.image(image.name)
@@ -222,7 +238,8 @@ def scene_triples(scene_dir: str | Path, working_size: int, multiple: int, *, wi
                            path=scene.images)
     views = np.stack([np.concatenate([rgb_small[i], rgb_small[neighbours[i, 0]], rgb_small[neighbours[i, 1]]],
                                      axis=-1).transpose(2, 0, 1) for i in range(len(images))])
-    result = SceneTriples(names=[image.name for image in images], image_sizes=sizes, views=views)
+    result = SceneTriples(names=[image.name for image in images], image_sizes=sizes, views=views,
+                          one_centre=one_centre and len(images) > 1)
     if with_targets:
         result.depth, result.normal, result.mask = np.stack(depth), np.stack(normal), np.stack(mask)
     if sfm_points:

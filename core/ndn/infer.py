@@ -19,7 +19,7 @@ import torch
 
 from ..progress import ProgressCallback, ProgressEvent, no_progress
 from ..formats.scene_dir import SceneDir
-from .data import (LOG_DEPTH_RANGE, SceneTriples, load_shards, relative_depth_bounds, scene_triples,
+from .data import (LOG_DEPTH_RANGE, SceneTriples, centre_as_neighbours, load_shards, relative_depth_bounds, scene_triples,
                    state_to_relative_depth)
 from .diffusion import GaussianDiffusion
 from .model import NDNUNet
@@ -147,6 +147,8 @@ def _predict_scene(scene_dir: Path, weights: Path, *, steps: int | None, seed: i
     triples: SceneTriples = scene_triples(scene_dir, config.model.working_size, 2 ** (config.model.levels - 1),
                                           with_targets=False)
     views = torch.from_numpy(triples.views.astype(np.float32) / 127.5 - 1.0)
+    if triples.one_centre and config.model.panorama_input == "centre":
+        views = centre_as_neighbours(views)  # its neighbours are rotations; it was trained to read one view
     total = len(triples.names)
     log_range = config.diffusion.log_depth_range
     evidence = reference = None

@@ -15,6 +15,7 @@ when a checkpoint has one).
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import time
@@ -30,7 +31,7 @@ from ..io_utils import atomic_write_json
 from ..progress import ProgressCallback, ProgressEvent, no_progress
 from ..runtime.stop import StopRequests
 from .config import NDNConfig, NDNTrainConfig
-from .data import LOG_DEPTH_RANGE, check_disjoint_splits, depth_to_state, load_shards
+from .data import LOG_DEPTH_RANGE, centre_as_neighbours, check_disjoint_splits, depth_to_state, load_shards
 from .checkpoint import (CHECKPOINT_FORMAT, _read_checkpoint, build_model, checkpoint_config,  # noqa: F401
                          latest_checkpoint, load_checkpoint, resolve_weights, save_checkpoint)
 from .model import NDNUNet
@@ -374,6 +375,8 @@ def train_ndn(data_dir: str | Path, out_dir: str | Path, train_config: NDNTrainC
         torch.manual_seed(train_config.seed)
         model, diffusion = build_model(config)
         payload, schedule_start = {}, 0
+    if train_config.monocular > 0:  # it learns to read one view alone, so it is fed panoramas that way
+        config = dataclasses.replace(config, model=dataclasses.replace(config.model, panorama_input="centre"))
     arrays = load_shards(data_dir, "train", with_view_sky=train_config.sky_looks > 0)
     multiple = 2 ** (config.model.levels - 1)
     if arrays["views"].shape[-1] % multiple or arrays["views"].shape[-2] % multiple:
@@ -506,6 +509,8 @@ def _take_step(run: _TrainingRun, learning_rate: float) -> dict[str, float]:
         view_sky = data["view_sky"][index]
         views = relight_sky(views, view_sky.flip(-1) if flip else view_sky, generator,
                             probability=train_config.sky_looks)
+    if train_config.monocular > 0:  # after the new sky, so the centre that replaces them has it too
+        views = centre_as_neighbours(views, torch.rand(views.shape[0], generator=generator) < train_config.monocular)
     if train_config.augment > 0 and bool(torch.rand((), generator=generator) < train_config.augment):
         views = augment_photometric(views, generator)
     extra_inputs: dict[str, torch.Tensor] = {}

@@ -16,9 +16,11 @@ def tiny_config(prediction: str = "epsilon") -> NDNConfig:
 
 
 def make_scene(root: Path, views: int = 4, width: int = 48, height: int = 27, seed: int = 0,
-               with_gt: bool = True) -> Path:
+               with_gt: bool = True, panorama: bool = False) -> Path:
     """A scene folder: textured images, a COLMAP model of cameras on a line looking at a
-    tilted plane, and (optionally) exact plane depth/normals as ``priors/gt``."""
+    tilted plane, and (optionally) exact plane depth/normals as ``priors/gt``. With
+    ``panorama`` the cameras instead share one centre and turn 5 degrees apart (the gt maps
+    are then only placeholders)."""
     from esgs.core.colmap.geometry import matrix_to_quat_wxyz
     from esgs.core.colmap.io import write_model
     from esgs.core.colmap.model import Camera, ColmapModel, Image, Point3D
@@ -38,7 +40,12 @@ def make_scene(root: Path, views: int = 4, width: int = 48, height: int = 27, se
     for index in range(views):
         name = f"view_{index:03d}.png"
         translation = np.array([-0.3 * index, 0.0, 0.0])
-        images[index + 1] = Image(index + 1, name, 1, matrix_to_quat_wxyz(np.eye(3)), translation)
+        rotation = np.eye(3)
+        if panorama:
+            angle = np.radians(5.0 * index)
+            rotation = np.array([[np.cos(angle), 0.0, np.sin(angle)], [0.0, 1.0, 0.0], [-np.sin(angle), 0.0, np.cos(angle)]])
+            translation = np.zeros(3)
+        images[index + 1] = Image(index + 1, name, 1, matrix_to_quat_wxyz(rotation), translation)
         (root / "images").mkdir(parents=True, exist_ok=True)
         texture = (rng.uniform(0, 255, (height, width, 3))).astype(np.uint8)
         write_png(root / "images" / name, texture)
