@@ -32,7 +32,7 @@ def navcam_figures(scene_dir: Path, out_dir: Path, weights=None, frames: int = 4
     import torch
 
     from esgs.core.formats.imageio import read_image, write_png
-    from esgs.core.ndn.data import scene_triples
+    from esgs.core.ndn.data import centre_as_neighbours, scene_triples
     from esgs.core.ndn.infer import maps_from_states
     from esgs.core.ndn.shipped import resolve_default_weights
     from esgs.core.ndn.train import load_checkpoint
@@ -42,6 +42,8 @@ def navcam_figures(scene_dir: Path, out_dir: Path, weights=None, frames: int = 4
     triples = scene_triples(scene_dir, config.model.working_size, 2 ** (config.model.levels - 1), with_targets=False)
     picks = np.linspace(0, len(triples.names) - 1, frames).round().astype(int)
     views = torch.from_numpy(triples.views[picks].astype(np.float32) / 127.5 - 1.0)
+    if triples.one_centre and config.model.panorama_input == "centre":
+        views = centre_as_neighbours(views)  # as esgs priors feeds it a panorama
     depth_states, normal_states, sky = diffusion.sample(model, views, seed=seed, return_sky=True)
     paths = []
     for row, index in enumerate(picks):

@@ -156,14 +156,21 @@ def card(weights: Path, slice_scores: dict, *, evaluation_path: Path = EVALUATIO
 
 
 def _fine_tune_lines(record: Path | None) -> list[str]:
+    """The card's lines for continuations of the base run: a record with ``stages`` (each with
+    the ``config`` of its ``esgs ndn train`` run, ``steps_run`` and ``cpu_hours``) and ``why``."""
     if record is None:
         return []
     fine = json.loads(record.read_text())
-    train = fine["config"]["train"]
-    return [f"- then continued from that step to step {train['steps']} ({fine['steps_run']} steps, learning rate "
-            f"{train['learning_rate']} cosine, weight average decay {train['ema_decay']}) with repainted skies "
-            f"(`--sky-looks {train['sky_looks']}`, `--augment {train['augment']}`): {fine['why']}; "
-            f"{fine['cpu_hours']:.1f} CPU-hours; record: `{record.resolve().relative_to(REPO)}`."]
+    parts = []
+    for stage in fine["stages"]:
+        train = stage["config"]["train"]
+        flags = ", ".join(f"`--{name.replace('_', '-')} {train[name]}`" for name in ("sky_looks", "monocular", "augment")
+                          if train.get(name))
+        parts.append(f"to step {train['steps']} ({stage['steps_run']} steps, learning rate {train['learning_rate']} "
+                     f"cosine, {flags})")
+    cpu_hours = sum(stage["cpu_hours"] for stage in fine["stages"])
+    return [f"- then continued {'; then '.join(parts)}: {fine['why']}; {cpu_hours:.1f} CPU-hours on 2 threads; "
+            f"record: `{record.resolve().relative_to(REPO)}`."]
 
 
 def _navcam_line(result: Path | None) -> str:

@@ -1,7 +1,7 @@
 """New skies for NDN training triples: the sky head learns where the sky is, not its colour.
 
-The generator paints every sky the same way: a smooth butterscotch gradient of middle
-brightness, close to the ground's. A network trained on it marks sky by colour and finds none
+The generator paints every sky the same way: a smooth gradient of middle brightness, close to
+the ground's, in a colour drawn per scene. A network trained on it marks sky by colour and finds none
 in real grey frames, where the sky is the brightest, flattest part of the image and is often
 clipped white near the sun (Curiosity's Navcam: docs/ndn.md). :func:`relight_sky` repaints the
 sky pixels of a training triple with a sky drawn at random: any brightness from dim to clipped
