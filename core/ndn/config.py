@@ -135,14 +135,16 @@ class NDNTrainConfig:
         "help": "probability that a batch's triples are each seen through a window of 60-100 %% of the image, zoomed "
                 "back (the same window for a triple's views, targets and evidence): horizons and sky bands anywhere "
                 "in the frame; 0 = off (runs saved before it existed resume with 0)"})
-    sky_looks: float = field(default=0.0, metadata={
+    sky_looks: float = field(default=0.5, metadata={
         "help": "probability that a triple's sky is repainted (any brightness from dim to clipped white, grey or "
                 "tinted, a gradient and sometimes glare; one colour for its three views): the sky head learns where "
-                "the sky is rather than the generator's sky colour; 0 = off (runs saved before it existed resume with 0)"})
-    monocular: float = field(default=0.0, metadata={
+                "the sky is rather than the generator's sky colour; 0.5 (the shipped normals network's fine-tune, docs/ndn.md); "
+                "0 = off (runs saved before it existed resume with 0)"})
+    monocular: float = field(default=0.3, metadata={
         "help": "probability that a triple's two neighbours are replaced by its centre view (no parallax): the "
                 "network learns to read one view alone, and reads scenes shot from one camera centre that way "
-                "(its panorama_input becomes centre); 0 = off (runs saved before it existed resume with 0)"})
+                "(its panorama_input becomes centre); 0.3 (the shipped normals network's fine-tune, docs/ndn.md); 0 = off "
+                "(runs saved before it existed resume with 0)"})
     init: str = field(default="", metadata={
         "help": "fine-tune: start from this checkpoint's weights and optimiser moments (steps continue from "
                 "its step; the schedule spans from there to --steps); ignored when --resume finds a checkpoint"})

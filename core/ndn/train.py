@@ -169,7 +169,7 @@ def resume_source(model_dir: str | Path) -> Path | None:
 
 # Training settings that did not exist when some runs were started, with the value those runs
 # trained with: a saved config.json without the key resumes with this, not today's default.
-SETTINGS_BEFORE_THEY_EXISTED = {"augment": 0.0, "crop_zoom": 0.0, "sky_looks": 0.0}
+SETTINGS_BEFORE_THEY_EXISTED = {"augment": 0.0, "crop_zoom": 0.0, "sky_looks": 0.0, "monocular": 0.0}
 
 
 def saved_train_config(model_dir: str | Path) -> NDNTrainConfig | None:
