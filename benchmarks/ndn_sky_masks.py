@@ -139,7 +139,7 @@ def main() -> int:
     torch.set_num_threads(args.threads)
     scene = SceneDir(args.scene)
     reference = {}
-    for path in sorted(p for p in (args.scene / "images").iterdir() if p.is_file()):
+    for path in sorted(p for p in scene.images.iterdir() if p.is_file()):
         if args.reference == "gt":
             from esgs.core.priors import load_prior_maps
 
