@@ -10,7 +10,7 @@ by eye (``--overlay`` draws it in red on every frame), not ground truth.
 With ``--reference gt`` the reference is instead a scene's exact sky (where ``priors/gt`` has
 no surface), for rendered scenes.
 
-Each set of weights is run as ``esgs priors --method ndn`` runs it (``_predict_scene``: the
+Each set of weights is run as ``esgs priors --method ndn`` runs it (``predict_sky_masks``: the
 station's own evidence, none for a rotation-only station; the probability upsampled with the
 image as guide and thresholded at one half). Per weights the JSON gives the pooled
 precision / recall / IoU over all frames, the mean IoU over frames whose reference has at least
@@ -53,20 +53,13 @@ def rough_sky(grey: np.ndarray, bright: float = 140.0, flat: float = 10.0) -> np
 
 def predicted_sky(scene: Path, weights: Path) -> dict[str, np.ndarray]:
     """Each frame's sky mask as ``esgs priors --method ndn`` writes it (full image size)."""
-    from esgs.core.formats.imageio import read_image
-    from esgs.core.formats.scene_dir import SceneDir
-    from esgs.core.ndn.infer import _predict_scene, _sky_mask
-    from esgs.core.progress import no_progress
+    from esgs.core.errors import ConfigError
+    from esgs.core.ndn.infer import predict_sky_masks
 
-    prediction = _predict_scene(scene, weights, steps=None, seed=0, batch_size=8, stage="sky", progress=no_progress)
-    if prediction.sky is None:
-        raise SystemExit(f"{weights}: these weights have no sky head")
-    result = {}
-    for index, name in enumerate(prediction.names):
-        image = read_image(SceneDir(scene).image(name))
-        rgb = np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
-        result[name] = _sky_mask(prediction, index, rgb)
-    return result
+    try:
+        return predict_sky_masks(scene, weights)
+    except ConfigError as error:
+        raise SystemExit(str(error)) from error
 
 
 def score(reference: dict[str, np.ndarray], predicted: dict[str, np.ndarray]) -> dict:

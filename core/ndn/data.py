@@ -285,6 +285,8 @@ def load_shards(data_dir: str | Path, split: str = "train", *, with_scenes: bool
     scenes: list[np.ndarray] = []
     points: list[np.ndarray] = []
     view_sky: list[np.ndarray] = []
+    if with_view_sky:
+        from .sky_looks import sky_of_views  # imports torch: only for the runs that repaint skies
     for path in paths:
         with np.load(path, allow_pickle=False) as shard:
             if "format" not in shard or str(shard["format"]) != SHARD_FORMAT:
@@ -295,8 +297,6 @@ def load_shards(data_dir: str | Path, split: str = "train", *, with_scenes: bool
                 points.append(shard["sfm_depth"])
             scenes.append(np.full(len(shard["views"]), path.stem))
             if with_view_sky:
-                from .sky_looks import sky_of_views
-
                 sky, known = sky_of_views(shard["views"], shard["mask"])
                 view_sky.append(sky & known[:, None, None, None])
     shapes = {array.shape[-2:] for array in arrays["views"]}

@@ -206,6 +206,31 @@ def _sky_mask(prediction: _ScenePrediction, index: int, image: np.ndarray) -> np
     return None if prediction.sky is None else upsample_probability(prediction.sky[index, 0], image) > 0.5
 
 
+def predict_sky_masks(scene_dir: str | Path, weights: str | Path, *, seed: int = 0, batch_size: int = 8,
+                      progress: ProgressCallback = no_progress) -> dict[str, np.ndarray]:
+    """Each view's sky mask [H, W] (bool, full image size) as one network marks it in ``esgs priors``.
+
+    The same prediction :func:`write_ndn_priors` makes with ``weights`` (a panorama's views fed
+    as the network was trained to read them, probability above one half, upsampled guided by the
+    image), without writing anything: for measuring a network's sky against a reference.
+    Raises :class:`~..errors.ConfigError` when the weights have no sky head.
+    """
+    from ..errors import ConfigError
+    from ..formats.imageio import read_image
+
+    scene_dir = Path(scene_dir)
+    prediction = _predict_scene(scene_dir, Path(weights), steps=None, seed=seed, batch_size=batch_size,
+                                stage="ndn-sky", progress=progress)
+    if prediction.sky is None:
+        raise ConfigError(f"{weights}: these weights have no sky head; pick a network trained with one")
+    masks = {}
+    for index, name in enumerate(prediction.names):
+        image = read_image(SceneDir(scene_dir).image(name))
+        rgb = np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
+        masks[name] = _sky_mask(prediction, index, rgb)
+    return masks
+
+
 def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *, normal_weights: str | Path | None = None,
                      steps: int | None = None, seed: int = 0, batch_size: int = 4, sky_from_normals: bool = True,
                      progress: ProgressCallback = no_progress) -> int:

@@ -163,3 +163,27 @@ def test_priors_predicted_before_the_stereo_labels_are_predicted_again_once_they
     write_ndn_priors(scene)
     assert ndn_priors_header(scene)["normal_evidence"] == "sfm points + stereo labels"
     assert outdated_ndn_priors(scene) is None
+
+
+def test_predict_sky_masks_is_the_sky_the_priors_are_written_with(scene, pair, tmp_path):
+    from esgs.core.errors import ConfigError
+    from esgs.core.formats.imageio import read_image
+    from esgs.core.formats.scene_dir import SceneDir
+    from esgs.core.ndn.infer import predict_sky_masks
+    from esgs.core.priors import load_prior_maps
+
+    depth, _ = pair
+    sky_everywhere = _constant(tmp_path / "sky.pt", (0.0, -0.6, -0.8), evidence=True, sky_logit=5.0)
+    no_sky = _constant(tmp_path / "ground.pt", (0.0, -0.6, -0.8), evidence=True, sky_logit=-5.0)
+    everywhere, nowhere = predict_sky_masks(scene, sky_everywhere), predict_sky_masks(scene, no_sky)
+    assert sorted(everywhere) == [f"view_{i:03d}.png" for i in range(4)]
+    for name, mask in everywhere.items():
+        assert mask.dtype == bool and mask.shape == read_image(SceneDir(scene).image(name)).shape[:2]
+        assert mask.all() and not nowhere[name].any()
+    # the same masks esgs priors writes with that network as the normals network
+    from esgs.core.ndn.infer import write_ndn_priors
+
+    write_ndn_priors(scene, depth, normal_weights=sky_everywhere)
+    np.testing.assert_array_equal(load_prior_maps(scene, "ndn", "view_000.png").sky, everywhere["view_000.png"])
+    with pytest.raises(ConfigError, match="no sky head"):
+        predict_sky_masks(scene, depth)  # the regression network has none
