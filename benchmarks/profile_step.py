@@ -89,7 +89,7 @@ def _gaussians(trainer: Any, count: int, seed: int) -> Any:
 
 
 def time_arm(scene: Path, overrides: dict[str, Any], *, gaussians: int, width: int, threads: int, steps: int,
-             warmup: int, seed: int, profile: bool, backend: str = "cpu") -> dict[str, Any]:
+             warmup: int, seed: int, profile: bool, backend: str = "cpu", ops: int = 0) -> dict[str, Any]:
     import torch
 
     from esgs.core.config import config_from_dict
@@ -112,7 +112,11 @@ def time_arm(scene: Path, overrides: dict[str, Any], *, gaussians: int, width: i
             torch.cuda.reset_peak_memory_stats()
         times = []
         profiler = cProfile.Profile() if profile else None
+        op_profiler = None
         for index in range(warmup + steps):
+            if ops and index == warmup:
+                op_profiler = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU])
+                op_profiler.__enter__()
             started = time.perf_counter()
             if profiler is not None and index >= warmup:
                 profiler.enable()
@@ -121,6 +125,8 @@ def time_arm(scene: Path, overrides: dict[str, Any], *, gaussians: int, width: i
             if profiler is not None and index >= warmup:
                 profiler.disable()
             times.append(time.perf_counter() - started)
+        if op_profiler is not None:
+            op_profiler.__exit__(None, None, None)
         if len(trainer.gaussians) != count:
             raise SystemExit(f"the Gaussian count changed during timing ({count} -> {len(trainer.gaussians)})")
         timed = times[warmup:]
@@ -133,7 +139,18 @@ def time_arm(scene: Path, overrides: dict[str, Any], *, gaussians: int, width: i
             result["gpu"] = torch.cuda.get_device_name()
         if profiler is not None:
             result["profile"] = _grouped(profiler, len(timed))
+        if op_profiler is not None:
+            result["ops"] = _op_table(op_profiler, len(timed))
         return result
+
+
+def _op_table(profiler: Any, steps: int) -> dict[str, dict[str, float]]:
+    """Self CPU milliseconds per step and calls per step of every torch operator (and autograd
+    node: a custom Function's backward, Numba kernels included, is its node's self time)."""
+    table = {}
+    for event in profiler.key_averages():
+        table[event.key] = {"self_ms": event.self_cpu_time_total / 1e3 / steps, "calls": event.count / steps}
+    return dict(sorted(table.items(), key=lambda item: -item[1]["self_ms"]))
 
 
 def _grouped(profiler: cProfile.Profile, steps: int) -> dict[str, float]:
@@ -153,6 +170,28 @@ def _grouped(profiler: cProfile.Profile, steps: int) -> dict[str, float]:
     return totals
 
 
+def _compare_ops(args: Any, chosen: dict[str, Any], names: list[str], rows: dict[str, Any],
+                 options: dict[str, Any]) -> None:
+    """Op-level profiles of the 3DGS and full-ESGS arms; prints where ESGS's extra time goes."""
+    tables = {}
+    for name in [n for n in ("3dgs", "full esgs") if n in names]:
+        profiled = time_arm(args.scene, chosen[name], profile=False, ops=args.ops, **options)
+        tables[name] = profiled["ops"]
+        rows[name]["ops"] = profiled["ops"]
+        rows[name]["ops_profiled_mean_s"] = profiled["mean_s"]
+        total = sum(op["self_ms"] for op in profiled["ops"].values())
+        print(f"{name} under torch.profiler: {profiled['mean_s'] * 1e3:.1f} ms/step, {total:.1f} ms of operator self time")
+    if len(tables) < 2:
+        return
+    base, full = tables["3dgs"], tables["full esgs"]
+    keys = set(base) | set(full)
+    extra = {key: full.get(key, {}).get("self_ms", 0.0) - base.get(key, {}).get("self_ms", 0.0) for key in keys}
+    print("operators whose self time full ESGS adds most (ms per step; calls per step in ESGS):")
+    for key in sorted(keys, key=lambda k: -extra[k])[:args.ops]:
+        print(f"    {key[:70]:70s} {extra[key]:+8.2f}  ({full.get(key, {}).get('calls', 0):.0f} calls)")
+    print(f"    total difference: {sum(extra.values()):+.1f} ms")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("scene", type=Path)
@@ -169,6 +208,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--backend", default="cpu", choices=("cpu", "cuda"),
                         help="rasterizer backend (cuda: gsplat on the GPU; steps are timed after a synchronize)")
     parser.add_argument("--profile", action="store_true", help="cProfile the full-ESGS and 3DGS arms, grouped")
+    parser.add_argument("--ops", type=int, default=0, metavar="N",
+                        help="also profile the 3DGS and full-ESGS arms op by op (torch.profiler) and print the N "
+                             "operators whose self time differs most between them")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
 
@@ -210,6 +252,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name} under cProfile ({profiled['mean_s'] * 1e3:.1f} ms/step with its overhead), per step:")
         for group, seconds in profiled["profile"].items():
             print(f"    {group:62s} {seconds * 1e3:8.1f} ms")
+    if args.ops:
+        _compare_ops(args, chosen, names, rows, options)
     result = {"command": "python " + " ".join([sys.argv[0], *(argv if argv is not None else sys.argv[1:])]),
               "scene": str(args.scene), "width": args.width, "threads": args.threads, "priors": args.priors,
               "backend": args.backend,

@@ -21,6 +21,8 @@ __all__ = ["psnr", "ssim", "ssim_map", "gaussian_window_1d"]
 
 _C1 = 0.01**2
 _C2 = 0.03**2
+#: (C1, C2) of the SSIM formula, for implementations outside this module (the training loss's kernels)
+SSIM_CONSTANTS = (_C1, _C2)
 
 
 def _as_batch(img: torch.Tensor, ref: torch.Tensor, what: str) -> tuple[torch.Tensor, torch.Tensor]:

@@ -17,7 +17,7 @@ from typing import Any, Callable, Optional
 
 import torch
 
-from ..metrics.image import ssim_map
+from .fused_ssim import dssim
 
 
 @dataclass
@@ -81,10 +81,9 @@ def l1_loss(context: LossContext) -> torch.Tensor:
 
 
 def dssim_loss(context: LossContext) -> torch.Tensor:
-    """1 - SSIM (11x11 Gaussian window, 3DGS convention; see :mod:`esgs.core.metrics.image`)."""
-    image = context.image.permute(2, 0, 1)[None]
-    target = context.target.permute(2, 0, 1)[None]
-    return 1.0 - ssim_map(image, target).mean()
+    """1 - SSIM (11x11 Gaussian window, 3DGS convention; see :mod:`esgs.core.metrics.image`);
+    on the CPU one node over Numba kernels (:mod:`.fused_ssim`)."""
+    return dssim(context.image, context.target)
 
 
 def flattening_loss(scales: torch.Tensor, extent: float = 1.0) -> torch.Tensor:
