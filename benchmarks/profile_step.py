@@ -51,6 +51,7 @@ def arms(priors: str) -> dict[str, dict[str, Any]]:
         "gpdfn": esgs(depth=False, normal=False, consistency=False, sky_weight=0.0),
         "full esgs": esgs(),
         "full esgs, GPDFN every 4": esgs(gpdfn_every=4),
+        "full esgs, GPDFN width 16 (before 2026-11-29)": esgs(gpdfn_hidden=16),
     }
 
 

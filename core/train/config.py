@@ -258,7 +258,7 @@ PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0, "sky":
                           "sky_unseen_weight": 0.0, "sky_grid_rows": 0, "sky_lr_decay": 1.0,
                           "prune_hidden": 0.0}
 #: The same for the settings of one method, in today's layout (``method_config`` of that method).
-PREDATING_METHOD_VALUES: dict = {"esgs": {"normal_render": "composited"}}
+PREDATING_METHOD_VALUES: dict = {"esgs": {"normal_render": "composited", "gpdfn_hidden": 16}}
 
 #: Legacy layout (runs saved before methods were registered): the method's settings were
 #: the sections "esgs" (ESGSConfig) and "baselines" (Mip-Splatting and DropoutGS switches

@@ -130,6 +130,12 @@ def test_a_run_folder_from_other_settings_is_neither_reused_nor_resumed(tmp_path
     del predating["method_config"]["normal_render"]
     with pytest.raises(ConfigError, match=r"normal_render 'composited' -> 'thin'"):
         attempt(predating)
+    # a run from before GPDFN's width became 8 (its saved settings lack the key only in tests:
+    # every run since the setting existed saved it)
+    predating = _saved_config(config, "ndn")
+    del predating["method_config"]["gpdfn_hidden"]
+    with pytest.raises(ConfigError, match=r"gpdfn_hidden 16 -> 8"):
+        attempt(predating)
     # the same settings are reused (no training: the scene does not even exist)
     events = []
     summary = attempt(_saved_config(config, "ndn"), events=events)

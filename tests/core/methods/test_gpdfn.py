@@ -316,7 +316,8 @@ def _sampling_problem(count=3000, fused_k=3, dtype=torch.float32, seed=3):
     torch.manual_seed(seed)
     params = {name: value.to(dtype) for name, value in _gaussians(count=count, seed=seed).items()}
     params["quats"] = torch.nn.functional.normalize(params["quats"], dim=-1)
-    module = GPDFN(GPDFNConfig(fused_k=fused_k, gpdfn_voxel_size=0.08)).to(dtype)
+    # the width pinned: the random draws (and so the share of empty voxels read) depend on it
+    module = GPDFN(GPDFNConfig(fused_k=fused_k, gpdfn_voxel_size=0.08, gpdfn_hidden=16)).to(dtype)
     for parameter in module.parameters():
         torch.nn.init.normal_(parameter, std=0.5)
     table = module.voxel_table(params["means"])
