@@ -53,6 +53,15 @@ def _blur_row(source, taps, channels, out):
 
 
 @njit(cache=True, inline="always")
+def _block_rows(block_index, block, height, half):
+    """(first, last): the rows block ``block_index`` writes; (top, bottom): the rows its vertical
+    blur reads (a halo of ``half`` rows either side, within the image)."""
+    first = block_index * block
+    last = min(height, first + block)
+    return first, last, max(0, first - half), min(height, last + half)
+
+
+@njit(cache=True, inline="always")
 def _blur_column(scratch, first_row, row, height, taps, out):
     """out[m, :] = the vertical blur at ``row`` of ``scratch[m]`` (rows from ``first_row`` on; zero padding)."""
     half = taps.shape[0] // 2
@@ -91,8 +100,7 @@ def ssim_forward(x, y, taps, channels, constants, block=BLOCK_ROWS):
     totals = np.zeros(height, np.float64)
     blocks = (height + block - 1) // block
     for b in prange(blocks):
-        first, last = b * block, min(height, (b + 1) * block)
-        top, bottom = max(0, first - half), min(height, last + half)
+        first, last, top, bottom = _block_rows(b, block, height, half)
         scratch = np.empty((5, bottom - top, length), dtype)
         product = np.empty((3, length), dtype)
         moments = np.empty((5, length), dtype)
@@ -151,8 +159,7 @@ def ssim_backward(x, y, dmu, dxx, dxy, taps, channels, scale, block=BLOCK_ROWS):
     factor = scale[0]
     blocks = (height + block - 1) // block
     for b in prange(blocks):
-        first, last = b * block, min(height, (b + 1) * block)
-        top, bottom = max(0, first - half), min(height, last + half)
+        first, last, top, bottom = _block_rows(b, block, height, half)
         scratch = np.empty((3, bottom - top, length), dtype)
         blurred = np.empty((3, length), dtype)
         for row in range(top, bottom):
