@@ -34,7 +34,10 @@ class _FusedDSSIM(torch.autograd.Function):
         taps = gaussian_window_1d(WINDOW_SIZE, WINDOW_SIGMA, dtype=torch.float64).numpy().astype(dtype)
         constants = np.asarray(SSIM_CONSTANTS, dtype)
         totals, dmu, dxx, dxy = ssim_forward(x, y, taps, channels, constants)
-        ctx.saved = (x, y, dmu, dxx, dxy, taps, channels, image.shape)
+        # the images as tensors (autograd then notices an in-place change before the backward),
+        # the derivative maps as the kernel's own arrays
+        ctx.save_for_backward(image, target)
+        ctx.saved = (dmu, dxx, dxy, taps, channels)
         mean = float(totals.sum()) / x.size
         return torch.tensor(1.0 - mean, dtype=image.dtype)
 
@@ -42,7 +45,11 @@ class _FusedDSSIM(torch.autograd.Function):
     def backward(ctx: Any, grad_output: torch.Tensor) -> tuple[torch.Tensor | None, None]:
         from .ssim_kernels import ssim_backward
 
-        x, y, dmu, dxx, dxy, taps, channels, shape = ctx.saved
+        image, target = ctx.saved_tensors
+        dmu, dxx, dxy, taps, channels = ctx.saved
+        shape = image.shape
+        x = image.detach().contiguous().numpy().reshape(dmu.shape)
+        y = target.detach().to(image.dtype).contiguous().numpy().reshape(dmu.shape)
         scale = np.asarray([-float(grad_output) / x.size], x.dtype)  # d(1 - mean S) = -dS / count
         grad = ssim_backward(x, y, dmu, dxx, dxy, taps, channels, scale)
         return torch.from_numpy(grad).reshape(shape), None

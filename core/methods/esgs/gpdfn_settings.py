@@ -19,8 +19,8 @@ class GPDFNConfig:
     fused_k: int = field(default=3, metadata={"help": "Gaussians fused by GPDFN per Gaussian, itself included "
                                                       "(1 = off; the paper's best: 3; range 1..5)"})
     gpdfn_hidden: int = field(default=8, metadata={
-        "help": "width of GPDFN's 1D convolutions (saved with the run; 8 measured as good as 16 at about half "
-                "GPDFN's cost, docs/esgs.md 'GPDFN's width')"})
+        "help": "width of GPDFN's 1D convolutions (saved with the run; 8 measured as good as 16 and 5-11 %% "
+                "cheaper per full-ESGS CPU step, docs/esgs.md 'GPDFN's width')"})
     gpdfn_voxel_size: float = field(default=0.0, metadata={
         "help": "GPDFN voxel side in scene units (0 = automatic from the Gaussians' spacing)"})
     gpdfn_max_shift_voxels: float = field(default=1.0, metadata={
