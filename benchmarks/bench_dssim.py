@@ -8,6 +8,11 @@ that both give the same loss (to float32 rounding) before timing.
     python benchmarks/bench_dssim.py --sizes 480x270 960x540 1920x1080 --threads 2 --repeats 15 \\
         --json benchmarks/results/dssim_kernels.json
 
+``--train-scene SCENE --out DIR`` then also trains ``esgs train SCENE`` (the defaults, ``--train-args``
+added) twice, once with each path, and reports both runs' held-out PSNR / SSIM / LPIPS, Gaussian
+count and training seconds: the kernels round differently from torch's convolutions, and
+densification turns a rounding difference into a different run.
+
 Speed is measured here, never asserted in tests. Run it on an otherwise idle machine.
 """
 from __future__ import annotations
@@ -27,8 +32,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sizes", nargs="+", default=["480x270", "1920x1080"])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=15)
+    parser.add_argument("--train-scene", type=Path, default=None)
+    parser.add_argument("--out", type=Path, default=None, help="run folders of --train-scene")
+    parser.add_argument("--train-args", default="--iterations 300 --width 240 --threads 2 --seed 0",
+                        help="esgs train options of both runs")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
+    if args.train_scene is not None and args.out is None:
+        parser.error("--train-scene needs --out")
 
     import numba
     import torch
@@ -75,14 +86,44 @@ def main(argv: list[str] | None = None) -> int:
               f"{row['torch statement']['backward_ms_median']:.1f} ms, kernels "
               f"{row['numba kernels']['forward_ms_median']:.1f} + {row['numba kernels']['backward_ms_median']:.1f} ms "
               f"(forward + backward, medians): {row['speed_up_median']:.1f}x; losses {losses}", flush=True)
+    trained = _train_both(args, torch_statement) if args.train_scene is not None else None
     result = {"command": "python " + " ".join([sys.argv[0], *(argv if argv is not None else sys.argv[1:])]),
               "threads": args.threads, "repeats": args.repeats, "load_average_start": load_start,
-              "load_average_end": os.getloadavg(), "sizes": rows}
+              "load_average_end": os.getloadavg(), "sizes": rows,
+              "training": trained}
     if args.json:
         from esgs.core.io_utils import atomic_write_json
 
         atomic_write_json(args.json, result)
     return 0
+
+
+def _train_both(args: argparse.Namespace, torch_statement) -> dict:
+    """Train the scene with each D-SSIM path (the loss term's function swapped in this process)."""
+    import json
+    import shlex
+
+    from esgs.core.cli import main as esgs_main
+    from esgs.core.train import losses
+
+    kernels = losses.dssim
+    runs = {}
+    for name, path in (("numba kernels", kernels), ("torch statement", torch_statement)):
+        out = args.out / name.replace(" ", "_")
+        losses.dssim = path
+        try:
+            code = esgs_main(["train", str(args.train_scene), "--out", str(out), "--quiet",
+                              *shlex.split(args.train_args)])
+        finally:
+            losses.dssim = kernels
+        if code:
+            raise SystemExit(f"esgs train failed ({code}) for the {name} run; see {out}")
+        metrics = json.loads((out / "metrics.json").read_text())
+        result = json.loads((out / "train_result.json").read_text())
+        runs[name] = {"psnr": metrics["psnr"], "ssim": metrics["ssim"], "lpips": metrics.get("lpips"),
+                      "n_gaussians": result["n_gaussians"], "train_s": result["train_s"]}
+        print(f"{name}: {runs[name]}", flush=True)
+    return {"scene": str(args.train_scene), "args": args.train_args, "runs": runs}
 
 
 if __name__ == "__main__":
