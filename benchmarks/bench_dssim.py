@@ -104,6 +104,7 @@ def _train_both(args: argparse.Namespace, torch_statement) -> dict:
     import shlex
 
     from esgs.core.cli import main as esgs_main
+    from esgs.core.formats.run_dir import RunDir
     from esgs.core.train import losses
 
     kernels = losses.dssim
@@ -118,8 +119,8 @@ def _train_both(args: argparse.Namespace, torch_statement) -> dict:
             losses.dssim = kernels
         if code:
             raise SystemExit(f"esgs train failed ({code}) for the {name} run; see {out}")
-        metrics = json.loads((out / "metrics.json").read_text())
-        result = json.loads((out / "train_result.json").read_text())
+        metrics = json.loads(RunDir(out).metrics.read_text())
+        result = json.loads(RunDir(out).result.read_text())
         runs[name] = {"psnr": metrics["psnr"], "ssim": metrics["ssim"], "lpips": metrics.get("lpips"),
                       "n_gaussians": result["n_gaussians"], "train_s": result["train_s"]}
         print(f"{name}: {runs[name]}", flush=True)
