@@ -216,19 +216,22 @@ def predict_sky_masks(scene_dir: str | Path, weights: str | Path, *, seed: int =
     Raises :class:`~..errors.ConfigError` when the weights have no sky head.
     """
     from ..errors import ConfigError
-    from ..formats.imageio import read_image
 
     scene_dir = Path(scene_dir)
     prediction = _predict_scene(scene_dir, Path(weights), steps=None, seed=seed, batch_size=batch_size,
                                 stage="ndn-sky", progress=progress)
     if prediction.sky is None:
         raise ConfigError(f"{weights}: these weights have no sky head; pick a network trained with one")
-    masks = {}
-    for index, name in enumerate(prediction.names):
-        image = read_image(SceneDir(scene_dir).image(name))
-        rgb = np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
-        masks[name] = _sky_mask(prediction, index, rgb)
-    return masks
+    return {name: _sky_mask(prediction, index, _scene_rgb(scene_dir, name))
+            for index, name in enumerate(prediction.names)}
+
+
+def _scene_rgb(scene_dir: Path, name: str) -> np.ndarray:
+    """The scene's image ``name`` as [H, W, 3] (a grey frame repeated, alpha dropped)."""
+    from ..formats.imageio import read_image
+
+    image = read_image(SceneDir(scene_dir).image(name))
+    return np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
 
 
 def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *, normal_weights: str | Path | None = None,
@@ -259,7 +262,6 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
     import shutil
     import tempfile
 
-    from ..formats.imageio import read_image
     from ..io_utils import atomic_directory
     from ..priors import prior_dir, write_prior_maps
 
@@ -297,8 +299,7 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
     work = Path(tempfile.mkdtemp(prefix=".ndn.work.", dir=priors))
     try:
         for index, name in enumerate(depth_net.names):
-            image = read_image(SceneDir(scene_dir).image(name))
-            image = np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
+            image = _scene_rgb(scene_dir, name)
             depth, normal, mask, sky, metric = _view_maps(depth_net, index, image)
             if normal_net is not None:
                 # its normals and sky only (its depth is not used): no depth fit or upsampling

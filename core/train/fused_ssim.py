@@ -9,6 +9,7 @@ gradient) the torch statement :func:`~esgs.core.metrics.image.ssim_map`.
 """
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -18,6 +19,13 @@ from ..metrics.image import SSIM_CONSTANTS, gaussian_window_1d, ssim_map
 
 WINDOW_SIZE = 11
 WINDOW_SIGMA = 1.5
+
+
+@lru_cache(maxsize=None)
+def _window(dtype: np.dtype) -> tuple[np.ndarray, np.ndarray]:
+    """The window's taps and (C1, C2) in ``dtype`` (made once per dtype, not every step)."""
+    taps = gaussian_window_1d(WINDOW_SIZE, WINDOW_SIGMA, dtype=torch.float64).numpy().astype(dtype)
+    return taps, np.asarray(SSIM_CONSTANTS, dtype)
 
 
 class _FusedDSSIM(torch.autograd.Function):
@@ -31,8 +39,7 @@ class _FusedDSSIM(torch.autograd.Function):
         x = image.detach().contiguous().numpy().reshape(height, width * channels)
         dtype = x.dtype
         y = target.detach().to(image.dtype).contiguous().numpy().reshape(height, width * channels)
-        taps = gaussian_window_1d(WINDOW_SIZE, WINDOW_SIGMA, dtype=torch.float64).numpy().astype(dtype)
-        constants = np.asarray(SSIM_CONSTANTS, dtype)
+        taps, constants = _window(dtype)
         totals, dmu, dxx, dxy = ssim_forward(x, y, taps, channels, constants)
         # the images as tensors (autograd then notices an in-place change before the backward),
         # the derivative maps as the kernel's own arrays
