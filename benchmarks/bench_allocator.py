@@ -48,7 +48,10 @@ def _child(script: str, arguments: list[str], environment: dict[str, str]) -> di
     with tempfile.TemporaryDirectory() as folder:
         out = Path(folder) / "out.json"
         command = [sys.executable, str(HERE / script), *arguments, "--json", str(out)]
-        env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", **environment}
+        # the variant's settings only: none inherited from this process's environment
+        inherited = {name: value for name, value in os.environ.items()
+                     if not name.startswith("MALLOC_") and name not in ("GLIBC_TUNABLES", "THP_MEM_ALLOC_ENABLE")}
+        env = {**inherited, "OMP_WAIT_POLICY": "PASSIVE", **environment}
         print("  ", " ".join(f"{k}={v}" for k, v in environment.items()), " ".join(command[1:]), flush=True)
         subprocess.run(command, check=True, env=env, stdout=subprocess.DEVNULL)
         return json.loads(out.read_text(encoding="utf-8"))
