@@ -62,6 +62,7 @@ def main(argv: list[str] | None = None) -> int:
                     "scene": str(args.scene), "iterations": args.iterations,
                     "width": args.width, "threads": args.threads, "seed": args.seed, "eval_every": args.eval_every,
                     "load_average_start": list(os.getloadavg()), "commands": {}, "arms": {}}
+    curves = {}
     for name, extra in ARMS.items():
         run = args.out / name
         if args.rerun or not RunDir(run).result.is_file():
@@ -70,14 +71,14 @@ def main(argv: list[str] | None = None) -> int:
             report["arms"][name] = {"elapsed_s": time.perf_counter() - started}
         else:
             report["arms"][name] = {"reused": str(run)}
-        curve = read_eval_curve(run)
+        curve = curves[name] = read_eval_curve(run)
         result = json.loads(RunDir(run).result.read_text(encoding="utf-8"))
         report["arms"][name].update({"curve": [point._asdict() for point in curve],
                                      "final": curve[-1]._asdict() if curve else None,
                                      "gaussians": result.get("n_gaussians")})
     report["load_average_end"] = list(os.getloadavg())
     baseline = report["arms"]["3dgs"]["final"]
-    esgs_curve = read_eval_curve(args.out / "esgs")
+    esgs_curve = curves["esgs"]
     to_psnr = time_to_reach(esgs_curve, psnr=baseline["psnr"])
     to_ssim = time_to_reach(esgs_curve, ssim=baseline["ssim"])
     to_both = time_to_reach(esgs_curve, psnr=baseline["psnr"], ssim=baseline["ssim"])
