@@ -16,13 +16,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "on 2 busy cores); full: cratered_plain, dune_field x seeds 0 1 2, 12 views 320x180, 500 steps "
                              "+ 1 min budgets (~1.5 h on 2 idle cores, through Ray); large: 4 presets x 3 seeds, 30 views "
                              "480x270, 7000 steps + 20 min budgets (for a GPU machine or a Ray cluster)")
-    parser.add_argument("--out", type=Path, required=True, 
-                        help="bench folder (scenes/, runs/, runs_budget/, benchmarks.md)")
+    parser.add_argument("--out", type=Path, required=True,
+                        help="bench folder (scenes/, runs/, runs_budget*/, benchmarks.md)")
     parser.add_argument("--iterations", type=int, default=0, help="steps per equal-step run (0 = the suite's)")
-    parser.add_argument("--budget-minutes", type=float, default=None,
-                        help="training minutes per equal-budget run (default: the suite's; 0 = no budget comparison)")
+    parser.add_argument("--budget-minutes", type=float, nargs="+", default=None, metavar="M",
+                        help="training minutes per equal-budget run; several (e.g. 1 5) give one equal-budget "
+                             "comparison each (default: the suite's; 0 = no budget comparison)")
     parser.add_argument("--budget-step-cap", type=int, default=0,
-                        help="step cap (and schedule length) of the budget runs (0 = the suite's: twice --iterations)")
+                        help="step cap (and schedule length) of the first budget's runs, scaled by the minutes for "
+                             "the others (0 = the suite's: twice --iterations)")
+    parser.add_argument("--rows", nargs="+", default=None, metavar="KEY",
+                        help="train only these rows (default: all): 3dgs, 3dgs_sky, mip_splatting, dropout_gs, pgsr, "
+                             "scaffold_gs, 3dgs_gpdfn, esgs_depth, esgs_normal, esgs_depth_normal, esgs_full (one row "
+                             "per --priors source), esgs_full_gt (the upper bound)")
     parser.add_argument("--eval-every", type=int, default=None, metavar="K",
                         help="evaluate the held-out views of every equal-step run every K steps, the curves of the "
                              "report's 'time to 3DGS's quality' table (default: a tenth of --iterations; 0 = only at "
@@ -63,7 +69,7 @@ def executor_kind(args: argparse.Namespace) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from ..errors import ConfigError
-    from ..experiments.bench import run_bench
+    from ..experiments.bench import run_bench, select_methods
     from ..experiments.executor import make_executor
 
     def report(outcome) -> None:
@@ -72,12 +78,13 @@ def run(args: argparse.Namespace) -> int:
     kind = executor_kind(args)
     if args.address and kind != "ray":
         raise ConfigError("--address needs the Ray executor", hint="drop --executor local, or drop --address")
+    methods = select_methods(args.rows)
     train = {"threads": args.threads, "backend": args.backend, "lpips": args.lpips}
     with make_executor(kind, max_workers=args.workers, address=args.address,
                        cpus_per_task=max(1, args.threads)) as executor:
         result = run_bench(args.out, args.suite, executor=executor, iterations=args.iterations or None,
                            budget_minutes=args.budget_minutes, budget_step_cap=args.budget_step_cap or None,
-                           train=train, priors=args.priors, sparse_points=args.sparse_points,
+                           methods=methods, train=train, priors=args.priors, sparse_points=args.sparse_points,
                            eval_every=args.eval_every,
                            command="esgs " + " ".join(sys.argv[1:]), on_outcome=report)
     print(f"wrote {Path(args.out) / 'benchmarks.md'}")

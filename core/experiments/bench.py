@@ -9,8 +9,9 @@ rendered images with the known poses (:func:`.sfm_scene.make_sfm_scene`, as the 
 the acceptance study do), cached in ``OUT/scenes/<...>_sfm``: the initial Gaussians, the
 ``sfm`` priors and the pinning of NDN depth then come from points a real capture would give.
 Each (scene, method, seed) is one :class:`~.runs.RunTask` in ``OUT/runs/...`` (equal steps)
-and, with a budget, one more in ``OUT/runs_budget/...`` (equal training time:
-``max_minutes`` with a step cap); tasks run through an :class:`~.executor.Executor` (local
+and, per budget, one more (equal training time: ``max_minutes`` with a step cap) in
+``OUT/runs_budget/...`` for the first budget and ``OUT/runs_budget_<M>min/...`` for each further
+one (:func:`budget_plan`); tasks run through an :class:`~.executor.Executor` (local
 process pool, or Ray), a failed run is retried once, and a restart repeats only unfinished
 runs and runs whose saved settings differ from the ones the bench asks for now (a changed
 default, another prior source, another scene folder).
@@ -211,6 +212,18 @@ METHODS = (
 )
 
 
+def select_methods(keys: Optional[Sequence[str]]) -> tuple[Method, ...]:
+    """The rows of :data:`METHODS` named by ``keys`` (``esgs bench --rows``), in the table's
+    order; None or empty = every row. ConfigError naming the known keys for an unknown one."""
+    if not keys:
+        return METHODS
+    known = [method.key for method in METHODS]
+    unknown = [key for key in keys if key not in known]
+    if unknown:
+        raise ConfigError(f"unknown bench row(s) {', '.join(map(repr, unknown))}", hint=f"use some of {', '.join(known)}")
+    return tuple(method for method in METHODS if method.key in set(keys))
+
+
 def prior_sources(priors: str | Sequence[str]) -> tuple[str, ...]:
     """The bench's prior sources, in order, without repeats (``priors``: one name or several);
     ConfigError for an unknown one or none."""
@@ -326,8 +339,53 @@ def make_scene(preset: str, seed: int, suite: BenchSuite, scenes_dir: Path,
     return folder
 
 
+@dataclass(frozen=True)
+class Budget:
+    """One equal-budget comparison: ``minutes`` of training per run, at most ``step_cap`` steps
+    (the cap also sets the schedules), run folders under ``OUT/<folder>``, task names ending in
+    ``suffix``."""
+
+    minutes: float
+    step_cap: int
+    folder: str
+    suffix: str
+
+
+def budget_list(budget_minutes: float | Sequence[float]) -> tuple[float, ...]:
+    """The budgets in minutes, in the order given, without repeats or zeros (0 alone = none);
+    ConfigError for a negative one."""
+    values = (budget_minutes,) if isinstance(budget_minutes, (int, float)) else tuple(budget_minutes)
+    for value in values:
+        if float(value) < 0:
+            raise ConfigError(f"budget_minutes must be >= 0, got {value:g}",
+                              hint="give training minutes per budget run, e.g. --budget-minutes 1 5 (0 = none)")
+    return tuple(dict.fromkeys(float(value) for value in values if float(value) > 0))
+
+
+def budget_plan(budget_minutes: float | Sequence[float], step_cap: int) -> list[Budget]:
+    """The equal-budget comparisons: the first budget's runs in ``runs_budget`` (task suffix
+    ``@budget``, the folders of a bench with one budget), each further budget's in
+    ``runs_budget_<M>min`` (``@<M>min``). ``step_cap`` is the first budget's cap; a further budget
+    gets it scaled by its minutes over the first's (a 5-minute run on the schedule of a 1-minute
+    cap would end its schedule early and then train on at the final learning rates)."""
+    minutes = budget_list(budget_minutes)
+    if not minutes:
+        return []
+    first = minutes[0]
+    plans = [Budget(first, int(step_cap), "runs_budget", "@budget")]
+    for value in minutes[1:]:
+        plans.append(Budget(value, max(1, round(step_cap * value / first)), f"runs_budget_{value:g}min",
+                            f"@{value:g}min"))
+    return plans
+
+
+def _task_suffix(name: str) -> str:
+    """``@budget`` / ``@<M>min`` of a budget task's name (:func:`plan_bench`), "" for an equal-step one."""
+    return "@" + name.rpartition("@")[2] if "@" in name else ""
+
+
 def plan_bench(scenes: dict[str, tuple[Path, int]], out: Path, *, iterations: int, methods: Sequence[Method] = METHODS,
-               train: Optional[dict] = None, budget_minutes: float = 0.0, budget_step_cap: int = 0,
+               train: Optional[dict] = None, budget_minutes: float | Sequence[float] = 0.0, budget_step_cap: int = 0,
                priors: str | Sequence[str] = DEFAULT_PRIORS, eval_every: int = 0) -> tuple[list[RunTask], list[str]]:
     """Run tasks for every scene (name -> (folder, seed)) and row, and notes on what was left out.
 
@@ -336,18 +394,19 @@ def plan_bench(scenes: dict[str, tuple[Path, int]], out: Path, *, iterations: in
     method's own ``prior_source`` wins, e.g. the gt upper bound). A scene without the maps a
     row needs skips it with a note.
 
-    Equal-step tasks train ``iterations`` steps in ``OUT/runs/<scene>/<method>``. With
-    ``budget_minutes`` > 0 every method also trains in ``OUT/runs_budget/<scene>/<method>``
-    for that much training time (``max_minutes``), up to ``budget_step_cap`` steps (0 =
-    twice ``iterations``); its learning-rate and densification schedules are those of the cap.
+    Equal-step tasks train ``iterations`` steps in ``OUT/runs/<scene>/<method>``. For each
+    budget of ``budget_minutes`` (one number or several; 0 = none) every method also trains for
+    that much training time (``max_minutes``) in the budget's folder (:func:`budget_plan`: the
+    first in ``OUT/runs_budget/<scene>/<method>``), up to its step cap (``budget_step_cap``, 0 =
+    twice ``iterations``, for the first budget, scaled by the minutes for the others); its
+    learning-rate and densification schedules are those of the cap.
     ``eval_every`` > 0: the equal-step runs evaluate their held-out views every so many steps
     (``TrainConfig.eval_every``; the curves of the time-to-quality table).
     """
     tasks, notes = [], []
-    modes = [("steps", "runs", {"iterations": iterations, **({"eval_every": int(eval_every)} if eval_every else {})})]
-    if budget_minutes > 0:
-        modes.append(("budget", "runs_budget", {"iterations": budget_step_cap or 2 * iterations,
-                                                "max_minutes": float(budget_minutes)}))
+    modes = [("", "runs", {"iterations": iterations, **({"eval_every": int(eval_every)} if eval_every else {})})]
+    for budget in budget_plan(budget_minutes, budget_step_cap or 2 * iterations):
+        modes.append((budget.suffix, budget.folder, {"iterations": budget.step_cap, "max_minutes": budget.minutes}))
     rows = bench_rows(methods, priors)
     for scene_name, (folder, seed) in scenes.items():
         found = available_priors(folder)
@@ -360,10 +419,9 @@ def plan_bench(scenes: dict[str, tuple[Path, int]], out: Path, *, iterations: in
                     notes.append(f"{method.label} skipped on {scene_name}: no {source} "
                                  f"{'/'.join(sorted(needed))} priors")
                     continue
-            for mode, folder_name, schedule in modes:
+            for suffix, folder_name, schedule in modes:
                 config = {**(train or {}), **dict(method.train), **schedule, "seed": seed,
                           "method": method.method, "method_config": method_config}
-                suffix = "" if mode == "steps" else "@budget"
                 tasks.append(RunTask(name=f"{scene_name}/{method.key}{suffix}", scene=folder,
                                      out=Path(out) / folder_name / scene_name / method.key, config=config,
                                      variant=method.label, seed=seed, scene_name=scene_name,
@@ -499,11 +557,19 @@ def _sparse_points_sentence(sparse: Optional[dict], points_per_view: int) -> str
     return f"{triangulated} on {len(points)} scenes; {exact} on the others"
 
 
+def report_budgets(report: dict) -> list[dict]:
+    """The equal-budget comparisons of a bench report, in order (reports before several budgets
+    have only ``budget``: one or None)."""
+    if report.get("budgets") is not None:
+        return list(report["budgets"])
+    return [report["budget"]] if report.get("budget") else []
+
+
 def bench_markdown(report: dict) -> str:
     """docs-style Markdown of a bench report (see :func:`run_bench`)."""
     suite = report["suite"]
     machine = report["machine"]
-    budget = report.get("budget")
+    budgets = report_budgets(report)
     lines = [f"# Benchmarks: {suite['name']} suite", "",
              f"Date (UTC): {report['date']}. Machine: {machine['platform']}, {machine['processor']}, "
              f"{machine['cpu_count']} logical CPUs, Python {machine['python']}, torch {machine['torch']}, "
@@ -514,8 +580,10 @@ def bench_markdown(report: dict) -> str:
              f"depth): {_sparse_points_sentence(report.get('sparse_points'), suite['points_per_view'])}; every "
              f"method trains with the same seed as its scene, {report['iterations']} steps for the equal-step "
              "comparison"
-             + (f" and {budget['budget_minutes']:g} minutes of training (at most {budget['step_cap']} steps, the "
-                "schedule of that cap) for the equal-budget one" if budget else "")
+             + (" and " + ", ".join(f"{budget['budget_minutes']:g} minutes of training (at most {budget['step_cap']} "
+                                    "steps)" for budget in budgets)
+                + f" for the equal-budget one{'s' if len(budgets) > 1 else ''} (the schedules of the cap)"
+                if budgets else "")
              + ". Quality on the held-out "
              "views (every 8th image); distances from the Gaussian centres with opacity >= 0.5 to "
              "mesh/ground_truth.ply (scene units, metres). Train time is training only; peak RSS is the run's "
@@ -527,7 +595,7 @@ def bench_markdown(report: dict) -> str:
         lines += [f"- {scene_name}: {line}" for scene_name, line in auto.items()] + [""]
     lines += [f"Command: `{report['command']}`", ""]
     lines += _comparison_markdown(report, f"At equal step count ({report['iterations']} steps)")
-    if budget:
+    for budget in budgets:
         lines += ["", *_comparison_markdown(budget, f"At equal wall-clock budget ({budget['budget_minutes']:g} min)")]
     for part in ("time_to_baseline", "time_to_defaults"):
         if report.get(part):
@@ -614,7 +682,7 @@ def _time_to_baseline(outcomes: Sequence[Any], eval_every: int, key: str = BASEL
 
 def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: Any = None,
               scenes: Optional[dict[str, tuple[Path, int]]] = None, methods: Sequence[Method] = METHODS,
-              iterations: Optional[int] = None, budget_minutes: Optional[float] = None,
+              iterations: Optional[int] = None, budget_minutes: Optional[float | Sequence[float]] = None,
               budget_step_cap: Optional[int] = None, train: Optional[dict] = None, command: str = "",
               priors: str | Sequence[str] = DEFAULT_PRIORS, sparse_points: str = "triangulated",
               eval_every: Optional[int] = None, on_outcome: Optional[Callable[[Any], None]] = None) -> dict:
@@ -627,15 +695,16 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
     (default) or keep the generator's exact ones (:func:`make_scene`).
 
     ``scenes`` (name -> (folder, seed)) replaces the suite's generated scenes (tests,
-    existing folders). ``iterations``, ``budget_minutes`` (0 = no equal-budget comparison)
-    and ``budget_step_cap`` override the suite's (None = the suite's). ``eval_every``: steps
+    existing folders). ``iterations``, ``budget_minutes`` (one number or several, one
+    equal-budget comparison each; 0 = none) and ``budget_step_cap`` (the first budget's cap,
+    :func:`budget_plan`) override the suite's (None = the suite's). ``eval_every``: steps
     between the held-out evaluations of the equal-step runs (None = the suite's,
     :meth:`BenchSuite.eval_every`; 0 = none, the time-to-quality table then has each run's
     end-of-run evaluation only). ``executor``: an
     :class:`~.executor.Executor` (default: a local pool of one worker). Returns the report
     dict (also ``OUT/benchmarks.json``): the equal-step tables at the top level
-    (``overall``, ``per_scene``, ``runs``), the equal-budget ones under ``budget``
-    (None without a budget) and the time to the 3DGS row's quality under
+    (``overall``, ``per_scene``, ``runs``), the equal-budget ones under ``budgets`` (a list,
+    one per budget) and the first of them also under ``budget`` (None without a budget), and the time to the 3DGS row's quality under
     ``time_to_baseline`` (None without a 3DGS row).
     """
     from ..io_utils import atomic_write_json, atomic_write_text
@@ -648,9 +717,7 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
             raise ConfigError(f"unknown suite {suite!r}", hint=f"use one of {', '.join(SUITES)}")
         suite = SUITES[suite]
     iterations = iterations or suite.iterations
-    budget_minutes = suite.budget_minutes if budget_minutes is None else budget_minutes
-    if budget_minutes < 0:
-        raise ConfigError(f"budget_minutes must be >= 0, got {budget_minutes}")
+    budget_minutes = budget_list(suite.budget_minutes if budget_minutes is None else budget_minutes)
     step_cap = budget_step_cap or suite.budget_step_cap or 2 * iterations
     eval_every = suite.eval_every(iterations) if eval_every is None else int(eval_every)
     if eval_every < 0:
@@ -690,13 +757,12 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
     failed = [{"run": outcome.task.name, "error": outcome.error or "", "attempts": outcome.attempts}
               for outcome in outcomes if outcome.status == "failed"]
     keys = [key for key, _, _ in QUALITY_COLUMNS + STEPS_COLUMN + COST_COLUMNS]
-    budget_runs = [o.result for o in finished if o.task.config.get("max_minutes")]
     equal_steps = [o for o in finished if not o.task.config.get("max_minutes")]
     step_runs = [o.result for o in equal_steps]
-    budget = None
-    if budget_minutes > 0:
-        budget = {"budget_minutes": budget_minutes, "step_cap": step_cap,
-                  **_comparison(budget_runs, list(scenes), keys)}
+    budgets = [{"budget_minutes": budget.minutes, "step_cap": budget.step_cap,
+                **_comparison([o.result for o in finished if _task_suffix(o.task.name) == budget.suffix],
+                              list(scenes), keys)}
+               for budget in budget_plan(budget_minutes, step_cap)]
     report = {
         "suite": {"name": suite.name, "presets": list(suite.presets), "seeds": list(suite.seeds), "views": suite.views,
                   "resolution": suite.resolution, "samples": suite.samples, "points_per_view": suite.points_per_view,
@@ -705,7 +771,7 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
         "iterations": iterations, "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M"),
         "machine": machine_description(), "executor": type(executor).__name__, "command": command or "run_bench(...)",
         "priors": _prior_description(sources, scenes), "sparse_points": _sparse_points_description(scenes),
-        **_comparison(step_runs, list(scenes), keys), "budget": budget,
+        **_comparison(step_runs, list(scenes), keys), "budget": budgets[0] if budgets else None, "budgets": budgets,
         "time_to_baseline": _time_to_baseline(equal_steps, eval_every),
         # against 3DGS as users get it from plain `esgs train` (the comparison of `--esgs`)
         "time_to_defaults": _time_to_baseline(equal_steps, eval_every, DEFAULTS_KEY),

@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 
 from esgs.core.errors import ConfigError
-from esgs.core.experiments.bench import (METHODS, PRIOR_CHOICES, SUITES, UPPER_BOUND_KEY, bench_rows, ensure_priors,
-                                         plan_bench, run_bench)
+from esgs.core.experiments.bench import (METHODS, PRIOR_CHOICES, SUITES, UPPER_BOUND_KEY, bench_rows, budget_plan,
+                                         ensure_priors, plan_bench, report_budgets, run_bench, select_methods)
 from esgs.core.experiments.executor import LocalExecutor, make_executor, run_tasks
 from esgs.core.experiments.runs import RunTask
 
@@ -355,6 +355,56 @@ def test_budget_plan_gives_every_method_the_same_minutes_and_step_cap_in_its_own
     assert {t.config["iterations"] for t in capped if "max_minutes" in t.config} == {7}
 
 
+def test_several_budgets_each_get_their_folder_name_suffix_and_a_cap_scaled_by_their_minutes(tmp_path, scene):
+    # the first budget keeps the folders of a one-budget bench; a repeat and a zero are dropped
+    plans = budget_plan([1, 5, 0, 1, 2.5], 600)
+    assert [(b.minutes, b.step_cap, b.folder, b.suffix) for b in plans] == [
+        (1.0, 600, "runs_budget", "@budget"), (5.0, 3000, "runs_budget_5min", "@5min"),
+        (2.5, 1500, "runs_budget_2.5min", "@2.5min")]
+    assert budget_plan(0, 600) == [] and budget_plan([0], 600) == [] and len(budget_plan(2, 600)) == 1
+    with pytest.raises(ConfigError, match="budget_minutes must be >= 0"):
+        budget_plan([1, -5], 600)
+    methods = [m for m in METHODS if m.key in ("3dgs", "esgs_depth")]
+    tasks, _ = plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=300, methods=methods,
+                          budget_minutes=[1, 5], priors="gt")
+    by_name = {task.name: task for task in tasks}
+    assert sorted(by_name) == ["tiny/3dgs", "tiny/3dgs@5min", "tiny/3dgs@budget",
+                               "tiny/esgs_depth", "tiny/esgs_depth@5min", "tiny/esgs_depth@budget"]
+    five = by_name["tiny/esgs_depth@5min"]
+    assert five.config["max_minutes"] == 5.0 and five.config["iterations"] == 3000
+    assert five.out == tmp_path / "out" / "runs_budget_5min" / "tiny" / "esgs_depth"
+    assert by_name["tiny/esgs_depth@budget"].config["iterations"] == 600
+    assert {k: v for k, v in five.config.items() if k not in ("max_minutes", "iterations")} == \
+        {k: v for k, v in by_name["tiny/esgs_depth@budget"].config.items() if k not in ("max_minutes", "iterations")}
+
+
+def test_rows_select_methods_in_the_tables_order_and_the_cli_names_every_row():
+    import argparse
+
+    from esgs.core.commands import bench as command
+
+    assert [m.key for m in select_methods(["esgs_full", "3dgs"])] == ["3dgs", "esgs_full"]
+    assert select_methods(None) == METHODS == select_methods([])
+    with pytest.raises(ConfigError, match="'esgs_fll'") as error:
+        select_methods(["3dgs", "esgs_fll"])
+    assert "esgs_full_gt" in error.value.hint
+    parser = argparse.ArgumentParser()
+    command.add_arguments(parser)
+    # the help lists the keys by hand (the CLI does not import the bench to start): it must name every row
+    help_text = next(a.help for a in parser._actions if a.dest == "rows")
+    listed = {word.strip(",()") for word in help_text.replace(":", " ").split()}
+    assert {m.key for m in METHODS} <= listed
+    args = parser.parse_args(["--out", "x", "--rows", "3dgs", "esgs_full", "--budget-minutes", "1", "5"])
+    assert args.rows == ["3dgs", "esgs_full"] and args.budget_minutes == [1.0, 5.0]
+
+
+def test_a_report_of_one_budget_reads_as_a_list_of_budgets():
+    old = {"budget": {"budget_minutes": 1.0, "step_cap": 1000}}
+    assert report_budgets(old) == [old["budget"]] and report_budgets({"budget": None}) == []
+    new = {"budget": {"budget_minutes": 1.0}, "budgets": [{"budget_minutes": 1.0}, {"budget_minutes": 5.0}]}
+    assert [b["budget_minutes"] for b in report_budgets(new)] == [1.0, 5.0]
+
+
 def test_suites_fit_their_machines():
     quick, full, large = SUITES["quick"], SUITES["full"], SUITES["large"]
     assert quick.budget_minutes > 0 and full.budget_minutes > 0 and full.step_cap == 2 * full.iterations
@@ -438,7 +488,7 @@ def test_cli_keeps_the_local_pool_for_quick_and_uses_ray_for_the_big_suites_and_
     assert kind("--suite", "full") == "ray" and kind("--suite", "large") == "ray"
     assert kind("--address", "auto") == "ray" and kind("--suite", "full", "--executor", "local") == "local"
     args = parser.parse_args(["--out", "x", "--budget-minutes", "0", "--budget-step-cap", "40"])
-    assert args.budget_minutes == 0 and args.budget_step_cap == 40
+    assert args.budget_minutes == [0] and args.budget_step_cap == 40
     with pytest.raises(ConfigError, match="--address"):
         command.run(parser.parse_args(["--out", "x", "--address", "auto", "--executor", "local"]))
 

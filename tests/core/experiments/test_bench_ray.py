@@ -67,13 +67,16 @@ def test_tiny_bench_through_ray_tables_equal_the_runs_summaries_and_a_restart_tr
     methods = [m for m in METHODS if m.key in ("3dgs", "esgs_depth_normal")]
     seen = []
     report = run_bench(tmp_path / "bench", "quick", executor=executor, scenes={"tiny": (scene, 0)}, methods=methods,
-                       iterations=4, budget_minutes=0.002, budget_step_cap=5000, train=TRAIN,
+                       iterations=4, budget_minutes=[0.002, 0.003], budget_step_cap=5000, train=TRAIN,
                        on_outcome=lambda o: seen.append((o.task.name, o.status)))
-    assert sorted(seen) == [("tiny/3dgs", "done"), ("tiny/3dgs@budget", "done"),
-                            ("tiny/esgs_depth_normal", "done"), ("tiny/esgs_depth_normal@budget", "done")]
+    assert sorted(seen) == [("tiny/3dgs", "done"), ("tiny/3dgs@0.003min", "done"), ("tiny/3dgs@budget", "done"),
+                            ("tiny/esgs_depth_normal", "done"), ("tiny/esgs_depth_normal@0.003min", "done"),
+                            ("tiny/esgs_depth_normal@budget", "done")]
     assert report["failed"] == [] and report["executor"] == "RayExecutor"
+    assert report["budget"] == report["budgets"][0] and len(report["budgets"]) == 2
     root = tmp_path / "bench"
-    for comparison, folder in ((report, "runs"), (report["budget"], "runs_budget")):
+    for comparison, folder in ((report, "runs"), (report["budgets"][0], "runs_budget"),
+                               (report["budgets"][1], "runs_budget_0.003min")):
         assert len(comparison["runs"]) == 2
         for method in methods:
             stored = json.loads((root / folder / "tiny" / method.key / "summary.json").read_text())
@@ -88,22 +91,25 @@ def test_tiny_bench_through_ray_tables_equal_the_runs_summaries_and_a_restart_tr
                         assert row[key]["n"] == 1 and row[key]["mean"] == pytest.approx(stored[key]), key
     for run in report["runs"]:
         assert run["steps"] == 4 and run["status"] == "completed" and run["max_minutes"] is None
-    for run in report["budget"]["runs"]:
-        # stopped by the clock, not the cap: every method trained for (just over) the same time
-        assert run["status"] == "time_limit" and run["iterations"] == 5000 and 1 <= run["steps"] < 5000
-        assert run["train_s"] >= 0.002 * 60 and run["max_minutes"] == 0.002
+    for budget, cap in zip(report["budgets"], (5000, 7500)):
+        assert budget["step_cap"] == cap
+        for run in budget["runs"]:
+            # stopped by the clock, not the cap: every method trained for (just over) the same time
+            assert run["status"] == "time_limit" and run["iterations"] == cap and 1 <= run["steps"] < cap
+            assert run["train_s"] >= budget["budget_minutes"] * 60 and run["max_minutes"] == budget["budget_minutes"]
     markdown = (root / "benchmarks.md").read_text()
     assert "## At equal step count (4 steps): all scenes" in markdown
     assert "## At equal wall-clock budget (0.002 min): all scenes" in markdown
+    assert "## At equal wall-clock budget (0.003 min): all scenes" in markdown
     assert "steps reached" in markdown and "| ESGS: depth + normal |" in markdown
 
     seen.clear()
     again = run_bench(root, "quick", executor=executor, scenes={"tiny": (scene, 0)}, methods=methods,
-                      iterations=4, budget_minutes=0.002, budget_step_cap=5000, train=TRAIN,
+                      iterations=4, budget_minutes=[0.002, 0.003], budget_step_cap=5000, train=TRAIN,
                       on_outcome=lambda o: seen.append(o.status))
-    assert seen == ["skipped"] * 4
+    assert seen == ["skipped"] * 6
     assert again["overall"] == json.loads(json.dumps(report["overall"]))
-    assert again["budget"]["overall"] == json.loads(json.dumps(report["budget"]["overall"]))
+    assert again["budgets"] == json.loads(json.dumps(report["budgets"]))
 
 
 def test_shipped_run_trains_in_a_scratch_folder_and_its_folder_comes_back(tmp_path, scene, executor):
