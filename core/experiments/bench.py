@@ -448,8 +448,17 @@ STEPS_COLUMN = (("steps", "steps reached", 0),)
 def _comparison_markdown(part: dict, title: str) -> list[str]:
     """The tables of one comparison (equal steps or equal budget): all scenes, then each scene."""
     extra = STEPS_COLUMN if part.get("budget_minutes") else ()
+    from .paired import paired_markdown
+
     lines = [f"## {title}: all scenes", "", markdown_table(part["overall"], QUALITY_COLUMNS), "",
              markdown_table(part["overall"], extra + COST_COLUMNS)]
+    for baseline, rows in (part.get("paired") or {}).items():
+        if rows:
+            lines += [f"### {title}: each method against {baseline} on the same scene and seed", "",
+                      f"Per run, the method's figure minus {baseline}'s on the same scene and seed (the distance: "
+                      "its ratio), mean ± std over the runs, and in how many runs the method did better. **Bold**: "
+                      "better beyond the spread (the mean is more than one std from no change); _italic_: worse "
+                      "beyond it.", "", paired_markdown(rows)]
     for scene_name, rows in part["per_scene"].items():
         lines += [f"### {title}: {scene_name}", "", markdown_table(rows, QUALITY_COLUMNS + extra + COST_COLUMNS)]
     return lines
@@ -658,10 +667,21 @@ def _sparse_points_description(scenes: dict[str, tuple[Path, int]]) -> dict[str,
             "mean_reprojection_error_px": sum(errors) / len(errors) if errors else None}
 
 
+#: The rows every other row is paired with in the reports' paired tables, when they ran.
+PAIRED_BASELINE_KEYS = (BASELINE_KEY, DEFAULTS_KEY)
+
+
 def _comparison(summaries: list[dict], scene_names: Sequence[str], keys: Sequence[str]) -> dict:
-    """Rows over all scenes and per scene (mean ± std over seeds) of one set of run summaries."""
+    """Rows over all scenes and per scene (mean ± std over seeds) of one set of run summaries,
+    and each row paired with the 3DGS rows on the same scene and seed (``paired``: baseline
+    label -> :func:`.paired.paired_rows`)."""
+    from .paired import paired_rows
+
+    labels = [method.label for method in METHODS if method.key in PAIRED_BASELINE_KEYS]
+    ran = {summary.get("variant") for summary in summaries}
     return {"overall": aggregate(summaries, keys),
             "per_scene": {name: aggregate([s for s in summaries if s["scene"] == name], keys) for name in scene_names},
+            "paired": {label: paired_rows(summaries, label) for label in labels if label in ran},
             "runs": summaries}
 
 
