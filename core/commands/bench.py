@@ -21,10 +21,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iterations", type=int, default=0, help="steps per equal-step run (0 = the suite's)")
     parser.add_argument("--budget-minutes", type=float, nargs="+", default=None, metavar="M",
                         help="training minutes per equal-budget run; several (e.g. 1 5) give one equal-budget "
-                             "comparison each (default: the suite's; 0 = no budget comparison)")
+                             "comparison each (default: the suite's; 0 alone = no budget comparison)")
     parser.add_argument("--budget-step-cap", type=int, default=0,
-                        help="step cap (and schedule length) of the first budget's runs, scaled by the minutes for "
-                             "the others (0 = the suite's: twice --iterations)")
+                        help="step cap (and schedule length) of the shortest budget's runs, scaled by the minutes "
+                             "for the longer ones (0 = the suite's: twice --iterations)")
     parser.add_argument("--rows", nargs="+", default=None, metavar="KEY",
                         help="train only these rows (default: all): 3dgs, 3dgs_sky, mip_splatting, dropout_gs, pgsr, "
                              "scaffold_gs, 3dgs_gpdfn, esgs_depth, esgs_normal, esgs_depth_normal, esgs_full (one row "

@@ -363,12 +363,13 @@ def budget_list(budget_minutes: float | Sequence[float]) -> tuple[float, ...]:
 
 
 def budget_plan(budget_minutes: float | Sequence[float], step_cap: int) -> list[Budget]:
-    """The equal-budget comparisons: the first budget's runs in ``runs_budget`` (task suffix
-    ``@budget``, the folders of a bench with one budget), each further budget's in
-    ``runs_budget_<M>min`` (``@<M>min``). ``step_cap`` is the first budget's cap; a further budget
-    gets it scaled by its minutes over the first's (a 5-minute run on the schedule of a 1-minute
-    cap would end its schedule early and then train on at the final learning rates)."""
-    minutes = budget_list(budget_minutes)
+    """The equal-budget comparisons, shortest first, whatever the order given: the shortest
+    budget's runs in ``runs_budget`` (task suffix ``@budget``, the folders of a bench with one
+    budget), each longer one's in ``runs_budget_<M>min`` (``@<M>min``). ``step_cap`` is the
+    shortest budget's cap; a longer budget gets it scaled by its minutes over the shortest's (a
+    5-minute run on the schedule of a 1-minute cap would end its schedule early and then train on
+    at the final learning rates). ConfigError for budgets too close to get folders of their own."""
+    minutes = sorted(budget_list(budget_minutes))
     if not minutes:
         return []
     first = minutes[0]
@@ -376,12 +377,17 @@ def budget_plan(budget_minutes: float | Sequence[float], step_cap: int) -> list[
     for value in minutes[1:]:
         plans.append(Budget(value, max(1, round(step_cap * value / first)), f"runs_budget_{value:g}min",
                             f"@{value:g}min"))
+    names = [f"{value:g}" for value in minutes]
+    if len(set(names)) < len(names):
+        raise ConfigError(f"budgets of {', '.join(repr(value) for value in minutes)} minutes are too close to tell "
+                          "apart", hint="give budgets that differ in their first six digits, e.g. --budget-minutes 1 5")
     return plans
 
 
-def _task_suffix(name: str) -> str:
-    """``@budget`` / ``@<M>min`` of a budget task's name (:func:`plan_bench`), "" for an equal-step one."""
-    return "@" + name.rpartition("@")[2] if "@" in name else ""
+def budget_of(task: RunTask, out: Path, budgets: Sequence[Budget]) -> Optional[Budget]:
+    """The budget whose folder holds ``task``'s run (:func:`plan_bench`), None for an equal-step run."""
+    folder = Path(task.out).parent.parent
+    return next((budget for budget in budgets if folder == Path(out) / budget.folder), None)
 
 
 def plan_bench(scenes: dict[str, tuple[Path, int]], out: Path, *, iterations: int, methods: Sequence[Method] = METHODS,
@@ -723,8 +729,9 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
     end-of-run evaluation only). ``executor``: an
     :class:`~.executor.Executor` (default: a local pool of one worker). Returns the report
     dict (also ``OUT/benchmarks.json``): the equal-step tables at the top level
-    (``overall``, ``per_scene``, ``runs``), the equal-budget ones under ``budgets`` (a list,
-    one per budget) and the first of them also under ``budget`` (None without a budget), and the time to the 3DGS row's quality under
+    (``overall``, ``per_scene``, ``paired``, ``runs``), the equal-budget ones under ``budgets``
+    (a list, one per budget, shortest first; reports from before several budgets had one
+    ``budget``: read either with :func:`report_budgets`), and the time to the 3DGS row's quality under
     ``time_to_baseline`` (None without a 3DGS row).
     """
     from ..io_utils import atomic_write_json, atomic_write_text
@@ -777,12 +784,13 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
     failed = [{"run": outcome.task.name, "error": outcome.error or "", "attempts": outcome.attempts}
               for outcome in outcomes if outcome.status == "failed"]
     keys = [key for key, _, _ in QUALITY_COLUMNS + STEPS_COLUMN + COST_COLUMNS]
-    equal_steps = [o for o in finished if not o.task.config.get("max_minutes")]
+    plans = budget_plan(budget_minutes, step_cap)
+    equal_steps = [o for o in finished if budget_of(o.task, out, plans) is None]
     step_runs = [o.result for o in equal_steps]
     budgets = [{"budget_minutes": budget.minutes, "step_cap": budget.step_cap,
-                **_comparison([o.result for o in finished if _task_suffix(o.task.name) == budget.suffix],
+                **_comparison([o.result for o in finished if budget_of(o.task, out, plans) == budget],
                               list(scenes), keys)}
-               for budget in budget_plan(budget_minutes, step_cap)]
+               for budget in plans]
     report = {
         "suite": {"name": suite.name, "presets": list(suite.presets), "seeds": list(suite.seeds), "views": suite.views,
                   "resolution": suite.resolution, "samples": suite.samples, "points_per_view": suite.points_per_view,
@@ -791,7 +799,7 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
         "iterations": iterations, "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M"),
         "machine": machine_description(), "executor": type(executor).__name__, "command": command or "run_bench(...)",
         "priors": _prior_description(sources, scenes), "sparse_points": _sparse_points_description(scenes),
-        **_comparison(step_runs, list(scenes), keys), "budget": budgets[0] if budgets else None, "budgets": budgets,
+        **_comparison(step_runs, list(scenes), keys), "budgets": budgets,
         "time_to_baseline": _time_to_baseline(equal_steps, eval_every),
         # against 3DGS as users get it from plain `esgs train` (the comparison of `--esgs`)
         "time_to_defaults": _time_to_baseline(equal_steps, eval_every, DEFAULTS_KEY),

@@ -8,10 +8,13 @@ metric, the mean and standard deviation of the per-run difference (method minus 
 for the distance to the mesh the per-run ratio, method over baseline), how many runs came
 out better, and a verdict: ``better`` or ``worse`` when the mean is on that side of "no
 change" by more than one standard deviation of the per-run values (beyond the spread),
-else ``within`` the spread.
+else ``within`` the spread (always for a single run). A run whose figure or the baseline's
+is missing or not finite, or whose baseline distance is 0, is left out of that metric (its
+``n`` says how many counted).
 """
 from __future__ import annotations
 
+import math
 from typing import Any, Optional, Sequence
 
 from .tables import mean_std
@@ -23,8 +26,9 @@ PAIRED_COLUMNS = (("ssim", "SSIM", 4, "higher"), ("psnr", "PSNR (dB)", 2, "highe
 
 
 def _paired_value(value: Optional[float], base: Optional[float], kind: str) -> Optional[float]:
-    """The run's difference (or ratio) against the baseline's run; None when either is missing."""
-    if value is None or base is None:
+    """The run's difference (or ratio) against the baseline's run; None when either is
+    missing or not finite (PSNR of identical images is infinite) or a ratio's baseline is 0."""
+    if value is None or base is None or not (math.isfinite(float(value)) and math.isfinite(float(base))):
         return None
     if kind == "ratio":
         return float(value) / float(base) if float(base) > 0 else None
@@ -36,9 +40,12 @@ def _is_better(change: float, kind: str) -> bool:
 
 
 def _verdict(stats: dict, kind: str) -> Optional[str]:
-    """``better`` / ``worse`` when the mean is beyond one std of the per-run values from no change."""
+    """``better`` / ``worse`` when the mean is beyond one std of the per-run values from no
+    change; one run has no spread to be beyond (``within``)."""
     if not stats["n"]:
         return None
+    if stats["n"] < 2:
+        return "within"
     gain = stats["mean"] - (1.0 if kind == "ratio" else 0.0)
     if kind != "higher":
         gain = -gain

@@ -359,11 +359,15 @@ def test_several_budgets_each_get_their_folder_name_suffix_and_a_cap_scaled_by_t
     # the first budget keeps the folders of a one-budget bench; a repeat and a zero are dropped
     plans = budget_plan([1, 5, 0, 1, 2.5], 600)
     assert [(b.minutes, b.step_cap, b.folder, b.suffix) for b in plans] == [
-        (1.0, 600, "runs_budget", "@budget"), (5.0, 3000, "runs_budget_5min", "@5min"),
-        (2.5, 1500, "runs_budget_2.5min", "@2.5min")]
+        (1.0, 600, "runs_budget", "@budget"), (2.5, 1500, "runs_budget_2.5min", "@2.5min"),
+        (5.0, 3000, "runs_budget_5min", "@5min")]
+    # the order given changes nothing: the shortest budget has the cap and the one-budget folder
+    assert budget_plan([5, 2.5, 1], 600) == plans
     assert budget_plan(0, 600) == [] and budget_plan([0], 600) == [] and len(budget_plan(2, 600)) == 1
     with pytest.raises(ConfigError, match="budget_minutes must be >= 0"):
         budget_plan([1, -5], 600)
+    with pytest.raises(ConfigError, match="too close to tell apart"):
+        budget_plan([1, 2.5, 2.5000001], 600)
     methods = [m for m in METHODS if m.key in ("3dgs", "esgs_depth")]
     tasks, _ = plan_bench({"tiny": (scene, 0)}, tmp_path / "out", iterations=300, methods=methods,
                           budget_minutes=[1, 5], priors="gt")
@@ -398,11 +402,39 @@ def test_rows_select_methods_in_the_tables_order_and_the_cli_names_every_row():
     assert args.rows == ["3dgs", "esgs_full"] and args.budget_minutes == [1.0, 5.0]
 
 
-def test_a_report_of_one_budget_reads_as_a_list_of_budgets():
+def test_a_report_of_one_budget_reads_as_a_list_of_budgets_and_each_budget_gets_its_tables(tmp_path):
+    from esgs.core.experiments.bench import _comparison, bench_markdown, budget_of
+
     old = {"budget": {"budget_minutes": 1.0, "step_cap": 1000}}
     assert report_budgets(old) == [old["budget"]] and report_budgets({"budget": None}) == []
-    new = {"budget": {"budget_minutes": 1.0}, "budgets": [{"budget_minutes": 1.0}, {"budget_minutes": 5.0}]}
-    assert [b["budget_minutes"] for b in report_budgets(new)] == [1.0, 5.0]
+    # runs are told apart by their folders (no task name parsing)
+    tasks, _ = plan_bench({"tiny": (tmp_path, 0)}, tmp_path / "out", iterations=10, methods=METHODS[:1],
+                          budget_minutes=[5, 1])
+    plans = budget_plan([1, 5], 20)
+    assert [(t.name, budget_of(t, tmp_path / "out", plans)) for t in tasks] == [
+        ("tiny/3dgs", None), ("tiny/3dgs@budget", plans[0]), ("tiny/3dgs@5min", plans[1])]
+    # a report with two budgets: one set of tables each, in order, with the steps reached
+    keys = ["ssim", "psnr", "lpips", "distance_mean", "steps"]
+    label = METHODS[0].label
+
+    def run(steps, ssim):
+        return {"variant": label, "scene": "tiny", "seed": 0, "ssim": ssim, "psnr": 20.0, "lpips": 0.3,
+                "distance_mean": 1.0, "steps": steps}
+    report = {"suite": {"name": "quick", "presets": ["cratered_plain"], "seeds": [0], "views": 10,
+                        "resolution": "160x90", "samples": 8, "points_per_view": 300},
+              "machine": {"platform": "p", "processor": "c", "cpu_count": 2, "python": "3", "torch": "2", "gpu": None},
+              "executor": "LocalExecutor", "iterations": 10, "date": "today", "command": "esgs bench",
+              "priors": None, "sparse_points": None, "notes": [], "failed": [],
+              **_comparison([run(10, 0.5)], ["tiny"], keys),
+              "budgets": [{"budget_minutes": 1.0, "step_cap": 20, **_comparison([run(123, 0.6)], ["tiny"], keys)},
+                          {"budget_minutes": 5.0, "step_cap": 100, **_comparison([run(456, 0.7)], ["tiny"], keys)}]}
+    text = bench_markdown(report)
+    one, five = text.index("## At equal wall-clock budget (1 min): all scenes"), \
+        text.index("## At equal wall-clock budget (5 min): all scenes")
+    assert text.index("## At equal step count (10 steps): all scenes") < one < five
+    assert "123" in text[one:five] and "456" in text[five:] and "0.7000" in text[five:]
+    assert ("1 minutes of training (at most 20 steps), 5 minutes of training (at most 100 steps) for the "
+            "equal-budget ones") in text
 
 
 def test_suites_fit_their_machines():

@@ -49,6 +49,20 @@ def test_worse_beyond_the_spread_and_missing_figures():
     assert paired_rows(runs, "no such row") == [] and paired_rows([], "3DGS") == []
 
 
+def test_one_run_is_never_beyond_the_spread_and_infinite_or_zero_figures_are_left_out():
+    runs = [_run("3DGS", "a", 0, 0.8, 20.0, 0.30, 1.0), _run("X", "a", 0, 0.9, 30.0, 0.10, 0.5)]
+    (row,) = paired_rows(runs, "3DGS")
+    assert all(row[key]["verdict"] == "within" and row[key]["better"] == 1 for key in ("ssim", "psnr", "lpips",
+                                                                                       "distance_mean"))
+    runs = [_run("3DGS", "a", 0, 0.8, float("inf"), 0.3, 0.0), _run("3DGS", "b", 1, 0.8, 20.0, 0.3, 1.0),
+            _run("X", "a", 0, 0.8, float("inf"), 0.3, 0.5), _run("X", "b", 1, 0.8, 21.0, 0.3, 0.5)]
+    (row,) = paired_rows(runs, "3DGS")
+    # identical images (PSNR inf) and a baseline on the mesh (distance 0) count nowhere
+    assert row["psnr"]["n"] == 1 and row["psnr"]["mean"] == 1.0
+    assert row["distance_mean"]["n"] == 1 and row["distance_mean"]["mean"] == 0.5
+    assert "inf" not in paired_markdown([row]) and "nan" not in paired_markdown([row])
+
+
 def test_markdown_marks_better_in_bold_and_worse_in_italics():
     text = paired_markdown(paired_rows(RUNS, "3DGS"))
     lines = text.splitlines()
@@ -56,9 +70,10 @@ def test_markdown_marks_better_in_bold_and_worse_in_italics():
                         "distance (x): ratio |")
     assert lines[2].startswith("| ESGS | 3 | **+0.0533 ± 0.0047 (3/3 better)** | +0.03 ± 0.73 (2/3 better) |")
     assert "**0.533 ± 0.047 (3/3 better)**" in lines[2]
-    worse = paired_markdown(paired_rows([_run("3DGS", "a", 0, 0.8, 20, 0.3, 1.0), _run("X", "a", 0, 0.7, 19, 0.4, 2.0)],
+    worse = paired_markdown(paired_rows([_run("3DGS", "a", 0, 0.8, 20, 0.3, 1.0), _run("3DGS", "b", 1, 0.8, 20, 0.3, 1.0),
+                                         _run("X", "a", 0, 0.7, 19, 0.4, 2.0), _run("X", "b", 1, 0.7, 19, 0.4, 2.0)],
                                         "3DGS"))
-    assert "_-0.1000 (0/1 better)_" in worse and "_2.000 (0/1 better)_" in worse
+    assert "_-0.1000 ± 0.0000 (0/2 better)_" in worse and "_2.000 ± 0.000 (0/2 better)_" in worse
 
 
 def test_the_bench_pairs_every_row_with_each_3dgs_row_that_ran_and_prints_the_tables():
