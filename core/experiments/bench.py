@@ -397,21 +397,13 @@ BUDGET_SCHEDULES = ("fitted", "cap")
 
 
 def fitted_step_cap(minutes: float, steps: int, train_s: float) -> int:
-    """The schedule length (at least 1 step) that a run of ``steps`` steps in ``train_s``
-    training seconds predicts for ``minutes``: ``steps * sqrt(minutes * 60 / train_s)``.
-
-    The square root because a step's cost grows with the Gaussian count and densification
-    grows the count with the schedule's length (each densification adds about as many
-    Gaussians whatever the length; a longer schedule has more of them), so training time grows
-    about as the square of the length. Measured (full suite, cratered_plain seed 0, 3DGS +
-    sky model, 500 steps in 139 s): the linear rule's 215-step schedule for one minute ended
-    after 28 s with a fifth of the Gaussians. A longer schedule may still be stopped by the
-    budget in its last, low-learning-rate stretch; a shorter one may end before it."""
-    import math
-
+    """The steps a run of ``steps`` steps in ``train_s`` training seconds fits into ``minutes``
+    at the same rate (at least 1): the schedule a user would pick for that time. A longer
+    schedule densifies longer and its steps cost more, so the budget may stop the run in its
+    last, low-learning-rate stretch; a shorter one may end before the budget."""
     if steps <= 0 or not train_s > 0:
         raise ValueError(f"a step rate needs steps > 0 and train_s > 0, got {steps} and {train_s}")
-    return max(1, int(steps * math.sqrt(minutes * 60.0 / train_s)))
+    return max(1, int(minutes * 60.0 * steps / train_s))
 
 
 def fit_budget_tasks(tasks: Sequence[RunTask], step_results: dict[tuple[str, str], dict], out: Path,
