@@ -25,10 +25,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--budget-step-cap", type=int, default=0,
                         help="step cap (and schedule length) of the shortest budget's runs, scaled by the minutes "
                              "for the longer ones (0 = the suite's: twice --iterations)")
-    parser.add_argument("--budget-schedule", choices=("fitted", "cap"), default="fitted",
-                        help="schedules of the budget runs: fitted (default) = each method's own, fitted to the budget "
-                             "from its step rate in its equal-step run on the same scene (what a user with that much "
-                             "time would pick); cap = every method on the schedule of the step cap, stopped by the clock")
     parser.add_argument("--rows", nargs="+", default=None, metavar="KEY",
                         help="train only these rows (default: all): 3dgs, 3dgs_sky, mip_splatting, dropout_gs, pgsr, "
                              "scaffold_gs, 3dgs_gpdfn, esgs_depth, esgs_normal, esgs_depth_normal, esgs_full (one row "
@@ -89,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
         result = run_bench(args.out, args.suite, executor=executor, iterations=args.iterations or None,
                            budget_minutes=args.budget_minutes, budget_step_cap=args.budget_step_cap or None,
                            methods=methods, train=train, priors=args.priors, sparse_points=args.sparse_points,
-                           eval_every=args.eval_every, budget_schedule=args.budget_schedule,
+                           eval_every=args.eval_every,
                            command="esgs " + " ".join(sys.argv[1:]), on_outcome=report)
     print(f"wrote {Path(args.out) / 'benchmarks.md'}")
     for item in result["failed"]:

@@ -390,47 +390,6 @@ def budget_of(task: RunTask, out: Path, budgets: Sequence[Budget]) -> Optional[B
     return next((budget for budget in budgets if folder == Path(out) / budget.folder), None)
 
 
-#: How the budget runs' schedules are set (``esgs bench --budget-schedule``): ``fitted`` (the
-#: default) gives each method the schedule its own step rate fits into the budget, ``cap`` gives
-#: every method the same step cap (:func:`budget_plan`).
-BUDGET_SCHEDULES = ("fitted", "cap")
-
-
-def fitted_step_cap(minutes: float, steps: int, train_s: float) -> int:
-    """The steps a run of ``steps`` steps in ``train_s`` training seconds fits into ``minutes``
-    at the same rate (at least 1): the schedule a user would pick for that time. A longer
-    schedule densifies longer and its steps cost more, so the budget may stop the run in its
-    last, low-learning-rate stretch; a shorter one may end before the budget."""
-    if steps <= 0 or not train_s > 0:
-        raise ValueError(f"a step rate needs steps > 0 and train_s > 0, got {steps} and {train_s}")
-    return max(1, int(minutes * 60.0 * steps / train_s))
-
-
-def fit_budget_tasks(tasks: Sequence[RunTask], step_results: dict[tuple[str, str], dict], out: Path,
-                     budgets: Sequence[Budget]) -> tuple[list[RunTask], list[str]]:
-    """The budget tasks with each method's schedule fitted to its budget (:func:`fitted_step_cap`)
-    from the step rate of its equal-step run on the same scene (``step_results``: (scene name,
-    method key) -> that run's summary). A task whose equal-step run is missing or has no rate keeps
-    the common cap, with a note."""
-    import dataclasses
-
-    fitted, notes = [], []
-    for task in tasks:
-        budget = budget_of(task, out, budgets)
-        if budget is None:
-            continue
-        result = step_results.get((task.scene_name, Path(task.out).name)) or {}
-        steps, train_s = int(result.get("steps") or 0), float(result.get("train_s") or 0.0)
-        if steps > 0 and train_s > 0:
-            cap = fitted_step_cap(budget.minutes, steps, train_s)
-            task = dataclasses.replace(task, config={**task.config, "iterations": cap})
-        else:
-            notes.append(f"{task.name}: no equal-step run to fit its schedule from; it keeps the common cap of "
-                         f"{budget.step_cap} steps")
-        fitted.append(task)
-    return fitted, notes
-
-
 def plan_bench(scenes: dict[str, tuple[Path, int]], out: Path, *, iterations: int, methods: Sequence[Method] = METHODS,
                train: Optional[dict] = None, budget_minutes: float | Sequence[float] = 0.0, budget_step_cap: int = 0,
                priors: str | Sequence[str] = DEFAULT_PRIORS, eval_every: int = 0) -> tuple[list[RunTask], list[str]]:
@@ -489,7 +448,7 @@ def machine_description() -> dict[str, Any]:
 
 
 #: The budget tables also show how far each method got.
-STEPS_COLUMN = (("steps", "steps reached", 0), ("iterations", "schedule (steps)", 0))
+STEPS_COLUMN = (("steps", "steps reached", 0),)
 
 
 def _comparison_markdown(part: dict, title: str) -> list[str]:
@@ -613,12 +572,6 @@ def _sparse_points_sentence(sparse: Optional[dict], points_per_view: int) -> str
     return f"{triangulated} on {len(points)} scenes; {exact} on the others"
 
 
-def _budget_words(budget: dict) -> str:
-    if budget.get("schedule") == "fitted":
-        return f"{budget['budget_minutes']:g} minutes of training"
-    return f"{budget['budget_minutes']:g} minutes of training (at most {budget['step_cap']} steps)"
-
-
 def report_budgets(report: dict) -> list[dict]:
     """The equal-budget comparisons of a bench report, in order (reports before several budgets
     have only ``budget``: one or None)."""
@@ -642,11 +595,9 @@ def bench_markdown(report: dict) -> str:
              f"depth): {_sparse_points_sentence(report.get('sparse_points'), suite['points_per_view'])}; every "
              f"method trains with the same seed as its scene, {report['iterations']} steps for the equal-step "
              "comparison"
-             + (" and " + ", ".join(_budget_words(budget) for budget in budgets)
-                + f" for the equal-budget one{'s' if len(budgets) > 1 else ''}"
-                + (" (each method's schedule fitted to the budget from its own step rate in its equal-step run "
-                   "on the same scene; the budget stops the run if the schedule has not ended)"
-                   if budgets[0].get("schedule") == "fitted" else " (the schedules of the cap)")
+             + (" and " + ", ".join(f"{budget['budget_minutes']:g} minutes of training (at most {budget['step_cap']} "
+                                    "steps)" for budget in budgets)
+                + f" for the equal-budget one{'s' if len(budgets) > 1 else ''} (the schedules of the cap)"
                 if budgets else "")
              + ". Quality on the held-out "
              "views (every 8th image); distances from the Gaussian centres with opacity >= 0.5 to "
@@ -760,8 +711,7 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
               iterations: Optional[int] = None, budget_minutes: Optional[float | Sequence[float]] = None,
               budget_step_cap: Optional[int] = None, train: Optional[dict] = None, command: str = "",
               priors: str | Sequence[str] = DEFAULT_PRIORS, sparse_points: str = "triangulated",
-              eval_every: Optional[int] = None, budget_schedule: str = "fitted",
-              on_outcome: Optional[Callable[[Any], None]] = None) -> dict:
+              eval_every: Optional[int] = None, on_outcome: Optional[Callable[[Any], None]] = None) -> dict:
     """Make (or reuse) the suite's scenes, run every method on each, write benchmarks.md/.json.
 
     ``priors``: the prior source(s) of the prior-based rows (:data:`PRIOR_CHOICES`; several:
@@ -773,10 +723,7 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
     ``scenes`` (name -> (folder, seed)) replaces the suite's generated scenes (tests,
     existing folders). ``iterations``, ``budget_minutes`` (one number or several, one
     equal-budget comparison each; 0 = none) and ``budget_step_cap`` (the first budget's cap,
-    :func:`budget_plan`) override the suite's (None = the suite's). ``budget_schedule``:
-    ``fitted`` (default) trains the equal-step runs first and gives each budget run the schedule
-    its method's step rate on that scene fits into the budget (:func:`fit_budget_tasks`);
-    ``cap``: every budget run on the common cap's schedule. ``eval_every``: steps
+    :func:`budget_plan`) override the suite's (None = the suite's). ``eval_every``: steps
     between the held-out evaluations of the equal-step runs (None = the suite's,
     :meth:`BenchSuite.eval_every`; 0 = none, the time-to-quality table then has each run's
     end-of-run evaluation only). ``executor``: an
@@ -812,48 +759,35 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
     for source in sorted(ensured_sources(methods, sources), key=lambda name: PriorSource(name).fused):
         for folder, _ in scenes.values():
             ensure_priors(folder, source)
-    if budget_schedule not in BUDGET_SCHEDULES:
-        raise ConfigError(f"unknown budget schedule {budget_schedule!r}", hint=f"use one of {', '.join(BUDGET_SCHEDULES)}")
     tasks, notes = plan_bench(scenes, out, iterations=iterations, methods=methods, train=train,
                               budget_minutes=budget_minutes, budget_step_cap=step_cap, priors=sources,
                               eval_every=eval_every)
-    plans = budget_plan(budget_minutes, step_cap)
-    # fitted schedules need each method's step rate: the equal-step runs go first
-    phases = [tasks] if budget_schedule == "cap" or not plans else \
-        [[task for task in tasks if budget_of(task, out, plans) is None],
-         [task for task in tasks if budget_of(task, out, plans) is not None]]
-    retrained: dict[str, list[str]] = {}
-    outcomes = []
-    own_executor = executor is None
-    executor = executor or LocalExecutor(1)
-    try:
-        for number, phase in enumerate(phases):
-            if number == 1:
-                results = {(o.task.scene_name, Path(o.task.out).name): o.result for o in outcomes
-                           if o.status in ("done", "skipped") and isinstance(o.result, dict)}
-                phase, fit_notes = fit_budget_tasks(phase, results, out, plans)
-                notes += fit_notes
-            # runs made with other settings are kept aside and trained again (RunTask.stale_settings)
-            for task in phase:
-                stale = task.stale_settings()
-                if stale and task.set_aside_if_stale() is not None:
-                    retrained[task.name] = stale
-            outcomes += run_tasks(phase, run_task, executor, retries=1, on_outcome=on_outcome)
-    finally:
-        if own_executor:
-            executor.close()
+    # runs made with other settings are kept aside and trained again (RunTask.stale_settings)
+    retrained = {}
+    for task in tasks:
+        stale = task.stale_settings()
+        if stale and task.set_aside_if_stale() is not None:
+            retrained[task.name] = stale
     if retrained:
         first, settings = next(iter(retrained.items()))
         notes.append(f"{len(retrained)} run(s) trained again because their saved settings differed from this bench's "
                      f"(e.g. {first}: {', '.join(settings[:4])}{' ...' if len(settings) > 4 else ''}); the old "
                      "folders are kept as *.stale-<time>")
+    own_executor = executor is None
+    executor = executor or LocalExecutor(1)
+    try:
+        outcomes = run_tasks(tasks, run_task, executor, retries=1, on_outcome=on_outcome)
+    finally:
+        if own_executor:
+            executor.close()
     finished = [outcome for outcome in outcomes if outcome.status in ("done", "skipped")]
     failed = [{"run": outcome.task.name, "error": outcome.error or "", "attempts": outcome.attempts}
               for outcome in outcomes if outcome.status == "failed"]
     keys = [key for key, _, _ in QUALITY_COLUMNS + STEPS_COLUMN + COST_COLUMNS]
+    plans = budget_plan(budget_minutes, step_cap)
     equal_steps = [o for o in finished if budget_of(o.task, out, plans) is None]
     step_runs = [o.result for o in equal_steps]
-    budgets = [{"budget_minutes": budget.minutes, "step_cap": budget.step_cap, "schedule": budget_schedule,
+    budgets = [{"budget_minutes": budget.minutes, "step_cap": budget.step_cap,
                 **_comparison([o.result for o in finished if budget_of(o.task, out, plans) == budget],
                               list(scenes), keys)}
                for budget in plans]

@@ -8,8 +8,7 @@ import pytest
 
 from esgs.core.errors import ConfigError
 from esgs.core.experiments.bench import (METHODS, PRIOR_CHOICES, SUITES, UPPER_BOUND_KEY, bench_rows, budget_plan,
-                                         ensure_priors, fit_budget_tasks, fitted_step_cap, plan_bench, report_budgets,
-                                         run_bench, select_methods)
+                                         ensure_priors, plan_bench, report_budgets, run_bench, select_methods)
 from esgs.core.experiments.executor import LocalExecutor, make_executor, run_tasks
 from esgs.core.experiments.runs import RunTask
 
@@ -381,52 +380,6 @@ def test_several_budgets_each_get_their_folder_name_suffix_and_a_cap_scaled_by_t
     assert by_name["tiny/esgs_depth@budget"].config["iterations"] == 600
     assert {k: v for k, v in five.config.items() if k not in ("max_minutes", "iterations")} == \
         {k: v for k, v in by_name["tiny/esgs_depth@budget"].config.items() if k not in ("max_minutes", "iterations")}
-
-
-def test_fitted_budget_schedules_come_from_each_methods_own_step_rate_on_the_same_scene(tmp_path, scene):
-    assert fitted_step_cap(1.0, 500, 139.0) == 215 and fitted_step_cap(5.0, 500, 139.0) == 1079
-    assert fitted_step_cap(0.001, 10, 100.0) == 1
-    with pytest.raises(ValueError):
-        fitted_step_cap(1.0, 0, 10.0)
-    methods = [m for m in METHODS if m.key in ("3dgs", "esgs_depth")]
-    tasks, _ = plan_bench({"tiny": (scene, 0), "other": (scene, 1)}, tmp_path / "out", iterations=300,
-                          methods=methods, budget_minutes=[1, 5], priors="gt")
-    plans = budget_plan([1, 5], 600)
-    results = {("tiny", "3dgs"): {"steps": 300, "train_s": 60.0}, ("tiny", "esgs_depth"): {"steps": 300, "train_s": 90.0},
-               ("other", "3dgs"): {"steps": 300, "train_s": 30.0}}
-    fitted, notes = fit_budget_tasks(tasks, results, tmp_path / "out", plans)
-    caps = {task.name: task.config["iterations"] for task in fitted}
-    assert caps == {"tiny/3dgs@budget": 300, "tiny/3dgs@5min": 1500, "tiny/esgs_depth@budget": 200,
-                    "tiny/esgs_depth@5min": 1000, "other/3dgs@budget": 600, "other/3dgs@5min": 3000,
-                    # no equal-step run to read a rate from: the common cap, and a note says so
-                    "other/esgs_depth@budget": 600, "other/esgs_depth@5min": 3000}
-    assert len(notes) == 2 and all("keeps the common cap" in note for note in notes)
-    # everything but the schedule's length is the planned task's
-    planned = {task.name: task for task in tasks}
-    for task in fitted:
-        assert {k: v for k, v in task.config.items() if k != "iterations"} == \
-            {k: v for k, v in planned[task.name].config.items() if k != "iterations"}
-        assert task.out == planned[task.name].out
-
-
-@pytest.mark.slow  # three tiny runs in a spawned worker: ~30 s on 2 cores
-def test_a_fitted_budget_run_trains_the_steps_its_equal_step_run_rate_fits(tmp_path, scene):
-    methods = [m for m in METHODS if m.key == "3dgs"]
-    seen = []
-    with LocalExecutor(1) as executor:
-        report = run_bench(tmp_path / "bench", "quick", executor=executor, scenes={"tiny": (scene, 0)},
-                           methods=methods, iterations=6, budget_minutes=[0.05, 0.1], train=TRAIN,
-                           on_outcome=lambda o: seen.append(o.task.name))
-    # the equal-step run first: the budget runs' schedules are read from it
-    assert seen[0] == "tiny/3dgs" and sorted(seen[1:]) == ["tiny/3dgs@0.1min", "tiny/3dgs@budget"]
-    (step_run,) = report["runs"]
-    for budget in report["budgets"]:
-        (run,) = budget["runs"]
-        assert budget["schedule"] == "fitted"
-        assert run["iterations"] == fitted_step_cap(budget["budget_minutes"], step_run["steps"], step_run["train_s"])
-        assert run["steps"] <= run["iterations"] and run["max_minutes"] == budget["budget_minutes"]
-    text = (tmp_path / "bench" / "benchmarks.md").read_text()
-    assert "each method's schedule fitted to the budget from its own step rate" in text and "schedule (steps)" in text
 
 
 def test_rows_select_methods_in_the_tables_order_and_the_cli_names_every_row():

@@ -67,7 +67,7 @@ def test_tiny_bench_through_ray_tables_equal_the_runs_summaries_and_a_restart_tr
     methods = [m for m in METHODS if m.key in ("3dgs", "esgs_depth_normal")]
     seen = []
     report = run_bench(tmp_path / "bench", "quick", executor=executor, scenes={"tiny": (scene, 0)}, methods=methods,
-                       iterations=4, budget_minutes=[0.002, 0.003], budget_step_cap=5000, budget_schedule="cap", train=TRAIN,
+                       iterations=4, budget_minutes=[0.002, 0.003], budget_step_cap=5000, train=TRAIN,
                        on_outcome=lambda o: seen.append((o.task.name, o.status)))
     assert sorted(seen) == [("tiny/3dgs", "done"), ("tiny/3dgs@0.003min", "done"), ("tiny/3dgs@budget", "done"),
                             ("tiny/esgs_depth_normal", "done"), ("tiny/esgs_depth_normal@0.003min", "done"),
@@ -105,7 +105,7 @@ def test_tiny_bench_through_ray_tables_equal_the_runs_summaries_and_a_restart_tr
 
     seen.clear()
     again = run_bench(root, "quick", executor=executor, scenes={"tiny": (scene, 0)}, methods=methods,
-                      iterations=4, budget_minutes=[0.002, 0.003], budget_step_cap=5000, budget_schedule="cap", train=TRAIN,
+                      iterations=4, budget_minutes=[0.002, 0.003], budget_step_cap=5000, train=TRAIN,
                       on_outcome=lambda o: seen.append(o.status))
     assert seen == ["skipped"] * 6
     assert again["overall"] == json.loads(json.dumps(report["overall"]))
