@@ -403,8 +403,8 @@ def plan_bench(scenes: dict[str, tuple[Path, int]], out: Path, *, iterations: in
     Equal-step tasks train ``iterations`` steps in ``OUT/runs/<scene>/<method>``. For each
     budget of ``budget_minutes`` (one number or several; 0 = none) every method also trains for
     that much training time (``max_minutes``) in the budget's folder (:func:`budget_plan`: the
-    first in ``OUT/runs_budget/<scene>/<method>``), up to its step cap (``budget_step_cap``, 0 =
-    twice ``iterations``, for the first budget, scaled by the minutes for the others); its
+    shortest in ``OUT/runs_budget/<scene>/<method>``), up to its step cap (``budget_step_cap``, 0 =
+    twice ``iterations``, for the shortest budget, scaled by the minutes for the others); its
     learning-rate and densification schedules are those of the cap.
     ``eval_every`` > 0: the equal-step runs evaluate their held-out views every so many steps
     (``TrainConfig.eval_every``; the curves of the time-to-quality table).
@@ -453,9 +453,9 @@ STEPS_COLUMN = (("steps", "steps reached", 0),)
 
 def _comparison_markdown(part: dict, title: str) -> list[str]:
     """The tables of one comparison (equal steps or equal budget): all scenes, then each scene."""
-    extra = STEPS_COLUMN if part.get("budget_minutes") else ()
     from .paired import paired_markdown
 
+    extra = STEPS_COLUMN if part.get("budget_minutes") else ()
     lines = [f"## {title}: all scenes", "", markdown_table(part["overall"], QUALITY_COLUMNS), "",
              markdown_table(part["overall"], extra + COST_COLUMNS)]
     for baseline, rows in (part.get("paired") or {}).items():
@@ -722,7 +722,7 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
 
     ``scenes`` (name -> (folder, seed)) replaces the suite's generated scenes (tests,
     existing folders). ``iterations``, ``budget_minutes`` (one number or several, one
-    equal-budget comparison each; 0 = none) and ``budget_step_cap`` (the first budget's cap,
+    equal-budget comparison each; 0 = none) and ``budget_step_cap`` (the shortest budget's cap,
     :func:`budget_plan`) override the suite's (None = the suite's). ``eval_every``: steps
     between the held-out evaluations of the equal-step runs (None = the suite's,
     :meth:`BenchSuite.eval_every`; 0 = none, the time-to-quality table then has each run's
