@@ -10,7 +10,7 @@ the acceptance study do), cached in ``OUT/scenes/<...>_sfm``: the initial Gaussi
 ``sfm`` priors and the pinning of NDN depth then come from points a real capture would give.
 Each (scene, method, seed) is one :class:`~.runs.RunTask` in ``OUT/runs/...`` (equal steps)
 and, per budget, one more (equal training time: ``max_minutes`` with a step cap) in
-``OUT/runs_budget/...`` for the first budget and ``OUT/runs_budget_<M>min/...`` for each further
+``OUT/runs_budget/...`` for the shortest budget and ``OUT/runs_budget_<M>min/...`` for each longer
 one (:func:`budget_plan`); tasks run through an :class:`~.executor.Executor` (local
 process pool, or Ray), a failed run is retried once, and a restart repeats only unfinished
 runs and runs whose saved settings differ from the ones the bench asks for now (a changed
@@ -785,10 +785,11 @@ def run_bench(out: str | Path, suite: str | BenchSuite = "quick", *, executor: A
               for outcome in outcomes if outcome.status == "failed"]
     keys = [key for key, _, _ in QUALITY_COLUMNS + STEPS_COLUMN + COST_COLUMNS]
     plans = budget_plan(budget_minutes, step_cap)
-    equal_steps = [o for o in finished if budget_of(o.task, out, plans) is None]
+    budget_of_run = [budget_of(o.task, out, plans) for o in finished]
+    equal_steps = [o for o, budget in zip(finished, budget_of_run) if budget is None]
     step_runs = [o.result for o in equal_steps]
     budgets = [{"budget_minutes": budget.minutes, "step_cap": budget.step_cap,
-                **_comparison([o.result for o in finished if budget_of(o.task, out, plans) == budget],
+                **_comparison([o.result for o, its in zip(finished, budget_of_run) if its == budget],
                               list(scenes), keys)}
                for budget in plans]
     report = {
