@@ -5,6 +5,9 @@ override what you need). Every method receives ``run``, a :class:`RunView`: the 
 typed part of a training run a hook may read and use (nerfstudio's callbacks see a
 similar fixed set of attributes). The trainer calls them in the order the hooks were given:
 
+- ``initial_points(run) -> SeedPoints | None`` once, when a run starts from scratch (not
+  when resuming), after the scene is loaded and before the Gaussians exist: more points to
+  seed Gaussians from, beside the scene's SfM points (ESGS adds points of its depth prior);
 - ``setup(run)`` once, after the scene and the Gaussians exist and before the first
   step (also when resuming, before the checkpoint is loaded): add loss terms
   (``run.add_loss_term``), optimizer groups for an ``nn.Module``'s parameters
@@ -37,6 +40,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterable, Optional, Protocol, Sequence
 
 if TYPE_CHECKING:
+    import numpy as np
     import torch
 
     from .dataset import View
@@ -124,11 +128,25 @@ class RunView(Protocol):
                      render_normals: bool = False) -> Any: ...
 
 
+@dataclass(frozen=True)
+class SeedPoints:
+    """Points a hook adds to the initial Gaussians: xyz [M, 3] world coordinates (float64) and
+    rgb [M, 3] colours in [0, 1], seeded like the SfM points (same opacity; scales from the
+    nearest neighbours among all the points)."""
+
+    xyz: "np.ndarray"
+    rgb: "np.ndarray"
+
+
 class TrainHook:
     """Base class with do-nothing implementations of every hook method."""
 
     #: Key of this hook's state in checkpoints; must be unique among a run's hooks.
     name: str = "hook"
+
+    def initial_points(self, run: RunView) -> Optional[SeedPoints]:
+        """Points to seed Gaussians from besides the SfM points (default: none)."""
+        return None
 
     def setup(self, run: RunView) -> None:
         pass

@@ -279,8 +279,14 @@ class Trainer:
         config = self.config
         kwargs = dict(max_sh_degree=config.sh_degree, init_opacity=config.init_opacity,
                       neighbours=config.init_scale_neighbours)
-        if len(self.data.points_xyz):
-            model = GaussianModel.from_points(self.data.points_xyz, self.data.points_rgb, **kwargs)
+        points_xyz, points_rgb = self.data.points_xyz, self.data.points_rgb
+        for hook in self.hooks:
+            seeds = hook.initial_points(self)
+            if seeds is not None and len(seeds.xyz):
+                points_xyz = np.concatenate([points_xyz, np.asarray(seeds.xyz, dtype=np.float64)])
+                points_rgb = np.concatenate([points_rgb, np.asarray(seeds.rgb, dtype=points_rgb.dtype)])
+        if len(points_xyz):
+            model = GaussianModel.from_points(points_xyz, points_rgb, **kwargs)
         else:
             self.message(f"the COLMAP model has no 3D points: starting from {config.random_init_points} random Gaussians")
             rng = np.random.default_rng(config.seed)

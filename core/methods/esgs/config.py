@@ -91,6 +91,11 @@ class ESGSConfig(GPDFNConfig):
                 "mask_kind is surface: gt, ndn), Gaussians drawn nearer than the view's farthest surface are "
                 "pushed beyond it (docs/esgs.md, 'The sky loss'); needs use_masks; 0 = off"})
     max_prior_depth: float = field(default=0.0, metadata={"help": "ignore prior depths beyond this (scene units; 0 = no limit)"})
+    prior_points: int = field(default=0, metadata={
+        "help": "Gaussians seeded per training view from the depth prior at the start, beside the SfM points: "
+                "pixels inside the prior's mask (no sky) drawn in proportion to its confidence and lifted to "
+                "their prior depth (docs/esgs.md, 'Gaussians seeded from the depth prior'); needs a metric "
+                "depth prior; 0 = off"})
 
     def validate(self) -> None:
         if (self.depth or self.normal) and not self.priors:
@@ -106,7 +111,7 @@ class ESGSConfig(GPDFNConfig):
             raise ConfigError(f"relative_alignment must be one of {ALIGNMENTS}, got {self.relative_alignment!r}")
         for name in ("depth_weight", "normal_weight", "consistency_weight", "edge_strength", "max_prior_depth",
                      "max_alignment_error", "sky_weight", "depth_robust", "flatten_weight", "depth_decay",
-                     "depth_incidence"):
+                     "depth_incidence", "prior_points"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
         super().validate()

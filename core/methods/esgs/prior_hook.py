@@ -4,16 +4,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Optional
 
+import numpy as np
 import torch
 
 from ...errors import ConfigError
 from ...priors import load_prior_maps
 from ...priors.align import align_depth_to_points
+from ...priors.seeding import lift_pixels, sample_prior_pixels
 from ...priors.losses import (depth_loss, depth_normal_consistency_loss, edge_aware_weights, incidence_weights,
                               normal_loss, sky_loss, thinness_loss)
 from ...render import MEDIAN_SURFACE_BACKENDS
 from ...render.surface import median_surface_depth, median_surface_normals, median_surface_thinness
-from ...train.hooks import RunView, TrainHook
+from ...train.hooks import RunView, SeedPoints, TrainHook
 from ...train.losses import LossContext, LossTerm, flattening_loss
 from .config import ESGSConfig
 
@@ -46,6 +48,11 @@ class ViewPriors:
         return self.depth_confidence if self.depth_confidence is not None else self.confidence
 
 
+#: Mixed into the run's seed for the draw of the seeded pixels (its own stream: the run's
+#: generator is not touched, so seeding changes nothing else of a run).
+_SEED_SALT = 0x5EED
+
+
 class PriorLossHook(TrainHook):
     """Loads ``priors/<source>/`` for every training view and adds the loss terms.
 
@@ -63,6 +70,37 @@ class PriorLossHook(TrainHook):
         self._depth_span = (0, 1)  # the steps over which the depth weight decays (setup)
 
     # ------------------------------------------------------------------------------
+    def initial_points(self, run: RunView) -> Optional[SeedPoints]:
+        """``prior_points`` pixels of each training view's metric depth prior, lifted into the
+        scene: inside the prior's mask and the view's, never sky, drawn in proportion to the
+        prior's confidence (uniformly without one); coloured by the view's image."""
+        if self.config.prior_points <= 0 or not self.config.priors:
+            return None
+        self._load(run)
+        rng = np.random.default_rng((int(run.seed) * 1_000_003 + _SEED_SALT) % (2 ** 63))
+        xyz, rgb = [], []
+        for view in run.train_views:
+            prior = self.priors.get(view.name)
+            if prior is None or prior.depth is None or prior.relative:
+                continue
+            depth = prior.depth.cpu().numpy()
+            valid = prior.mask.cpu().numpy() & np.isfinite(depth) & (depth > 0)
+            if prior.sky is not None:
+                valid &= ~prior.sky.cpu().numpy()
+            weights = prior.confidence.cpu().numpy() if prior.confidence is not None else None
+            rows, cols = sample_prior_pixels(valid, self.config.prior_points, rng, weights)
+            if rows.size == 0:
+                continue
+            xyz.append(lift_pixels(depth, rows, cols, view.K.double().numpy(), view.viewmat.double().numpy()))
+            rgb.append(view.image[rows, cols].numpy().astype(np.float64) / 255.0)
+        if not xyz:
+            run.message(f"note: prior source {self.config.priors!r} has no metric depth to seed Gaussians from")
+            return None
+        seeds = SeedPoints(xyz=np.concatenate(xyz), rgb=np.concatenate(rgb))
+        run.message(f"seeded {len(seeds.xyz):,} Gaussians from the {self.config.priors} depth prior "
+                    f"({len(xyz)} views)")
+        return seeds
+
     def setup(self, run: RunView) -> None:
         config = self.config
         start = run.scaled_step(config.prior_start_step)
@@ -78,7 +116,7 @@ class PriorLossHook(TrainHook):
                         f"which the {run.backend} backend does not return; the normal prior meets the composited "
                         "normal in this run (--backend cpu for the median surface)")
             self.normal_render = "composited"
-        if config.depth or config.normal or wants_sky:
+        if (config.depth or config.normal or wants_sky) and not self.priors:  # initial_points may have loaded them
             self._load(run)
         if config.depth:
             self._depth_span = (start, max(run.scaled_step(30_000), start + 1))

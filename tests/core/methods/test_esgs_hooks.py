@@ -527,3 +527,27 @@ def test_a_decaying_depth_weight_falls_geometrically_to_its_end_fraction(scene, 
     assert hook._depth_decay_factor(last) == pytest.approx(0.1)
     constant = _trainer(scene, tmp_path / "constant", ESGSConfig(priors="gt", depth=True, sky_weight=0.0), iterations=100)
     assert constant.hooks[0]._depth_decay_factor(last) == 1.0
+
+
+def test_prior_points_seed_gaussians_on_the_prior_surface_and_never_from_sky(scene, tmp_path):
+    plain = _trainer(scene, tmp_path / "plain", ESGSConfig(priors="gt", depth=True))
+    seeded = _trainer(scene, tmp_path / "seeded", ESGSConfig(priors="gt", depth=True, prior_points=25))
+    sfm = len(plain.data.points_xyz)
+    assert len(plain.gaussians) == sfm
+    added = len(seeded.gaussians) - sfm
+    assert 0 < added <= 25 * len(seeded.data.train)
+    # the seeds follow the SfM points in the initial model (Morton order may shuffle rows:
+    # compare as a set of positions far from every SfM point instead of by index)
+    means = seeded.gaussians.params["means"].detach().double().numpy()
+    sfm_points = plain.data.points_xyz
+    nearest = np.min(np.linalg.norm(means[:, None, :] - sfm_points[None, :, :], axis=-1), axis=1)
+    new = means[nearest > 1e-5]  # float32 storage rounds the SfM points by ~1e-7
+    assert len(new) == added
+    # on the ground plane of the scene (|z| <= a few of its 0.02 jitter), inside its extent: none
+    # comes from the masked "sky" rows, whose corrupt prior depth is 1000
+    assert np.abs(new[:, 2]).max() < 0.15
+    assert np.abs(new[:, :2]).max() < 1.3
+    # the same run seed draws the same pixels
+    again = _trainer(scene, tmp_path / "again", ESGSConfig(priors="gt", depth=True, prior_points=25))
+    np.testing.assert_array_equal(again.gaussians.params["means"].detach().numpy(),
+                                  seeded.gaussians.params["means"].detach().numpy())
