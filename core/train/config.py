@@ -20,6 +20,8 @@ REFERENCE_ITERATIONS = 30_000
 BACKENDS = ("auto", "cpu", "reference", "cuda")
 #: ``sky`` values: a learned environment map (train/sky.py), or the constant background (3DGS).
 SKY_MODELS = ("envmap", "none")
+#: Where the sky model starts when the masks mark no sky (``TrainConfig.sky_init``).
+SKY_INITS = ("images", "black")
 GRAYSCALE_MODES = ("auto", "on", "off")
 #: ``densify_gradient`` values: which loss terms' screen-space gradients decide clone/split.
 DENSIFY_GRADIENTS = ("photometric", "all")
@@ -59,6 +61,10 @@ class TrainConfig:
         "loss on every pixel; RUN/sky.json; docs/training.md), none = the constant background (plain 3DGS)",
         choices=SKY_MODELS))
     sky_degree: int = field(default=3, metadata=_help("spherical-harmonics degree of the sky model (0..3)"))
+    sky_init: str = field(default="images", metadata=_help(
+        "the sky model's starting colour where the mask source marks no sky pixels to start from: images = the "
+        "training images' mean colour (what a held-out view shows where it sees ground no training view saw, "
+        "when no Gaussian reaches there), black = 3DGS's background (before 2026-12-07)", choices=SKY_INITS))
     sky_grid_rows: int = field(default=0, metadata=_help(
         "rows of a direction grid added to the sky model's harmonics (an equirectangular map of 2 x rows columns, "
         "read bilinearly; local support, so the unseen-sky prior fills unseen directions without moving the rest); "
@@ -208,6 +214,8 @@ class TrainConfig:
         if self.densify_gradient not in DENSIFY_GRADIENTS:
             raise ConfigError(f"densify_gradient must be one of {', '.join(DENSIFY_GRADIENTS)}, "
                               f"got {self.densify_gradient!r}")
+        if self.sky_init not in SKY_INITS:
+            raise ConfigError(f"sky_init must be one of {SKY_INITS}, got {self.sky_init!r}")
         if self.sky not in SKY_MODELS:
             raise ConfigError(f"sky must be one of {', '.join(SKY_MODELS)}, got {self.sky!r}")
         if not 0 <= self.sky_degree <= 3:
@@ -256,7 +264,7 @@ class TrainConfig:
 PREDATING_VALUES: dict = {"spatial_order": False, "esgs.sky_weight": 0.0, "sky": "none", "mask_photometric": True,
                           "surface_alpha_weight": 0.0, "grayscale": "off", "sky_smooth_weight": 0.0,
                           "sky_unseen_weight": 0.0, "sky_grid_rows": 0, "sky_lr_decay": 1.0,
-                          "prune_hidden": 0.0}
+                          "prune_hidden": 0.0, "sky_init": "black"}
 #: The same for the settings of one method, in today's layout (``method_config`` of that method).
 PREDATING_METHOD_VALUES: dict = {"esgs": {"normal_render": "composited", "gpdfn_hidden": 16}}
 

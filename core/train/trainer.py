@@ -358,11 +358,14 @@ class Trainer:
             return
         self.sky = SkyModel(config.sky_degree, grid_rows=config.sky_grid_rows).to(self.device)  # no random draw: same seed, same run
         marks_sky = _marks_sky(self.data.mask_source)
-        if marks_sky:
-            # start from the mean colour of the pixels the masks call sky (else black, 3DGS's background)
-            colour = _mean_sky_colour(self.data.train)
-            if colour is not None:
-                self.sky.set_color(colour)
+        # start from the mean colour of the pixels the masks call sky; without any, from the mean
+        # colour of the images (sky_init images: held-out ground beyond every training view's
+        # reach then shows the ground's mean colour rather than black) or black (3DGS's background)
+        colour = _mean_sky_colour(self.data.train) if marks_sky else None
+        if colour is None and config.sky_init == "images":
+            colour = _mean_image_colour(self.data.train)
+        if colour is not None:
+            self.sky.set_color(colour)
         decay = ExponentialDecay(config.sky_lr, config.sky_lr * config.sky_lr_decay, max_steps=config.iterations)
         self.optimizer.add_group("sky", list(self.sky.parameters()), config.sky_lr, schedule=decay, per_gaussian=False)
         if config.sky_alpha_weight > 0 and marks_sky:
@@ -749,6 +752,16 @@ def _marks_sky(mask_source: Optional[str]) -> bool:
     if mask_source is None or mask_source not in {source.value for source in PriorSource}:
         return False
     return PriorSource(mask_source).masks_sky
+
+
+def _mean_image_colour(views: Sequence[View]) -> torch.Tensor:
+    """[3] mean colour of the views' pixels that count in the loss (mask True, or all)."""
+    total, count = torch.zeros(3, dtype=torch.float64), 0
+    for view in views:
+        pixels = view.image if view.mask is None else view.image[view.mask[..., 0].bool()]
+        total += pixels.reshape(-1, 3).double().sum(dim=0) / 255.0
+        count += pixels.reshape(-1, 3).shape[0]
+    return (total / max(count, 1)).float()
 
 
 def _mean_sky_colour(views: Sequence[View]) -> Optional[torch.Tensor]:

@@ -649,3 +649,26 @@ def test_the_sky_learning_rate_decays_to_its_share_by_the_last_step(fast_config,
     data = json.loads(json.dumps(config_to_dict(fast_config())))
     del data["sky_lr_decay"]
     assert run_config_from_dict(data).sky_lr_decay == 1.0
+
+
+def test_without_sky_marks_the_sky_starts_from_the_images_mean_colour_or_black(fast_config, tiny_scene, tmp_path):
+    import torch
+
+    from esgs.core.train.trainer import Trainer
+
+    trainer = Trainer(fast_config(out=tmp_path / "images", mask_source="none"))
+    trainer.setup()
+    pixels = torch.cat([view.image.reshape(-1, 3).double() / 255.0 for view in trainer.data.train])
+    mean = pixels.mean(dim=0).clamp(0.01, 0.99)
+    directions = torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
+    colours = torch.sigmoid(trainer.sky.logits(directions)).double()
+    torch.testing.assert_close(colours, mean.expand_as(colours).to(colours), atol=1e-5, rtol=0)
+    black = Trainer(fast_config(out=tmp_path / "black", mask_source="none", sky_init="black"))
+    black.setup()
+    assert float(torch.sigmoid(black.sky.logits(directions)).max()) < 0.05  # 3DGS's black background
+
+
+def test_runs_saved_before_sky_init_read_as_black():
+    from esgs.core.train.config import with_predating_values
+
+    assert with_predating_values({"scene": "s", "out": "o"})["sky_init"] == "black"
