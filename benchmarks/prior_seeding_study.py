@@ -1,17 +1,18 @@
 """Gaussians seeded from the depth prior (``prior_points``): full ESGS with each count against
 full ESGS without, and plain ``esgs train`` (3DGS + sky model) as the reference, equal steps.
 
-Every scene x seed x row runs once, one after another, cached in
+``--black`` adds the rows as shipped before 2026-12-07, when the sky model started from
+black (``sky_init black``) and nothing was seeded. Every scene x seed x row runs once, one after another, cached in
 ``OUT/runs/<scene>/<row>/seed<s>`` (a finished run is not repeated). Rows: ``3dgs_sky``
 (plain ``esgs train``) and ``esgs_p<N>`` (``full_esgs(priors)`` with ``prior_points=N``;
 N = 0 is full ESGS as shipped before seeding). After every run ``OUT/seeding.json`` is
 rewritten; ``--json`` copies it where the docs quote it from. Each row's figures are the mean
-and standard deviation over the runs, and its paired differences against ``esgs_p0`` on the same
-scene and seed (held-out SSIM / PSNR / LPIPS, mean distance of the opaque Gaussians to the
+and standard deviation over the runs, and its paired differences against ``esgs_p0``,
+``esgs_p0_black`` and ``3dgs_sky`` on the same scene and seed (held-out SSIM / PSNR / LPIPS, mean distance of the opaque Gaussians to the
 scene's true mesh as a ratio, training seconds as a ratio, Gaussians at the end).
 
     .venv/bin/python benchmarks/prior_seeding_study.py SCENE [SCENE ...] --out DIR [--points 0 1000]
-        [--seeds 0 1 2] [--iterations 500] [--priors auto] [--threads 2] [--json FILE]
+        [--seeds 0 1 2] [--iterations 500] [--priors auto] [--threads 2] [--black] [--json FILE]
 """
 from __future__ import annotations
 
@@ -32,22 +33,28 @@ from esgs.core.io_utils import atomic_write_json  # noqa: E402
 from esgs.core.methods import full_esgs  # noqa: E402
 
 FIGURES = ("ssim", "psnr", "lpips", "distance_mean", "train_s", "n_gaussians")
-#: paired against esgs_p0: differences for these, ratios for the rest of FIGURES
+#: paired figures: differences for these, ratios for the rest of FIGURES
 DIFFERENCES = ("ssim", "psnr", "lpips", "n_gaussians")
 
 
 def tasks_for(scene: Path, out: Path, *, points: list[int], seeds: list[int], iterations: int, priors: str,
-              threads: int, baseline: bool) -> list[RunTask]:
+              threads: int, baseline: bool, black: bool = False) -> list[RunTask]:
+    """``black``: also the rows as shipped before 2026-12-07 (sky model from black, no seeding):
+    ``3dgs_sky_black`` and ``esgs_p0_black``."""
     mesh = SceneDir(scene).ground_truth_mesh
     train = {"iterations": iterations, "threads": threads, "backend": "cpu"}
-    rows = [("3dgs_sky", "3dgs", None)] if baseline else []
-    rows += [(f"esgs_p{n}", "esgs", config_to_dict(full_esgs(priors, scene=scene, prior_points=n))) for n in points]
+    esgs = {n: config_to_dict(full_esgs(priors, scene=scene, prior_points=n)) for n in points}
+    rows = [("3dgs_sky_black", "3dgs", None, {"sky_init": "black"})] if baseline and black else []
+    rows += [("3dgs_sky", "3dgs", None, {})] if baseline else []
+    rows += [("esgs_p0_black", "esgs", esgs[0], {"sky_init": "black"})] if black else []
+    rows += [(f"esgs_p{n}", "esgs", esgs[n], {}) for n in points]
     tasks = []
     for seed in seeds:
-        for key, method, method_config in rows:
+        for key, method, method_config, settings in rows:
             tasks.append(RunTask(name=f"{scene.name}/{key}/seed{seed}", scene=scene,
                                  out=out / "runs" / scene.name / key / f"seed{seed}",
-                                 config={**train, "seed": seed, "method": method, "method_config": method_config},
+                                 config={**train, **settings, "seed": seed, "method": method,
+                                         "method_config": method_config},
                                  variant=key, seed=seed, scene_name=scene.name,
                                  mesh=mesh if mesh.is_file() else None, measure_render=False))
     return tasks
@@ -61,23 +68,35 @@ def _stats(values: list[float]) -> dict:
             "n": len(values)}
 
 
+#: the rows every other row is paired with, where present
+REFERENCES = ("esgs_p0", "esgs_p0_black", "3dgs_sky")
+
+
+def _paired(summaries: list[dict], runs: list[dict], reference: str) -> dict:
+    paired: dict[str, list] = {figure: [] for figure in FIGURES}
+    for run in runs:
+        base = next((s for s in summaries if s["variant"] == reference and s["scene"] == run["scene"]
+                     and s["seed"] == run["seed"]), None)
+        if base is None:
+            continue
+        for figure in FIGURES:
+            a, b = run.get(figure), base.get(figure)
+            if a is not None and b is not None and (figure in DIFFERENCES or b):
+                paired[figure].append(a - b if figure in DIFFERENCES else a / b)
+    return {figure: _stats(values) for figure, values in paired.items() if values}
+
+
 def summarise(summaries: list[dict]) -> dict:
+    """Per row: mean and std of every figure, and paired against each reference row on the
+    same scene and seed (differences for SSIM, PSNR, LPIPS and the count, ratios otherwise)."""
     rows: dict[str, dict] = {}
-    for key in sorted({s["variant"] for s in summaries}):
+    variants = {s["variant"] for s in summaries}
+    for key in sorted(variants):
         runs = [s for s in summaries if s["variant"] == key]
         row = {figure: _stats([r.get(figure) for r in runs]) for figure in FIGURES}
-        paired = {figure: [] for figure in FIGURES}
-        for run in runs:
-            base = next((s for s in summaries if s["variant"] == "esgs_p0" and s["scene"] == run["scene"]
-                         and s["seed"] == run["seed"]), None)
-            if base is None or key == "esgs_p0":
-                continue
-            for figure in FIGURES:
-                a, b = run.get(figure), base.get(figure)
-                if a is None or b is None:
-                    continue
-                paired[figure].append(a - b if figure in DIFFERENCES else (a / b if b else None))
-        row["paired_vs_esgs_p0"] = {figure: _stats(values) for figure, values in paired.items() if values}
+        for reference in REFERENCES:
+            if reference in variants and reference != key:
+                row[f"paired_vs_{reference}"] = _paired(summaries, runs, reference)
         rows[key] = row
     return rows
 
@@ -92,6 +111,9 @@ def main(argv=None) -> int:
     parser.add_argument("--priors", default="auto")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--no-baseline", dest="baseline", action="store_false", help="leave out the 3dgs_sky row")
+    parser.add_argument("--black", action="store_true",
+                        help="also the rows as shipped before 2026-12-07: 3dgs_sky_black and esgs_p0_black "
+                             "(sky model from black, no seeding)")
     parser.add_argument("--json", type=Path, default=None, help="also write the summary here")
     args = parser.parse_args(argv)
     if 0 not in args.points:
@@ -99,7 +121,7 @@ def main(argv=None) -> int:
     tasks = [task for scene in args.scenes
              for task in tasks_for(scene.resolve(), args.out, points=args.points, seeds=args.seeds,
                                    iterations=args.iterations, priors=args.priors, threads=args.threads,
-                                   baseline=args.baseline)]
+                                   baseline=args.baseline, black=args.black)]
     summaries = []
     command = "python benchmarks/prior_seeding_study.py " + " ".join(sys.argv[1:] if argv is None else argv)
     for index, task in enumerate(tasks, 1):

@@ -40,6 +40,7 @@ def test_the_panel_and_the_demo_build_esgs_with_the_same_function(monkeypatch):
 
     assert panel.method == "esgs" and panel.method_config == demo_settings == real()
     assert demo_settings.depth_weight == methods.AUTO_DEPTH_WEIGHT  # auto's weight reaches both, not ndn's
+    assert panel.method_config.prior_points == demo_settings.prior_points == methods.AUTO_PRIOR_POINTS > 0
     # one default source: full_esgs's, the demo's and the panel's
     default = inspect.signature(real).parameters["priors"].default
     assert default == config.priors == settings_training.DEFAULT_PRIOR_SOURCE == "auto"

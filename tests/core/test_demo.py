@@ -15,7 +15,7 @@ from esgs.core.apps import demo, report
 from esgs.core.config import config_from_dict, config_to_dict
 from esgs.core.apps.demo import DemoConfig, esgs_settings
 from esgs.core.errors import ConfigError
-from esgs.core.methods import AUTO_DEPTH_WEIGHT, ESGSConfig, full_esgs
+from esgs.core.methods import AUTO_DEPTH_WEIGHT, AUTO_PRIOR_POINTS, ESGSConfig, full_esgs
 from esgs.core.priors import PriorMaps, load_prior_maps, write_prior_maps
 from tests.core.train.scene import make_scene
 
@@ -31,6 +31,8 @@ def test_the_demo_trains_full_esgs_on_auto_priors_by_default():
     # the full method exactly as full_esgs defines it, weights included (auto: depth weight 3)
     assert config_from_dict(ESGSConfig, settings) == full_esgs("auto") == full_esgs()
     assert settings["depth_weight"] == AUTO_DEPTH_WEIGHT and settings == esgs_settings()
+    # Gaussians seeded from the auto prior's depth; sources it was not measured with seed none
+    assert settings["prior_points"] == AUTO_PRIOR_POINTS > 0 and full_esgs("gt").prior_points == 0
     assert _switches(settings) == {"priors": "auto", "depth": True, "normal": True, "consistency": False,
                                    "gpdfn": True}
     assert config_from_dict(ESGSConfig, settings).enabled  # a valid trainer config, not the baseline

@@ -10,9 +10,9 @@ import torch
 from ...errors import ConfigError
 from ...priors import load_prior_maps
 from ...priors.align import align_depth_to_points
-from ...priors.seeding import lift_pixels, sample_prior_pixels
 from ...priors.losses import (depth_loss, depth_normal_consistency_loss, edge_aware_weights, incidence_weights,
                               normal_loss, sky_loss, thinness_loss)
+from ...priors.seeding import lift_pixels, sample_prior_pixels
 from ...render import MEDIAN_SURFACE_BACKENDS
 from ...render.surface import median_surface_depth, median_surface_normals, median_surface_thinness
 from ...train.hooks import RunView, SeedPoints, TrainHook
