@@ -122,7 +122,7 @@ def build_config(args: argparse.Namespace):
     if method.settings_class is not None:
         settings = dataclass_from_args(method.settings_class, args, base=settings)
     if getattr(args, "vanilla", False):
-        from ..train.config import VANILLA_3DGS, vanilla
+        from ..train.config import SKY_MODEL_SETTINGS, VANILLA_3DGS, vanilla
 
         if base is not None and args.resume and any(getattr(base, key) != value for key, value in VANILLA_3DGS.items()):
             raise ConfigError("--vanilla cannot change a run that is being resumed: it keeps the settings it started with",
@@ -130,9 +130,7 @@ def build_config(args: argparse.Namespace):
         clashing = [key for key, value in VANILLA_3DGS.items()
                     if getattr(args, key, None) is not None and getattr(args, key) != value]
         # settings of the sky model that --vanilla turns off: giving them would do nothing
-        clashing += [key for key in ("sky_alpha_weight", "sky_smooth_weight", "sky_unseen_weight", "surface_alpha_weight",
-                                    "sky_degree", "sky_lr", "sky_lr_decay", "sky_grid_rows")
-                     if getattr(args, key, None) is not None]
+        clashing += [key for key in SKY_MODEL_SETTINGS if getattr(args, key, None) is not None]
         if clashing:
             raise ConfigError(f"--vanilla sets {', '.join('--' + key.replace('_', '-') for key in clashing)} itself "
                               "or turns it off", hint="leave those flags out, or drop --vanilla")

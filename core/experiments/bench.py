@@ -158,13 +158,14 @@ def _method(key: str, label: str, method: str = "3dgs", *, settings: Optional[di
 def full_esgs_without_priors(**overrides: Any) -> dict:
     """What full ESGS (:func:`esgs.core.methods.full_esgs`) becomes when every prior is dropped:
     no prior source; depth, normal, consistency and sky losses off; GPDFN as the full method
-    sets it (K = 3). The depth weight goes back to ESGSConfig's default, so the row does not
-    change with the weight a prior source would get. ``overrides``: ESGSConfig fields."""
+    sets it (K = 3). The depth weight and the seeded points go back to ESGSConfig's defaults, so
+    the row does not change with what a prior source would get. ``overrides``: ESGSConfig fields."""
     from ..config import config_from_dict, config_to_dict
     from ..methods import ESGSConfig, full_esgs
 
     settings = {**config_to_dict(full_esgs()), "priors": "", "depth": False, "normal": False, "consistency": False,
-                "sky_weight": 0.0, "depth_weight": ESGSConfig.depth_weight, **overrides}
+                "sky_weight": 0.0, "depth_weight": ESGSConfig.depth_weight,
+                "prior_points": ESGSConfig.prior_points, **overrides}
     config = config_from_dict(ESGSConfig, settings)
     config.validate()
     return config_to_dict(config)

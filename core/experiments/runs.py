@@ -20,9 +20,15 @@ SUMMARY_NAME = "summary.json"
 def effective_settings(config: dict[str, Any]) -> dict[str, Any]:
     """``config`` (a TrainConfig dict of today's layout, ``method_config`` complete) with a
     method that adds nothing counted as plain 3DGS, whose settings cannot change the result
-    (an ESGS run with every part off does not depend on the ESGS depth weight), and an ESGS
-    run's settings of its switched-off parts at their defaults."""
+    (an ESGS run with every part off does not depend on the ESGS depth weight), an ESGS
+    run's settings of its switched-off parts at their defaults, and a run without the sky
+    model stripped of that model's settings (``SKY_MODEL_SETTINGS``)."""
+    from ..train.config import SKY_MODEL_SETTINGS
+
     settings = dict(config)
+    if settings.get("sky", "envmap") != "envmap":  # no sky model: its settings cannot act
+        for name in SKY_MODEL_SETTINGS:
+            settings.pop(name, None)
     method, method_config = settings.get("method", "3dgs"), settings.get("method_config")
     adds_nothing = (method == "esgs" and isinstance(method_config, dict) and not _esgs_enabled(method_config)) or \
         (method == "dropout-gs" and isinstance(method_config, dict) and not method_config.get("dropout_rate"))

@@ -139,7 +139,7 @@ def prepare_priors(config: TrainConfig, progress: Optional["ProgressCallback"] =
 
     if not isinstance(settings, ESGSConfig) or settings.priors != PriorSource.AUTO:
         return None
-    if not (settings.depth or settings.normal or settings.sky_loss_on):
+    if not settings.loads_priors:
         return None
     from ..priors.auto import ensure_auto_priors
 

@@ -20,6 +20,11 @@ REFERENCE_ITERATIONS = 30_000
 BACKENDS = ("auto", "cpu", "reference", "cuda")
 #: ``sky`` values: a learned environment map (train/sky.py), or the constant background (3DGS).
 SKY_MODELS = ("envmap", "none")
+#: Settings that act only through the sky model (``sky envmap``): a run without one (``--vanilla``,
+#: ``--sky none``) cannot depend on them (the CLI refuses them with --vanilla; a saved run without a
+#: sky model is not stale for them).
+SKY_MODEL_SETTINGS = ("sky_alpha_weight", "sky_smooth_weight", "sky_unseen_weight", "surface_alpha_weight",
+                      "sky_degree", "sky_lr", "sky_lr_decay", "sky_grid_rows", "sky_init")
 #: Where the sky model starts when the masks mark no sky (``TrainConfig.sky_init``).
 SKY_INITS = ("images", "black")
 GRAYSCALE_MODES = ("auto", "on", "off")

@@ -286,6 +286,8 @@ class Trainer:
                 points_xyz = np.concatenate([points_xyz, np.asarray(seeds.xyz, dtype=np.float64)])
                 points_rgb = np.concatenate([points_rgb, np.asarray(seeds.rgb, dtype=points_rgb.dtype)])
         if len(points_xyz):
+            if not len(self.data.points_xyz):
+                self.message(f"the COLMAP model has no 3D points: starting from the {len(points_xyz):,} seeded points")
             model = GaussianModel.from_points(points_xyz, points_rgb, **kwargs)
         else:
             self.message(f"the COLMAP model has no 3D points: starting from {config.random_init_points} random Gaussians")

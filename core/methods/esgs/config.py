@@ -98,6 +98,9 @@ class ESGSConfig(GPDFNConfig):
                 "depth prior; 0 = off"})
 
     def validate(self) -> None:
+        if self.prior_points > 0 and not self.priors:
+            raise ConfigError("prior_points seeds Gaussians from a depth prior, and there is no prior source",
+                              hint="pass --priors auto|gt|labels|ndn|sfm, or --prior-points 0")
         if (self.depth or self.normal) and not self.priors:
             raise ConfigError("depth/normal prior losses need a prior source",
                               hint="pass --priors gt|labels|ndn|sfm (folders under SCENE/priors/)")
@@ -135,5 +138,15 @@ class ESGSConfig(GPDFNConfig):
         return self.sky_weight > 0 and bool(self.priors) and self.use_masks
 
     @property
+    def seeds_on(self) -> bool:
+        """Gaussians are seeded from the depth prior (``prior_points`` with a prior source)."""
+        return self.prior_points > 0 and bool(self.priors)
+
+    @property
+    def loads_priors(self) -> bool:
+        """The run reads ``SCENE/priors/<priors>``: for a prior loss, the sky loss or the seeds."""
+        return self.depth or self.normal or self.sky_loss_on or self.seeds_on
+
+    @property
     def enabled(self) -> bool:
-        return self.depth or self.normal or self.consistency or self.gpdfn_on or self.sky_loss_on
+        return self.depth or self.normal or self.consistency or self.gpdfn_on or self.sky_loss_on or self.seeds_on

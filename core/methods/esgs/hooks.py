@@ -12,7 +12,7 @@ def esgs_hooks(config: ESGSConfig) -> list[TrainHook]:
 
     config.validate()
     hooks: list[TrainHook] = []
-    if config.depth or config.normal or config.consistency or config.sky_loss_on:
+    if config.depth or config.normal or config.consistency or config.sky_loss_on or config.seeds_on:
         hooks.append(PriorLossHook(config))
     if config.gpdfn_on:
         hooks.append(GPDFNHook(config))

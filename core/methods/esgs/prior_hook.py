@@ -30,7 +30,9 @@ class ViewPriors:
     far: the view's far surface distance (scene units; a 0-dim tensor) or None; confidence:
     [H, W] trust in [0, 1] scaling both prior losses per pixel (the ``auto`` source), or None;
     depth_confidence: [H, W] the depth loss's own weights where they differ from ``confidence``
-    (``depth_incidence``), or None.
+    (``depth_incidence``), or None; valid: [H, W] bool, the prior map's own mask and the view's
+    (``mask`` before ``use_masks`` off widens it and ``max_prior_depth`` narrows it): where a
+    seeded Gaussian may come from.
     """
 
     depth: Optional[torch.Tensor]
@@ -41,6 +43,7 @@ class ViewPriors:
     far: Optional[torch.Tensor] = None
     confidence: Optional[torch.Tensor] = None
     depth_confidence: Optional[torch.Tensor] = None
+    valid: Optional[torch.Tensor] = None
 
     @property
     def depth_trust(self) -> Optional[torch.Tensor]:
@@ -84,9 +87,13 @@ class PriorLossHook(TrainHook):
             if prior is None or prior.depth is None or prior.relative:
                 continue
             depth = prior.depth.cpu().numpy()
-            valid = prior.mask.cpu().numpy() & np.isfinite(depth) & (depth > 0)
+            # the map's own mask even with use_masks off: no seed from sky or a missing value
+            inside = prior.valid if prior.valid is not None else prior.mask
+            valid = inside.cpu().numpy() & np.isfinite(depth) & (depth > 0)
             if prior.sky is not None:
                 valid &= ~prior.sky.cpu().numpy()
+            if self.config.max_prior_depth > 0:
+                valid &= depth <= self.config.max_prior_depth
             weights = prior.confidence.cpu().numpy() if prior.confidence is not None else None
             rows, cols = sample_prior_pixels(valid, self.config.prior_points, rng, weights)
             if rows.size == 0:
@@ -152,6 +159,7 @@ class PriorLossHook(TrainHook):
             maps = load_prior_maps(run.scene, source, view.name,
                                    size=(view.width, view.height), world_to_camera_rotation=rotation)
             mask = torch.from_numpy(maps.mask.copy())
+            valid = mask & view.mask[..., 0].bool() if view.mask is not None else mask
             if not self.config.use_masks:
                 mask = torch.ones_like(mask)
             depth = torch.from_numpy(maps.depth.copy()) if maps.depth is not None else None
@@ -186,6 +194,7 @@ class PriorLossHook(TrainHook):
                 far=_far_depth(depth, mask) if depth is not None and not relative else None,
                 confidence=confidence.to(device) if confidence is not None else None,
                 depth_confidence=depth_confidence,
+                valid=valid,
             )
         if alignments:
             run.message(_alignment_summary(alignments, self.config.max_alignment_error))

@@ -551,3 +551,15 @@ def test_prior_points_seed_gaussians_on_the_prior_surface_and_never_from_sky(sce
     again = _trainer(scene, tmp_path / "again", ESGSConfig(priors="gt", depth=True, prior_points=25))
     np.testing.assert_array_equal(again.gaussians.params["means"].detach().numpy(),
                                   seeded.gaussians.params["means"].detach().numpy())
+
+
+def test_seeding_alone_loads_the_priors_and_still_keeps_to_the_maps_mask(scene, tmp_path):
+    with pytest.raises(ConfigError, match="prior_points"):
+        ESGSConfig(prior_points=10).validate()
+    alone = ESGSConfig(priors="gt", prior_points=25, sky_weight=0.0, use_masks=False)
+    assert alone.enabled and not (alone.depth or alone.normal or alone.sky_loss_on)
+    trainer = _trainer(scene, tmp_path / "alone", alone)
+    added = len(trainer.gaussians) - len(trainer.data.points_xyz)
+    assert 0 < added <= 25 * len(trainer.data.train)
+    # masks off for the losses, but no seed from the sky rows (corrupt depth 1000, outside the map's mask)
+    assert trainer.gaussians.params["means"].detach()[:, 2].abs().max() < 0.15

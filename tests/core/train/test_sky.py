@@ -642,7 +642,7 @@ def test_the_sky_learning_rate_decays_to_its_share_by_the_last_step(fast_config,
     train_command.add_arguments(parser)
     args = ["scene", "--out", str(tmp_path), "--sky-lr-decay", "0.5"]
     assert train_command.build_config(parser.parse_args(args)).sky_lr_decay == 0.5
-    for flag in (["--sky-lr-decay", "0.5"], ["--sky-grid-rows", "8"]):  # --vanilla has no sky model to set
+    for flag in (["--sky-lr-decay", "0.5"], ["--sky-grid-rows", "8"], ["--sky-init", "black"]):  # --vanilla has no sky model to set
         with pytest.raises(ConfigError, match=flag[0]):
             train_command.build_config(parser.parse_args(["scene", "--out", str(tmp_path), "--vanilla", *flag]))
     # runs saved before the decay trained the sky at a constant rate
@@ -672,3 +672,20 @@ def test_runs_saved_before_sky_init_read_as_black():
     from esgs.core.train.config import with_predating_values
 
     assert with_predating_values({"scene": "s", "out": "o"})["sky_init"] == "black"
+
+
+def test_a_run_without_the_sky_model_is_not_stale_for_the_sky_models_settings(tmp_path):
+    from esgs.core.config import config_to_dict
+    from esgs.core.experiments.runs import effective_settings
+    from esgs.core.train.config import SKY_MODEL_SETTINGS, TrainConfig, with_predating_values
+
+    vanilla = json.loads(json.dumps(config_to_dict(TrainConfig(scene=tmp_path, out=tmp_path, sky="none"))))
+    saved = dict(vanilla)
+    del saved["sky_init"]  # saved before the setting existed: reads as black
+    saved = with_predating_values(saved)
+    assert saved["sky_init"] != vanilla["sky_init"]
+    assert effective_settings(saved) == effective_settings(vanilla)
+    # with the sky model the start counts
+    envmap = {**vanilla, "sky": "envmap"}
+    assert effective_settings({**envmap, "sky_init": "black"}) != effective_settings(envmap)
+    assert "sky_init" in SKY_MODEL_SETTINGS
