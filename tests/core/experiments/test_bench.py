@@ -161,8 +161,9 @@ def test_the_default_rows_are_esgs_on_auto_priors_and_3dgs_plus_gpdfn(tmp_path, 
     assert settings["priors"] == "" and settings["gpdfn"] is True and settings["fused_k"] == 3
     assert not (settings["depth"] or settings["normal"] or settings["consistency"]) and settings["sky_weight"] == 0
     assert ESGSConfig(**settings).enabled and not ESGSConfig(**settings).sky_loss_on
+    assert settings["prior_points"] == 0  # nothing seeded without priors
     # it is the full method's GPDFN: every setting but the prior ones is full ESGS's
-    prior_fields = {"priors", "depth", "normal", "consistency", "sky_weight", "depth_weight"}
+    prior_fields = {"priors", "depth", "normal", "consistency", "sky_weight", "depth_weight", "prior_points"}
     assert {k: v for k, v in settings.items() if k not in prior_fields} == \
         {k: v for k, v in full.config["method_config"].items() if k not in prior_fields}
     # it needs no priors: planned on a scene without any, whatever the source

@@ -65,9 +65,11 @@ def test_statistic_is_the_photometric_gradient_and_parameters_get_the_full_one(f
     # ... but the statistic is what the photometric terms alone give
     torch.testing.assert_close(kept, photometric.record["total"], rtol=1e-5, atol=1e-9)
     assert one_pass.record["kept"] is None  # "all": one pass, the statistic reads means2d.grad
-    # two passes give every parameter the same gradient as one
+    # two passes give every parameter the same gradient as one, to float32 rounding of sums whose
+    # order differs: an element near zero may keep an error of the order of the largest terms
     for name, grad in one_pass.record["params"].items():
-        torch.testing.assert_close(split.record["params"][name], grad, rtol=1e-5, atol=1e-8)
+        torch.testing.assert_close(split.record["params"][name], grad, rtol=1e-5,
+                                   atol=max(1e-8, 1e-6 * float(grad.abs().max())))
     # and the strategy accumulated the photometric share
     state = split_trainer.strategy.state
     width, height = split_trainer.data.train[0].width, split_trainer.data.train[0].height
