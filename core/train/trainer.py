@@ -363,9 +363,9 @@ class Trainer:
         # start from the mean colour of the pixels the masks call sky; without any, from the mean
         # colour of the images (sky_init images: held-out ground beyond every training view's
         # reach then shows the ground's mean colour rather than black) or black (3DGS's background)
-        colour = _mean_sky_colour(self.data.train) if marks_sky else None
+        colour = _mean_colour(self.data.train, sky=True) if marks_sky else None
         if colour is None and config.sky_init == "images":
-            colour = _mean_image_colour(self.data.train)
+            colour = _mean_colour(self.data.train, sky=False)
         if colour is not None:
             self.sky.set_color(colour)
         decay = ExponentialDecay(config.sky_lr, config.sky_lr * config.sky_lr_decay, max_steps=config.iterations)
@@ -756,26 +756,20 @@ def _marks_sky(mask_source: Optional[str]) -> bool:
     return PriorSource(mask_source).masks_sky
 
 
-def _mean_image_colour(views: Sequence[View]) -> torch.Tensor:
-    """[3] mean colour of the views' pixels that count in the loss (mask True, or all)."""
-    total, count = torch.zeros(3, dtype=torch.float64), 0
-    for view in views:
-        pixels = view.image if view.mask is None else view.image[view.mask[..., 0].bool()]
-        total += pixels.reshape(-1, 3).double().sum(dim=0) / 255.0
-        count += pixels.reshape(-1, 3).shape[0]
-    return (total / max(count, 1)).float()
-
-
-def _mean_sky_colour(views: Sequence[View]) -> Optional[torch.Tensor]:
-    """[3] mean colour of the views' sky pixels (mask False), or None when no view has any."""
+def _mean_colour(views: Sequence[View], *, sky: bool) -> Optional[torch.Tensor]:
+    """[3] mean colour of the views' pixels that count in the loss (``sky`` False: mask True, or
+    every pixel of a view without a mask) or of their sky pixels (``sky`` True: mask False);
+    None when there are none."""
     total, count = torch.zeros(3, dtype=torch.float64), 0
     for view in views:
         if view.mask is None:
-            continue
-        sky = ~view.mask[..., 0].bool()
-        if bool(sky.any()):
-            total += view.image[sky].double().sum(dim=0) / 255.0
-            count += int(sky.sum())
+            pixels = view.image[:0] if sky else view.image
+        else:
+            keep = view.mask[..., 0].bool()
+            pixels = view.image[~keep if sky else keep]
+        pixels = pixels.reshape(-1, 3)
+        total += pixels.double().sum(dim=0) / 255.0
+        count += pixels.shape[0]
     return (total / count).float() if count else None
 
 
