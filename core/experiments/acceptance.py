@@ -6,8 +6,10 @@ priors come from real feature matching, not from the exact surface points of the
 Methods, at equal step counts and the same seeds:
 
 - ``3DGS``: the baseline;
-- ``ESGS (<source>)``: depth + normal prior losses (those the source has) + GPDFN with K = 3,
-  for every prior source of the scene (sfm, ndn, labels) and ``gt`` as the upper bound.
+- ``ESGS (<source>)``: full ESGS as :func:`~esgs.core.methods.full_esgs` defines it for the
+  source: depth + normal prior losses (those the source has) + GPDFN with K = 3, and with
+  ``auto`` also Gaussians seeded from the depth prior (``prior_points``); for every prior
+  source of the scene (auto, sfm, ndn, labels) and ``gt`` as the upper bound.
 
 :func:`verdict` applies the issue's criteria to ESGS with each non-gt source against 3DGS:
 higher SSIM, lower LPIPS and a mean Gaussian-to-mesh distance at least 20 % lower, each
