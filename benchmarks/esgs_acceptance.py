@@ -230,11 +230,14 @@ def markdown(args, scenes, rows, verdicts, sky_rows, failed, started, versus=Non
              "Gaussians and the `sfm` depth priors come from these points. The `gt` priors are the renderer's exact "
              "depth and normals (upper bound).",
              f"- Training: {args.iterations} steps for every run, at width {args.width or 'full'} px, seeds "
-             f"{', '.join(map(str, args.seeds))}, `--threads {args.threads}`, photometric loss on whole images "
-             "(`mask_source none`), the trainer's defaults otherwise.",
+             f"{', '.join(map(str, args.seeds))}, `--threads {args.threads}`, "
+             + ("every trainer default (`--train-defaults`: the sky model, `--mask-source auto`)."
+                if args.train_defaults else
+                "photometric loss on whole images (`mask_source none`), the trainer's defaults otherwise."),
              *([f"- ESGS rows with {', '.join(args.esgs_option)} (`--esgs-option`)."] if args.esgs_option else []),
-             "- 3DGS: the trainer's baseline. ESGS: depth + normal prior losses (the ones the source has: `sfm` has "
-             "depth only) + GPDFN with K = 3.",
+             "- 3DGS: the trainer's baseline. ESGS: full ESGS as `full_esgs` defines it for the source: depth + normal "
+             "prior losses (the ones the source has: `sfm` has depth only) + GPDFN with K = 3, and with `auto` "
+             "Gaussians seeded from the depth prior.",
              *([f"- Published baselines (`--baselines`): "
                 f"{', '.join(row.label for row in baseline_rows(args.baselines))}, run as published like `esgs bench`'s "
                 "rows (constant background, no sky masks, no priors; docs/baselines.md) with the same steps, seeds "
