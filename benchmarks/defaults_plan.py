@@ -27,11 +27,13 @@ from esgs.core.methods import full_esgs
 def plan_entries(scenes: list[Path], *, seeds: list[int], iterations: int, threads: int,
                  backend: str) -> list[dict]:
     """Seed-major entries (every scene's first seed first), 3DGS before ESGS."""
+    # full ESGS's settings depend on the scene's priors only: once per scene, not per seed
+    esgs_of = {scene: config_to_dict(full_esgs("auto", scene=scene)) for scene in scenes}
     entries = []
     for seed in seeds:
         for scene in scenes:
             train = {"iterations": iterations, "threads": threads, "backend": backend, "seed": seed}
-            esgs = config_to_dict(full_esgs("auto", scene=scene))
+            esgs = esgs_of[scene]
             for arm, config in (("3dgs_default", train),
                                 ("esgs_default", {**train, "method": "esgs", "method_config": esgs})):
                 entries.append({"name": f"{scene.name}/{arm}/seed{seed}", "group": scene.name, "arm": arm,
