@@ -16,6 +16,11 @@ Steps (each cached, so the script can be stopped and started again):
    sky scene ESGS with ``gt_skyfilled`` with masks honoured and ignored), each followed by a
    rewrite of the report (``OUT/acceptance.json`` and ``--doc``).
 
+``--max-minutes M`` compares at equal training time instead of equal steps (issue #26's first
+target on these scenes): every run trains M minutes, off the clock of its evaluation, with
+``--iterations`` as its step cap and schedule length, as ``esgs bench``'s budget runs do (use its
+own ``--out``; run it on an otherwise idle machine or beside runs of the same load).
+
 ``--baselines pgsr scaffold-gs`` (opt-in; any published baseline of ``esgs bench``) adds a row
 per method to every scene of the main study: run as published, like the bench's rows
 (constant background, no sky masks, no priors), with the 3DGS arm's steps, seeds and width;
@@ -229,7 +234,10 @@ def markdown(args, scenes, rows, verdicts, sky_rows, failed, started, versus=Non
              "the rendered images triangulated with the known poses (pycolmap `triangulate_points`). Both the initial "
              "Gaussians and the `sfm` depth priors come from these points. The `gt` priors are the renderer's exact "
              "depth and normals (upper bound).",
-             f"- Training: {args.iterations} steps for every run, at width {args.width or 'full'} px, seeds "
+             (f"- Training: **equal training time**, {args.max_minutes:g} min for every run (`--max-minutes`; "
+              f"evaluation off the clock), up to {args.iterations} steps on the schedule of {args.iterations} steps, "
+              if args.max_minutes else f"- Training: {args.iterations} steps for every run, ")
+             + f"at width {args.width or 'full'} px, seeds "
              f"{', '.join(map(str, args.seeds))}, `--threads {args.threads}`, "
              + ("every trainer default (`--train-defaults`: the sky model, `--mask-source auto`)."
                 if args.train_defaults else
@@ -300,6 +308,10 @@ def main() -> int:
     parser.add_argument("--iterations", type=int, default=400)
     parser.add_argument("--width", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--max-minutes", type=float, default=0.0,
+                        help="equal training time instead of equal steps: every run trains this many minutes "
+                             "(evaluation off the clock), --iterations being its step cap and schedule length "
+                             "(as esgs bench's budgets: twice the equal-step count for the shortest budget)")
     parser.add_argument("--esgs-option", action="append", default=[], metavar="KEY=VALUE",
                         help="set an ESGSConfig field on every ESGS row, e.g. depth_weight=3 (repeat; use its own --out)")
     parser.add_argument("--train-defaults", action="store_true",
@@ -325,6 +337,8 @@ def main() -> int:
             for scene in scenes.values():
                 ensure_computed_priors(scene, source)
     train = {"width": args.width, "threads": args.threads, "backend": "auto", "lpips": True, "save_renders": False}
+    if args.max_minutes:
+        train["max_minutes"] = args.max_minutes
     if not args.train_defaults:
         train["mask_source"] = "none"  # the study's historical setting: photometric loss on whole images
     tasks = plan_runs(scenes, args.out, iterations=args.iterations, seeds=args.seeds, train=train,
