@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 import bpy
+from bpy.app.handlers import persistent
 
 from ..core.errors import ConfigError, ESGSError
 from ..core.methods import get_method, method_names
@@ -196,6 +197,60 @@ def _filled_in(group: Any) -> bool:
             if dataclasses.replace(settings, priors=source.value) == methods.full_esgs(source.value):
                 return True
     return False
+
+
+def complete_saved_full_esgs(group: Any) -> list[str]:
+    """Give a full ESGS saved in an older .blend the options the full method gained since.
+
+    A .blend stores only the options that were set in it, so an option added to ESGS later
+    reads as its dataclass default in an older file: a full method the panel filled in before
+    ``prior_points`` existed would train without seeding, and would no longer count as the full
+    method (:func:`_filled_in`), so choosing a source again would not mend it either. When
+    ``group`` trains ESGS with a prior source and every ESGS option the file stored equals
+    today's :func:`~esgs.core.methods.full_esgs` of that source, the options it never stored get
+    the full method's values. An option the user set by hand is stored, even when set back to
+    its default, so it is never touched, nor is a group that differs from the full method in
+    any stored option. Returns the names of the options filled in (empty: nothing changed).
+    """
+    from ..core import methods
+
+    if chosen_method(group) != ESGS_METHOD or not group.priors:
+        return []
+    try:
+        wanted = dataclasses.asdict(methods.full_esgs(group.priors))
+    except ConfigError:
+        return []
+    held = dataclasses.asdict(method_settings(group, ESGS_METHOD))
+    names = [name for name in wanted if name != "priors" and hasattr(group, name)]
+    if any(held[name] != wanted[name] for name in names if group.is_property_set(name)):
+        return []  # the user's own settings
+    missing = [name for name in names if not group.is_property_set(name) and held[name] != wanted[name]]
+    if missing:
+        apply_full_esgs(group)
+    return missing
+
+
+@persistent
+def on_file_loaded(*_args: Any) -> None:
+    """``load_post`` handler: :func:`complete_saved_full_esgs` for every scene of the new file."""
+    for scene in bpy.data.scenes:
+        settings = getattr(scene, "esgs", None)
+        if settings is None:
+            continue
+        added = complete_saved_full_esgs(settings.training)
+        if added:
+            print(f"ESGS: {scene.name}: the full ESGS saved in this file gets the options added to it since: "
+                  f"{', '.join(f'{name} = {getattr(settings.training, name)}' for name in added)}", flush=True)
+
+
+def register_hooks() -> None:
+    if on_file_loaded not in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.append(on_file_loaded)
+
+
+def unregister_hooks() -> None:
+    if on_file_loaded in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.remove(on_file_loaded)
 
 
 def _offer_full_esgs(self, context) -> None:

@@ -76,3 +76,60 @@ def test_compute_priors_in_the_panel_and_the_demo_request_auto(tmp_path, monkeyp
     with pytest.raises(ESGSError, match="stop here"):
         demo.make_priors(demo.DemoConfig(out=tmp_path), scene, lambda event: None)
     assert requested == [job.config]  # the same request as the panel's
+
+
+def _save_and_reopen(path) -> None:
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    bpy.ops.wm.open_mainfile(filepath=str(path))
+
+
+def test_a_full_esgs_saved_before_an_option_existed_gets_it_when_the_file_is_opened(tmp_path, capsys):
+    settings = bpy.context.scene.esgs.training
+    settings.method = "esgs"  # the panel fills in full ESGS on auto
+    assert settings.prior_points == methods.AUTO_PRIOR_POINTS
+    settings.property_unset("prior_points")  # as a file saved before prior_points existed stores it
+    assert settings.prior_points == methods.ESGSConfig.prior_points == 0
+
+    _save_and_reopen(tmp_path / "old.blend")
+
+    settings = bpy.context.scene.esgs.training
+    assert settings.prior_points == methods.AUTO_PRIOR_POINTS
+    assert training_job.training_config(settings).method_config == methods.full_esgs("auto")
+    assert f"prior_points = {methods.AUTO_PRIOR_POINTS}" in capsys.readouterr().out
+
+
+def test_settings_the_user_chose_are_kept_when_the_file_is_opened(tmp_path):
+    settings = bpy.context.scene.esgs.training
+    settings.method = "esgs"
+    settings.prior_points = 0  # set by hand: stored, even at its default
+    _save_and_reopen(tmp_path / "chosen.blend")
+    assert bpy.context.scene.esgs.training.prior_points == 0
+    assert settings_training.complete_saved_full_esgs(bpy.context.scene.esgs.training) == []
+
+    # an option added since is not filled in where another stored option is the user's own
+    settings = bpy.context.scene.esgs.training
+    settings.prior_points = methods.AUTO_PRIOR_POINTS
+    settings.property_unset("prior_points")
+    settings.depth_weight = 2.5 * methods.AUTO_DEPTH_WEIGHT
+    _save_and_reopen(tmp_path / "own.blend")
+    settings = bpy.context.scene.esgs.training
+    assert settings.prior_points == 0 and settings.depth_weight == pytest.approx(2.5 * methods.AUTO_DEPTH_WEIGHT)
+
+    # nor where the file trains 3DGS
+    settings.method = "3dgs"
+    settings.depth_weight = methods.AUTO_DEPTH_WEIGHT
+    assert settings_training.complete_saved_full_esgs(settings) == []
+    assert settings.prior_points == 0
+
+
+def test_the_settings_handler_is_registered_once_and_removed():
+    import esgs
+
+    handlers = bpy.app.handlers.load_post
+    assert [h for h in handlers if h is settings_training.on_file_loaded] == [settings_training.on_file_loaded]
+    esgs.unregister()
+    try:
+        assert settings_training.on_file_loaded not in bpy.app.handlers.load_post
+    finally:
+        esgs.register()
+    assert settings_training.on_file_loaded in bpy.app.handlers.load_post
