@@ -257,6 +257,8 @@ def markdown(args, scenes, rows, verdicts, sky_rows, failed, started, versus=Non
              f"the difference of the means exceeds the sum of both standard deviations over seeds; the distance "
              f"must be below {DISTANCE_RATIO:.1f} x 3DGS's mean by more than the spreads.", ""]
     columns = list(QUALITY_COLUMNS) + [("n_gaussians", "Gaussians", 0), ("train_s", "train (s)", 0)]
+    if args.max_minutes:
+        columns.append(("steps", "steps", 0))  # what each method made of the same minutes
     for scene, table in rows.items():
         lines += [f"## {scene}", "", markdown_table(table, columns)]
         for label, result in verdicts.get(scene, {}).items():

@@ -80,8 +80,9 @@ def plan_runs(scenes: dict[str, Path], out: Path, *, iterations: int, seeds: Seq
 
 
 def scene_rows(summaries: Sequence[dict]) -> dict[str, list[dict]]:
-    """Per scene, one row per method: mean/std over seeds of the quality figures (+ n_gaussians, train_s)."""
-    keys = [key for key, _, _ in QUALITY_COLUMNS] + ["n_gaussians", "train_s"]
+    """Per scene, one row per method: mean/std over seeds of the quality figures (+ n_gaussians, train_s
+    and steps: the steps trained, which differ between methods at equal training time)."""
+    keys = [key for key, _, _ in QUALITY_COLUMNS] + ["n_gaussians", "train_s", "steps"]
     rows: dict[str, list[dict]] = {}
     for row in aggregate(summaries, keys, group_by=("scene", "variant")):
         rows.setdefault(row["scene"], []).append(row)

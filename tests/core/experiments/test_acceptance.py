@@ -124,9 +124,10 @@ def test_plan_runs_is_seed_first_with_every_source_and_rows_group_by_scene(tmp_p
     assert [task.name for task in tasks[:4]] == ["a/3dgs/seed0", "a/esgs-gt/seed0", "b/3dgs/seed0", "b/esgs-gt/seed0"]
     assert tasks[-1].config == {"width": 16, "iterations": 7, "seed": 1, "method": "esgs",
                                 "method_config": dict(scene_methods(scene)[1].esgs)}
-    summaries = [{"scene": "a", "variant": "3DGS", "seed": s, "psnr": 20.0 + s} for s in (0, 1)]
+    summaries = [{"scene": "a", "variant": "3DGS", "seed": s, "psnr": 20.0 + s, "steps": 500 + 100 * s} for s in (0, 1)]
     rows = scene_rows(summaries)
     assert rows["a"][0]["psnr"] == {"mean": 20.5, "std": 0.5, "n": 2} and rows["a"][0]["seeds"] == [0, 1]
+    assert rows["a"][0]["steps"] == {"mean": 550.0, "std": 50.0, "n": 2}  # steps differ at equal training time
     # an ESGS option reaches every ESGS row and never the baseline
     tuned = plan_runs({"a": scene}, tmp_path / "tuned", iterations=7, seeds=[0], esgs_options={"depth_weight": 3.0})
     assert tuned[0].config["method_config"] is None and tuned[1].config["method_config"]["depth_weight"] == 3.0
