@@ -49,6 +49,8 @@ from . import gpdfn_sampling_kernels as sampling_kernels
 from .gpdfn_settings import GPDFNConfig
 
 FEATURE_DIM = 14  # position 3, log-scale 3, quaternion 4, opacity 1, SH DC 3
+#: The head's output row of the opacity residual (outputs: SH DC 3, opacity 1, log-scale 3).
+_OPACITY_OUTPUT = 3
 _BASE_DIRECTIONS = ((1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, -1.0, 0.0))
 
 
@@ -476,6 +478,22 @@ class GPDFN(nn.Module):
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
 
+    def reset_opacity_residual(self) -> None:
+        """Zero the head's opacity output (its weights and bias), as at initialisation.
+
+        The trainer's opacity reset clamps every Gaussian's own opacity to 0.01 so that each
+        one earns its opacity again. GPDFN learns an opacity residual of its own (-0.1 to -1.4 in
+        logit at the median on the runs we read, lowering every Gaussian), which is harmless at trained
+        opacities but takes a reset Gaussian from 0.01 to ~0.002, below the rasterizer's 1/255
+        cull: such a Gaussian is drawn nowhere, gets no gradient and stays invisible, and with
+        most of a scene's Gaussians culled a run never recovered (docs/esgs.md, "GPDFN and the
+        opacity reset"). Zeroed, the residual renders the reset opacities as 3DGS does and is
+        learnt again from there.
+        """
+        with torch.no_grad():
+            self.head.weight[_OPACITY_OUTPUT].zero_()
+            self.head.bias[_OPACITY_OUTPUT].zero_()
+
     # ----------------------------------------------------------------------------------
     def gaussian_features(self, means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
                           opacity_logits: torch.Tensor, sh_dc: torch.Tensor,
@@ -598,4 +616,4 @@ class GPDFN(nn.Module):
                                      self.head.bias)
         if rows is not None:
             residual = residual.new_zeros(full_count, residual.shape[1]).index_copy(0, rows, residual)
-        return {"sh_dc": residual[:, 0:3], "opacity_logits": residual[:, 3], "log_scales": residual[:, 4:7]}
+        return {"sh_dc": residual[:, 0:3], "opacity_logits": residual[:, _OPACITY_OUTPUT], "log_scales": residual[:, 4:7]}

@@ -136,6 +136,10 @@ class GPDFNHook(TrainHook):
     def on_densify(self, run: RunView, report: Any) -> None:
         # the cached residuals belong to the old Gaussian set (order and count)
         self._cached = None
+        if getattr(report, "reset_opacity", False) and self.module.enabled:
+            # the reset must reach the opacity the renderer draws, not only the Gaussians' own:
+            # GPDFN's learnt residual would push the reset Gaussians below the 1/255 cull
+            self.module.reset_opacity_residual()
 
     def bake(self, gaussians: Any) -> None:
         """Fold the current residuals into the Gaussians' own parameters (for export/eval)."""

@@ -730,3 +730,55 @@ def test_cuda_module_gives_the_cpu_modules_outputs_and_gradients():
         torch.testing.assert_close(cuda[name].cpu(), cpu[name], rtol=1e-9, atol=1e-11)
     for a, b in zip(cuda_gradients, cpu_gradients):
         torch.testing.assert_close(a.cpu(), b, rtol=1e-8, atol=1e-10)
+
+
+def test_an_opacity_reset_reaches_the_opacity_gpdfn_renders():
+    """GPDFN learns an opacity residual of its own; after the trainer's reset (every opacity at
+    most 0.01) a negative one used to draw the reset Gaussians below the rasterizer's 1/255 cull,
+    where they get no gradient and stay invisible (a 3-minute run on the real-mesh scene never
+    recovered). The reset zeroes that residual, and only that one."""
+    from types import SimpleNamespace
+
+    from esgs.core.methods import ESGSConfig
+    from esgs.core.methods.esgs.gpdfn_hook import GPDFNHook
+    from esgs.core.render.constants import ALPHA_MIN
+    from esgs.core.train.densify import DensifyReport, reset_opacity
+    from esgs.core.train.gaussians import GaussianModel
+    from esgs.core.train.optim import TrainOptimizer
+
+    params = _gaussians(count=200)
+    model = GaussianModel.from_tensors(means=params["means"], sh_dc=params["sh_dc"][:, None, :],
+                                       sh_rest=torch.zeros(200, 3, 3), opacity_logit=torch.full((200,), 2.0),
+                                       log_scales=params["log_scales"], quats=params["quats"], max_sh_degree=1)
+    optimizer = TrainOptimizer()
+    for name, value in model.params.items():
+        optimizer.add_group(name, value, 1e-3, per_gaussian=True)
+    hook = GPDFNHook(ESGSConfig(gpdfn=True, fused_k=3))
+    torch.manual_seed(0)
+    for parameter in hook.module.parameters():
+        torch.nn.init.normal_(parameter, std=0.3)
+    with torch.no_grad():  # what training learnt on our scenes: every Gaussian a little more transparent
+        hook.module.head.bias[3] = -1.5
+    trainer = SimpleNamespace(gaussians=model)
+
+    def rendered():
+        fused = hook.model_params(trainer, model.render_params(1))  # every Gaussian fused, as at export
+        return {name: getattr(fused, name).detach().clone() for name in ("opacities", "scales")} | {
+            "colors": fused.colors.cat().detach().clone()}
+
+    before = rendered()
+    assert before["opacities"].min() > 0.3  # trained opacities: the residual is harmless there
+    reset_opacity(model, optimizer, 0.01)
+    culled = rendered()
+    assert (culled["opacities"] < ALPHA_MIN).float().mean() > 0.9  # the failure: drawn nowhere
+
+    hook.on_densify(trainer, DensifyReport(step=1000, count_before=200, count_after=200, reset_opacity=True))
+    after = rendered()
+    torch.testing.assert_close(after["opacities"], torch.full((200,), 0.01), rtol=1e-5, atol=0.0)
+    torch.testing.assert_close(after["scales"], culled["scales"])  # the other residuals are kept
+    torch.testing.assert_close(after["colors"], culled["colors"])
+    # a densification without a reset leaves the residual as it is
+    with torch.no_grad():
+        hook.module.head.bias[3] = -1.5
+    hook.on_densify(trainer, DensifyReport(step=1100, count_before=200, count_after=200))
+    assert float(hook.module.head.bias[3]) == -1.5
