@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib
 import pkgutil
 from types import ModuleType
+from typing import Callable
 
 
 def feature_modules(package: ModuleType) -> list[ModuleType]:
@@ -50,3 +51,23 @@ def unregister_package(package: ModuleType) -> None:
         for cls in reversed(getattr(module, "CLASSES", ())):
             if getattr(cls, "is_registered", False):
                 bpy.utils.unregister_class(cls)
+
+
+def file_load_hooks(handler: Callable[..., None]) -> tuple[Callable[[], None], Callable[[], None]]:
+    """``(register_hooks, unregister_hooks)`` of a feature module whose ``handler`` (decorated
+    with ``bpy.app.handlers.persistent``) runs after every file load: added to
+    ``bpy.app.handlers.load_post`` once, removed again."""
+
+    def register_hooks() -> None:
+        import bpy
+
+        if handler not in bpy.app.handlers.load_post:
+            bpy.app.handlers.load_post.append(handler)
+
+    def unregister_hooks() -> None:
+        import bpy
+
+        if handler in bpy.app.handlers.load_post:
+            bpy.app.handlers.load_post.remove(handler)
+
+    return register_hooks, unregister_hooks

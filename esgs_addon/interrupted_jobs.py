@@ -22,6 +22,7 @@ from bpy.app.handlers import persistent
 
 from ..core.apps import jobs
 from . import priors_job, training_job
+from ._registry import file_load_hooks
 
 #: status of a job whose saved state said it ran, but which this Blender session never started
 INTERRUPTED = "interrupted"
@@ -95,11 +96,4 @@ def on_file_loaded(*_args: Any) -> None:
         print(f"ESGS: {entry} job was not running anymore; marked {INTERRUPTED}", flush=True)
 
 
-def register_hooks() -> None:
-    if on_file_loaded not in bpy.app.handlers.load_post:
-        bpy.app.handlers.load_post.append(on_file_loaded)
-
-
-def unregister_hooks() -> None:
-    if on_file_loaded in bpy.app.handlers.load_post:
-        bpy.app.handlers.load_post.remove(on_file_loaded)
+register_hooks, unregister_hooks = file_load_hooks(on_file_loaded)

@@ -23,6 +23,7 @@ from ..core.errors import ConfigError, ESGSError
 from ..core.methods import get_method, method_names
 from ..core.formats.scene_dir import PriorSource
 from ..core.train.config import TrainConfig
+from ._registry import file_load_hooks
 from .properties import property_annotations, property_values, settings_group
 
 #: the TrainConfig fields a Blender user sets (the child fills in every other default)
@@ -243,14 +244,7 @@ def on_file_loaded(*_args: Any) -> None:
                   f"{', '.join(f'{name} = {getattr(settings.training, name)}' for name in added)}", flush=True)
 
 
-def register_hooks() -> None:
-    if on_file_loaded not in bpy.app.handlers.load_post:
-        bpy.app.handlers.load_post.append(on_file_loaded)
-
-
-def unregister_hooks() -> None:
-    if on_file_loaded in bpy.app.handlers.load_post:
-        bpy.app.handlers.load_post.remove(on_file_loaded)
+register_hooks, unregister_hooks = file_load_hooks(on_file_loaded)
 
 
 def _offer_full_esgs(self, context) -> None:

@@ -120,16 +120,3 @@ def test_settings_the_user_chose_are_kept_when_the_file_is_opened(tmp_path):
     settings.depth_weight = methods.AUTO_DEPTH_WEIGHT
     assert settings_training.complete_saved_full_esgs(settings) == []
     assert settings.prior_points == 0
-
-
-def test_the_settings_handler_is_registered_once_and_removed():
-    import esgs
-
-    handlers = bpy.app.handlers.load_post
-    assert [h for h in handlers if h is settings_training.on_file_loaded] == [settings_training.on_file_loaded]
-    esgs.unregister()
-    try:
-        assert settings_training.on_file_loaded not in bpy.app.handlers.load_post
-    finally:
-        esgs.register()
-    assert settings_training.on_file_loaded in bpy.app.handlers.load_post

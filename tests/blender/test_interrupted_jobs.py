@@ -95,16 +95,3 @@ def test_a_job_of_this_session_shows_its_real_state(tmp_path, scene_dir, monkeyp
     # the file still says running; the job it names has ended in this session: its state wins
     bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "saved.blend"))
     assert bpy.context.scene.esgs.training.status == jobs.CANCELLED
-
-
-def test_the_handler_is_registered_once_and_removed():
-    import esgs
-
-    handlers = bpy.app.handlers.load_post
-    assert [h for h in handlers if h is interrupted_jobs.on_file_loaded] == [interrupted_jobs.on_file_loaded]
-    esgs.unregister()
-    try:
-        assert interrupted_jobs.on_file_loaded not in bpy.app.handlers.load_post
-    finally:
-        esgs.register()
-    assert interrupted_jobs.on_file_loaded in bpy.app.handlers.load_post
