@@ -17,6 +17,7 @@ from esgs.core.config import config_from_dict  # noqa: E402
 from esgs.core.errors import ESGSError  # noqa: E402
 from esgs.core.priors import job as priors_job_core  # noqa: E402
 from esgs.esgs_addon import settings_training, training_job  # noqa: E402
+from tests.blender.test_interrupted_jobs import save_and_reopen  # noqa: E402
 
 
 def test_the_panel_and_the_demo_build_esgs_with_the_same_function(monkeypatch):
@@ -78,11 +79,6 @@ def test_compute_priors_in_the_panel_and_the_demo_request_auto(tmp_path, monkeyp
     assert requested == [job.config]  # the same request as the panel's
 
 
-def _save_and_reopen(path) -> None:
-    bpy.ops.wm.save_as_mainfile(filepath=str(path))
-    bpy.ops.wm.open_mainfile(filepath=str(path))
-
-
 def test_a_full_esgs_saved_before_an_option_existed_gets_it_when_the_file_is_opened(tmp_path, capsys):
     settings = bpy.context.scene.esgs.training
     settings.method = "esgs"  # the panel fills in full ESGS on auto
@@ -90,7 +86,7 @@ def test_a_full_esgs_saved_before_an_option_existed_gets_it_when_the_file_is_ope
     settings.property_unset("prior_points")  # as a file saved before prior_points existed stores it
     assert settings.prior_points == methods.ESGSConfig.prior_points == 0
 
-    _save_and_reopen(tmp_path / "old.blend")
+    save_and_reopen(tmp_path / "old.blend")
 
     settings = bpy.context.scene.esgs.training
     assert settings.prior_points == methods.AUTO_PRIOR_POINTS
@@ -102,7 +98,7 @@ def test_settings_the_user_chose_are_kept_when_the_file_is_opened(tmp_path):
     settings = bpy.context.scene.esgs.training
     settings.method = "esgs"
     settings.prior_points = 0  # set by hand: stored, even at its default
-    _save_and_reopen(tmp_path / "chosen.blend")
+    save_and_reopen(tmp_path / "chosen.blend")
     assert bpy.context.scene.esgs.training.prior_points == 0
     assert settings_training.complete_saved_full_esgs(bpy.context.scene.esgs.training) == []
 
@@ -111,7 +107,7 @@ def test_settings_the_user_chose_are_kept_when_the_file_is_opened(tmp_path):
     settings.prior_points = methods.AUTO_PRIOR_POINTS
     settings.property_unset("prior_points")
     settings.depth_weight = 2.5 * methods.AUTO_DEPTH_WEIGHT
-    _save_and_reopen(tmp_path / "own.blend")
+    save_and_reopen(tmp_path / "own.blend")
     settings = bpy.context.scene.esgs.training
     assert settings.prior_points == 0 and settings.depth_weight == pytest.approx(2.5 * methods.AUTO_DEPTH_WEIGHT)
 

@@ -7,6 +7,7 @@ import pytest
 bpy = pytest.importorskip("bpy")
 
 from esgs.esgs_addon import interrupted_jobs, settings_training  # noqa: E402
+from tests.blender.test_interrupted_jobs import save_and_reopen  # noqa: E402
 
 
 @pytest.mark.parametrize("module", [interrupted_jobs, settings_training], ids=lambda module: module.__name__)
@@ -29,6 +30,5 @@ def test_the_handlers_run_when_a_file_is_opened(tmp_path, monkeypatch):
     calls = []
     monkeypatch.setattr(interrupted_jobs, "update_saved_job_states", lambda scenes: calls.append("jobs") or [])
     monkeypatch.setattr(settings_training, "complete_saved_full_esgs", lambda group: calls.append("settings") or [])
-    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "a.blend"))
-    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "a.blend"))
+    save_and_reopen(tmp_path / "a.blend")
     assert sorted(calls) == ["jobs", "settings"]
