@@ -46,6 +46,7 @@ import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
@@ -153,13 +154,16 @@ def baseline_rows(data: dict) -> dict[str, list[dict]]:
 
 
 def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: int | None,
-                 ensemble: int | None, auto_maps: dict | None = None) -> dict[str, list[dict]]:
+                 ensemble: int | None, auto_maps: dict | None = None,
+                 variants: dict[str, Any] | None = None) -> dict[str, list[dict]]:
     """Scores of one set of weights under each evidence mode, per view (with CPU seconds per view).
 
     With the stereo mode, a ``<name>:fused`` row too: the stereo labels (depth and normals) where
     they are valid, the network's metric output elsewhere (what ``priors/auto`` does with them),
     and ``:fused_pinned``, the same with the network's depth first fitted to the labels. The
     ``:auto`` maps (depth, normals) of each view are appended to ``auto_maps[name]`` when given.
+    ``variants`` (name -> ``AutoPriorSettings``): a ``:auto[name]`` row per entry, the same
+    output fused with those settings instead of the defaults.
     """
     from esgs.core.ndn.checkpoint import load_checkpoint
     from esgs.core.ndn.infer import pin_to_labels, predict_triple, score_triple
@@ -194,6 +198,10 @@ def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: 
                     {**full_scores(filled, filled_normal, data, index),
                      "ndn_trust": report.get("ndn", {}).get("trust", 0.0),
                      "fill_gradient": float((report.get("fill") or {}).get("used") == "gradient")})
+                for variant, settings in (variants or {}).items():
+                    other, other_normal, _ = auto_fused(data, index, guide, normal, relative=not metric,
+                                                        settings=settings)
+                    rows.setdefault(f"{name}:auto[{variant}]", []).append(full_scores(other, other_normal, data, index))
                 # the same depth with the network's normals on every pixel it has one: whether
                 # auto should take its normals from the network rather than from the labels
                 has_network_normal = np.linalg.norm(normal, axis=0, keepdims=True) > 0.5
@@ -204,7 +212,7 @@ def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: 
 
 
 def auto_fused(data: dict, index: int, network_depth: np.ndarray, network_normal: np.ndarray, *,
-               relative: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
+               relative: bool = False, settings: Any = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """View ``index`` fused by ``priors.auto.fuse_view`` (its default settings) at the working
     size, with the network's depth (as ``esgs priors --method ndn`` writes it: metric and fitted to
     the labels, or ``relative``, then pinned to the SfM points by the fusion) and normals in the NDN slot, the real stereo labels, the SfM cells and the true
@@ -220,7 +228,9 @@ def auto_fused(data: dict, index: int, network_depth: np.ndarray, network_normal
     labels = PriorMaps(depth=stereo, normal=stereo_normal, mask=stereo > 0, source="labels")
     ndn = PriorMaps(depth=network_depth.astype(np.float32), normal=network_normal.transpose(1, 2, 0),
                     mask=network_depth > 0, relative_depth=relative, source="ndn")
-    fused = fuse_view(data["sfm_depth"][index], labels, ndn, ~surface)
+    fx, fy, cx, cy = data["intrinsics"]
+    camera = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    fused = fuse_view(data["sfm_depth"][index], labels, ndn, ~surface, settings, intrinsics=camera)
     dense, dense_normals = data["sfm_dense"][index], data["sfm_dense_normal"][index]
     has_normal = fused.mask & (np.linalg.norm(fused.normal, axis=-1) > 0.5)
     depth = np.where(fused.depth > 0, fused.depth, dense)
@@ -235,6 +245,27 @@ def hybrid_rows(data: dict, depth_maps: list, normal_maps: list) -> list[dict]:
     for index, ((depth, _), (_, normal)) in enumerate(zip(depth_maps, normal_maps)):
         rows.append(full_scores(depth, normal, data, index))
     return rows
+
+
+def parse_variant(text: str) -> tuple[str, Any]:
+    """``NAME:FIELD=VALUE[,FIELD=VALUE]`` -> (NAME, ``AutoPriorSettings`` with those fields, typed
+    as their defaults)."""
+    from dataclasses import replace
+
+    from esgs.core.priors.auto import AutoPriorSettings
+
+    name, _, assignments = text.partition(":")
+    defaults = AutoPriorSettings()
+    changes: dict[str, Any] = {}
+    for assignment in filter(None, assignments.split(",")):
+        key, _, value = assignment.partition("=")
+        if not hasattr(defaults, key):
+            raise SystemExit(f"--auto-variant {text!r}: AutoPriorSettings has no field {key!r}")
+        kind = type(getattr(defaults, key))
+        changes[key] = value.lower() in ("1", "true", "yes") if kind is bool else kind(value)
+    settings = replace(defaults, **changes)
+    settings.validate()
+    return name, settings
 
 
 def summarise(per_view: list[dict], sky_views: list[bool]) -> dict:
@@ -258,8 +289,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, required=True)
     parser.add_argument("--hybrid", action="append", default=[], metavar="DEPTH:NORMALS",
                         help="a row with one weights' :auto depth and another's :auto normals (names from --weights)")
+    parser.add_argument("--auto-variant", action="append", default=[], metavar="NAME:FIELD=VALUE[,FIELD=VALUE]",
+                        help="also a :auto[NAME] row fused with these AutoPriorSettings fields changed")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    variants = dict(parse_variant(text) for text in args.auto_variant)
     args.work.mkdir(parents=True, exist_ok=True)
     weights = [(text.partition("=")[0], Path(text.partition("=")[2])) for text in args.weights]
     hybrids = [tuple(text.split(":")) for text in args.hybrid]
@@ -286,7 +320,7 @@ def main(argv: list[str] | None = None) -> int:
             rows = baseline_rows(data)
             auto_maps: dict[str, list] = {}
             for name, path in weights:
-                rows.update(network_rows(name, path, data, args.modes, args.steps, args.ensemble, auto_maps))
+                rows.update(network_rows(name, path, data, args.modes, args.steps, args.ensemble, auto_maps, variants))
             for depth_name, normal_name in hybrids:
                 missing = {depth_name, normal_name} - set(auto_maps)
                 if missing:  # an evidence network makes its :auto row only in the sfm_stereo mode

@@ -20,6 +20,12 @@ mesh vertices). Steps:
    larger of the cell and the ground footprint of a pixel there (``cell_factor`` x depth /
    focal, divided by the sine of the grazing angle, at most 20x), so the sparsely sampled
    far range still meshes. Overhangs cannot be represented (rare on terrain).
+5. **Free-space carving**: a triangle that some view sees *through* (a consistent stereo depth
+   of that view lies clearly behind the triangle on the same ray) is removed. On rover views
+   the far range is sampled sparsely and long triangles bridge the valleys hidden behind each
+   ridge; rendered, such a bridge stands in front of the slope the camera really sees, and its
+   labels come out tens of percent too near. Removing it lets the rendering reach the surface
+   behind it (or leaves a hole for the prior's fill).
 
 The mesh is written to ``SCENE/mesh/reconstructed.ply`` (world frame and units of the COLMAP
 model), with a report of every stage.
@@ -53,6 +59,11 @@ class ReconstructOptions:
         "help": "drop cells this many cells above/below their neighbourhood"})
     max_width: int = field(default=960, metadata={
         "help": "shrink wider images to this width for stereo (cost grows with pixels; 0 = full size)"})
+    carve_tolerance: float = field(default=0.1, metadata={
+        "help": "remove triangles a view's stereo depth lies behind by more than this relative depth "
+                "(free-space carving; 0 = off)"})
+    carve_min_hits: int = field(default=2, metadata={
+        "help": "samples of a triangle (4 per view) that must be seen through before it is removed"})
 
     def validate(self) -> None:
         self.stereo.validate()
@@ -63,6 +74,10 @@ class ReconstructOptions:
         for name in ("cell_factor", "max_edge_cells", "spike_threshold"):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.carve_tolerance < 0:
+            raise ConfigError(f"carve_tolerance must be >= 0 (0 = off), got {self.carve_tolerance}")
+        if self.carve_min_hits < 1:
+            raise ConfigError(f"carve_min_hits must be >= 1, got {self.carve_min_hits}")
         if self.max_width != 0 and self.max_width < 32:
             raise ConfigError(f"max_width must be 0 (full size) or at least 32 pixels, got {self.max_width}")
 
@@ -244,6 +259,52 @@ def mesh_from_points(points: np.ndarray, normal: np.ndarray, cell: float, max_ed
     return HeightfieldMesh(kept_vertices, kept_triangles, stats, gap_vertices, gap_triangles)
 
 
+#: Barycentric weights of the points of a triangle that free-space carving looks at: its
+#: centroid and a point towards each corner (a bridge is often seen through on one side only).
+CARVE_SAMPLES = np.array([[1 / 3, 1 / 3, 1 / 3], [2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])
+
+
+def seen_through(vertices: np.ndarray, triangles: np.ndarray, views: list[View], depths: list[np.ndarray],
+                 tolerance: float) -> np.ndarray:
+    """[F] int: per triangle, how many of its sample points (:data:`CARVE_SAMPLES`, in every
+    view) have that view's depth map (0 = none) farther than ``(1 + tolerance)`` times the
+    point's own depth at the pixel they project to: the view sees past the triangle there,
+    so the triangle stands in space the camera saw empty."""
+    samples = np.einsum("sk,fkd->fsd", CARVE_SAMPLES, vertices[triangles]).reshape(-1, 3)
+    hits = np.zeros(len(samples), np.int64)
+    for view, depth in zip(views, depths):
+        in_view = samples @ view.world_to_camera[:3, :3].T + view.world_to_camera[:3, 3]
+        z = in_view[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = (in_view @ view.K.T)[:, :2] / z[:, None]
+        height, width = depth.shape
+        front = (z > 0) & np.isfinite(uv).all(axis=1)
+        u = np.floor(np.where(front, uv[:, 0], -1)).astype(np.int64)
+        v = np.floor(np.where(front, uv[:, 1], -1)).astype(np.int64)
+        inside = front & (u >= 0) & (v >= 0) & (u < width) & (v < height)
+        behind = np.zeros(len(samples))
+        behind[inside] = depth[v[inside], u[inside]]
+        hits += (behind > z * (1.0 + tolerance)).astype(np.int64)
+    return hits.reshape(len(triangles), len(CARVE_SAMPLES)).sum(axis=1)
+
+
+def carve_free_space(mesh: HeightfieldMesh, views: list[View], depths: list[np.ndarray], tolerance: float,
+                     min_hits: int) -> HeightfieldMesh:
+    """``mesh`` without the triangles the views see through (:func:`seen_through` at least
+    ``min_hits`` times); the carved count is added to its statistics. The carved triangles are
+    not gaps: a label that looks through one sees what the camera saw."""
+    hits = seen_through(mesh.vertices, mesh.triangles, views, depths, tolerance)
+    keep = hits < min_hits
+    stats = {**mesh.stats, "carved_triangles": int((~keep).sum()), "triangles": int(keep.sum())}
+    if keep.all():
+        return mesh._replace(stats=stats)
+    if not keep.any():
+        raise DatasetError("free-space carving removed every triangle of the mesh",
+                           hint="raise --carve-tolerance, or 0 to switch carving off")
+    vertices, triangles = _compact(mesh.vertices, mesh.triangles[keep])
+    return mesh._replace(vertices=vertices, triangles=triangles, stats=stats)
+
+
 def reconstruct_mesh(scene_dir: str | Path, options: ReconstructOptions | None = None, *,
                      out_path: str | Path | None = None, progress: ProgressCallback = no_progress) -> dict[str, Any]:
     """Rebuild a terrain mesh from the scene's images and poses and write it as a PLY.
@@ -303,6 +364,8 @@ def reconstruct_mesh(scene_dir: str | Path, options: ReconstructOptions | None =
     cell = options.cell_factor * float(np.median(across))
     built = mesh_from_points(points_all, normal, cell, options.max_edge_cells, options.spike_threshold,
                              ground_footprints)
+    if options.carve_tolerance > 0:
+        built = carve_free_space(built, views, depths, options.carve_tolerance, options.carve_min_hits)
     mesh_path = Path(out_path) if out_path is not None else SceneDir(scene_dir).reconstructed_mesh
     gaps_path = gap_mesh_path(mesh_path)
     # the gap mesh first: a mesh file never sits beside a gap mesh of another run

@@ -19,6 +19,9 @@ rule documented in docs/priors.md ("The auto source"):
   gradient fill (:mod:`.hole_fill`): NDN's shape, level with the labels at each hole's border
   and drawn to the SfM points inside it, unless those points prefer pinned NDN in that view
   (``fill_check``; ``hole_fill="pinned"``: NDN pinned to the points as it is, everywhere);
+  where a plane through the view's nearer labelled ground meets the hole's rays at more than
+  ``ground_guide_angle`` degrees, that plane is the fill's shape instead of NDN's
+  (:mod:`.ground_plane`: the near ground of rover views, where the network is weakest);
 - where both exist and differ by more than ``disagreement`` (relative), labels' confidence is
   halved: one of two independent estimates is wrong there;
 - sfm points where no dense source has a value: confidence 1, depth only;
@@ -49,6 +52,7 @@ from ..errors import ConfigError, ESGSError
 from ..formats.scene_dir import PriorSource, SceneDir
 from ..io_utils import atomic_directory
 from ..progress import ProgressCallback, ProgressEvent, no_progress
+from .ground_plane import fit_view_plane, plane_depth
 from .hole_fill import BORDER_FITS, DEFAULT_BORDER_TOLERANCE, DEFAULT_REACH, gradient_fill
 from .pinning import MIN_PIN_SAMPLES, pin_relative_depth
 
@@ -59,7 +63,7 @@ MIN_CHECK_POINTS = MIN_PIN_SAMPLES
 #: Confidence of a dense source on a view whose error could not be checked (too few points).
 UNCHECKED_CONFIDENCE = 0.5
 #: Bumped when the fusion rule changes, so cached folders are rebuilt.
-RULE_VERSION = 2
+RULE_VERSION = 3
 #: How NDN fills the labels' holes (``AutoPriorSettings.hole_fill``).
 HOLE_FILLS = ("gradient", "pinned")
 
@@ -92,6 +96,9 @@ class AutoPriorSettings:
     fill_border_fit: str = field(default="plane", metadata={
         "help": "with hole_fill 'gradient': what a hole's border labels are checked against: their 'median' level, "
                 "or a robust 'plane' of level over the image"})
+    ground_guide_angle: float = field(default=5.0, metadata={
+        "help": "with hole_fill 'gradient': in a hole, where the plane through the view's nearer labels meets the "
+                "ray at more than this angle (degrees), fill with the plane's shape instead of NDN's (0 = never)"})
     fill_border_tolerance: float = field(default=DEFAULT_BORDER_TOLERANCE, metadata={
         "help": "with hole_fill 'gradient': a label at a hole's border whose level (log of labels over NDN) is "
                 "farther than this from what the rest of that border predicts there is not used (0 = use every border label)"})
@@ -108,6 +115,8 @@ class AutoPriorSettings:
             raise ConfigError(f"fill_reach must be > 0, got {self.fill_reach}")
         if self.fill_border_fit not in BORDER_FITS:
             raise ConfigError(f"fill_border_fit must be one of {', '.join(BORDER_FITS)}, got {self.fill_border_fit!r}")
+        if not 0 <= self.ground_guide_angle < 90:
+            raise ConfigError(f"ground_guide_angle must be in [0, 90) degrees, got {self.ground_guide_angle}")
         if self.fill_border_tolerance < 0:
             raise ConfigError(f"fill_border_tolerance must be >= 0, got {self.fill_border_tolerance}")
         if self.fill_anchor_weight < 0:
@@ -173,13 +182,28 @@ def _gradient_filled(pinned: np.ndarray, known: np.ndarray, fill: np.ndarray, sf
     return np.where(fill, anchored, pinned), note
 
 
+def _ground_guided(guide: np.ndarray, labels_depth: np.ndarray, labels_valid: np.ndarray, fill: np.ndarray,
+                   intrinsics: np.ndarray, settings: AutoPriorSettings) -> tuple[np.ndarray, dict[str, Any]]:
+    """``guide`` with the plane of the view's nearer labels in the ``fill`` pixels whose rays
+    meet it at more than ``settings.ground_guide_angle`` degrees, and what was done."""
+    plane = fit_view_plane(labels_depth, labels_valid, intrinsics)
+    if plane is None:
+        return guide, {"share": 0.0, "reason": "too few labels for a plane"}
+    height, width = guide.shape
+    depth, angle = plane_depth(plane, intrinsics, height, width)
+    use = fill & (depth > 0) & (angle > settings.ground_guide_angle)
+    note = {"share": float(use.sum() / max(int(fill.sum()), 1)), "inlier_share": plane.inlier_share}
+    return np.where(use, depth, guide).astype(np.float32), note
+
+
 def fuse_view(sfm_depth: np.ndarray, labels: Any = None, ndn: Any = None, sky: Optional[np.ndarray] = None,
-              settings: Optional[AutoPriorSettings] = None) -> FusedView:
+              settings: Optional[AutoPriorSettings] = None, intrinsics: Optional[np.ndarray] = None) -> FusedView:
     """Fuse one view (module docstring: the rule).
 
     ``sfm_depth`` [H,W] metric samples (0 = none); ``labels`` and ``ndn``:
     :class:`~.io.PriorMaps` at the same size, or None (ndn's depth may be relative: it is
-    pinned here); ``sky`` [H,W] bool from the best surface mask, or None.
+    pinned here); ``sky`` [H,W] bool from the best surface mask, or None; ``intrinsics``
+    [3,3] the camera matrix at the maps' size (None: no ground-plane guide).
     """
     settings = settings or AutoPriorSettings()
     height, width = sfm_depth.shape
@@ -229,6 +253,9 @@ def fuse_view(sfm_depth: np.ndarray, labels: Any = None, ndn: Any = None, sky: O
     if ndn_depth is not None:
         fill = ndn_valid & (depth <= 0)
         if settings.hole_fill == "gradient" and labels_valid.any():
+            if intrinsics is not None and settings.ground_guide_angle > 0 and fill.any():
+                ndn_depth, report["ground_guide"] = _ground_guided(ndn_depth, labels_depth, labels_valid, fill,
+                                                                   intrinsics, settings)
             ndn_depth, report["fill"] = _gradient_filled(ndn_depth, np.where(labels_valid, depth, 0.0), fill,
                                                          sfm_depth, settings)
         depth[fill] = ndn_depth[fill]
@@ -418,7 +445,8 @@ def build_auto_priors(scene: Path, used: list[str], settings: AutoPriorSettings,
                 if sky is not None:
                     sky_from = str(source)
                     break
-            fused = fuse_view(sfm, maps.get(PriorSource.LABELS), maps.get(PriorSource.NDN), sky, settings)
+            fused = fuse_view(sfm, maps.get(PriorSource.LABELS), maps.get(PriorSource.NDN), sky, settings,
+                              intrinsics=camera.K())
             fused.report["sky_source"] = sky_from
             write_prior_maps(work, PriorSource.AUTO, image.name, depth=fused.depth, normal=fused.normal,
                              mask=fused.mask, confidence=fused.confidence, sky=fused.sky, units="sfm",

@@ -177,3 +177,32 @@ def test_a_view_that_sees_too_few_points_is_left_out_of_stereo_not_the_scene(tmp
     write_model(model, sparse, overwrite=True)
     with pytest.raises(DatasetError, match="only 1 of 3 images"):
         load_views(tmp_path, 1.3, None)
+
+
+def test_free_space_carving_removes_the_bridge_a_view_sees_through_and_nothing_else():
+    """A ridge at 4 m and a far slope at 10 m, joined by a long bridging triangle the camera
+    looks through (its stereo depth there is the slope's, farther): the bridge goes, the
+    ridge and the slope stay; with the depth map empty there, nothing goes."""
+    from esgs.core.labels.reconstruct import HeightfieldMesh, carve_free_space
+
+    K = np.array([[50.0, 0.0, 32.0], [0.0, 50.0, 24.0], [0.0, 0.0, 1.0]])
+    view = View("v", np.zeros((48, 64), np.float32), K, np.eye(4), (1.0, 20.0))
+    # camera at the origin looking along +z (OpenCV); three triangles facing it
+    ridge = [[-1.0, 0.2, 4.0], [1.0, 0.2, 4.0], [0.0, 0.6, 4.0]]  # below the centre, near
+    slope = [[-2.0, -1.5, 10.0], [2.0, -1.5, 10.0], [0.0, -0.5, 10.0]]  # above the centre, far
+    bridge = [[-1.0, 0.2, 4.0], [1.0, 0.2, 4.0], [0.0, -1.5, 10.0]]  # ridge to slope, in front of it
+    vertices = np.array(ridge + slope + bridge)
+    triangles = np.arange(9).reshape(3, 3)
+    mesh = HeightfieldMesh(vertices, triangles, {"triangles": 3}, np.zeros((0, 3)), np.zeros((0, 3), np.int64))
+    # the view's stereo depth: 4 m on the ridge's rows, 10 m above them (where the slope is seen)
+    depth = np.zeros((48, 64), np.float32)
+    rows = np.arange(48)[:, None] * np.ones((1, 64))
+    depth[:] = np.where(rows >= 24 + 50 * 0.2 / 4.0, 4.0, 10.0)
+    carved = carve_free_space(mesh, [view], [depth], tolerance=0.1, min_hits=2)
+    assert carved.stats["carved_triangles"] == 1 and carved.stats["triangles"] == 2
+    kept = {tuple(np.round(carved.vertices[t].mean(axis=0), 3)) for t in carved.triangles}
+    assert kept == {tuple(np.round(np.mean(ridge, axis=0), 3)), tuple(np.round(np.mean(slope, axis=0), 3))}
+    untouched = carve_free_space(mesh, [view], [np.zeros_like(depth)], tolerance=0.1, min_hits=2)
+    assert untouched.stats["carved_triangles"] == 0 and len(untouched.triangles) == 3
+    with pytest.raises(ConfigError, match="carve_tolerance"):
+        ReconstructOptions(carve_tolerance=-1).validate()
