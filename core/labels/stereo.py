@@ -14,7 +14,11 @@ fronto-parallel and a window on it only matches on a ground-parallel plane (mult
 sweeping directions in the manner of Gallup et al., CVPR 2007). Per pixel the cost is
 the mean of the best ``best_of`` neighbour costs (occlusion robustness), the best
 hypothesis wins, its depth is refined by a parabola through the neighbouring costs, and
-pixels whose best correlation is low or whose window has no texture are dropped.
+pixels whose best correlation is low or whose window has no texture are dropped, as are
+pixels whose winner barely beats the hypotheses more than a few planes away: a flat cost
+curve (a smooth sky, a brightness gradient) matches at many depths, and on rover views the
+depths it picks lie at the far end of the range and build a lip along the horizon that
+hides the far ground in every rendered label.
 
 Depth hypotheses are uniform in inverse depth between bounds taken from the sparse
 points the view observes (COLMAP ``points3D``), widened by a margin.
@@ -39,6 +43,9 @@ class StereoOptions:
     window_px: int = field(default=7, metadata={"help": "ZNCC window side in pixels (odd)"})
     min_correlation: float = field(default=0.6, metadata={"help": "drop pixels whose best ZNCC is lower"})
     min_texture: float = field(default=2.0, metadata={"help": "drop pixels whose window's grey-level std (0-255) is lower"})
+    min_distinctness: float = field(default=0.03, metadata={
+        "help": "drop pixels whose best cost (1 - ZNCC) beats every hypothesis more than DISTINCT_PLANES planes "
+                "away by less than this: a flat cost curve (smooth sky, a gradient) has no depth (0 = off)"})
     depth_margin: float = field(default=1.3, metadata={"help": "widen the sparse points' depth range by this factor"})
     ground_planes: bool = field(default=True, metadata={"help": "also sweep planes parallel to the fitted ground"})
 
@@ -53,6 +60,8 @@ class StereoOptions:
             raise ConfigError(f"window_px must be odd and >= 3, got {self.window_px}")
         if not -1.0 < self.min_correlation < 1.0:
             raise ConfigError(f"min_correlation must be in (-1, 1), got {self.min_correlation}")
+        if self.min_distinctness < 0:
+            raise ConfigError(f"min_distinctness must be >= 0, got {self.min_distinctness}")
         if self.depth_margin < 1.0:
             raise ConfigError(f"depth_margin must be >= 1, got {self.depth_margin}")
 
@@ -124,6 +133,22 @@ def _box(image: np.ndarray, window: int) -> np.ndarray:
     return cv2.boxFilter(image, cv2.CV_32F, (window, window), normalize=True, borderType=cv2.BORDER_REFLECT)
 
 
+#: Hypotheses this close to the winner (in plane index) are its own minimum, not a rival.
+DISTINCT_PLANES = 3
+
+
+def _distinctness(costs: np.ndarray, winner: np.ndarray, cost_min: np.ndarray) -> np.ndarray:
+    """[H, W]: the lowest cost of ``costs`` [P, H, W] more than :data:`DISTINCT_PLANES` planes
+    from ``winner`` [H, W], minus the winning cost ``cost_min`` (inf when there is none): how
+    clearly the winner stands out of its cost curve. One plane at a time: a full-size stack
+    would be copied whole otherwise."""
+    rival = np.full(winner.shape, np.inf, np.float32)
+    for index in range(len(costs)):
+        far = np.abs(index - winner) > DISTINCT_PLANES
+        rival = np.where(far, np.minimum(rival, costs[index]), rival)
+    return (rival - cost_min).astype(np.float32)
+
+
 def plane_sweep_depth(reference: View, others: list[View], options: StereoOptions,
                       ground_normal_world: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Depth map of ``reference`` from its neighbours ``others``.
@@ -157,6 +182,7 @@ def plane_sweep_depth(reference: View, others: list[View], options: StereoOption
 
     best_cost = np.full((height, width), np.inf, np.float32)
     best_depth = np.zeros((height, width), np.float32)
+    best_distinctness = np.zeros((height, width), np.float32)
     for normal, offsets in families:
         costs = np.empty((len(offsets), height, width), np.float32)
         for plane_index, offset in enumerate(offsets):
@@ -198,8 +224,12 @@ def plane_sweep_depth(reference: View, others: list[View], options: StereoOption
         better = interior & (cost_min < best_cost) & (depth > 0)
         best_cost = np.where(better, cost_min, best_cost)
         best_depth = np.where(better, depth, best_depth).astype(np.float32)
+        if options.min_distinctness > 0:
+            best_distinctness = np.where(better, _distinctness(costs, winner, cost_min), best_distinctness)
     correlation = (1.0 - best_cost).astype(np.float32)
     keep = (correlation >= options.min_correlation) & (ref_std >= options.min_texture) & (best_depth > 0)
+    if options.min_distinctness > 0:
+        keep &= best_distinctness >= options.min_distinctness
     return np.where(keep, best_depth, 0.0).astype(np.float32), np.where(keep, correlation, 0.0).astype(np.float32)
 
 

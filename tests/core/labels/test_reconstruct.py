@@ -206,3 +206,25 @@ def test_free_space_carving_removes_the_bridge_a_view_sees_through_and_nothing_e
     assert untouched.stats["carved_triangles"] == 0 and len(untouched.triangles) == 3
     with pytest.raises(ConfigError, match="carve_tolerance"):
         ReconstructOptions(carve_tolerance=-1).validate()
+
+
+def test_a_smooth_sky_gets_no_depth_from_a_flat_cost_curve():
+    """A gradient band at the top of every view (a sky: the same wherever the camera moves)
+    matches at many depths equally well; with the distinctness test most of it gets none,
+    while the textured ground keeps its coverage."""
+    views = []
+    for index, (K, world_to_camera) in enumerate(rover_poses(5)):
+        image = render(K, world_to_camera)[0].astype(np.float32)
+        rows = np.arange(20, dtype=np.float32)[:, None]
+        image[:20] = 170 + 1.5 * rows + 0.02 * np.arange(image.shape[1], dtype=np.float32)[None]
+        views.append(View(f"v{index}", image, K, world_to_camera, (1.2, 8.0)))
+    shares = {}
+    for threshold in (0.0, 0.03):
+        depths, _ = depth_maps(views, StereoOptions(planes=48, neighbours=3, best_of=2, min_distinctness=threshold))
+        shares[threshold] = (np.mean([(d[:20] > 0).mean() for d in depths]), np.mean([(d[24:] > 0).mean() for d in depths]))
+    (sky_before, ground_before), (sky_after, ground_after) = shares[0.0], shares[0.03]
+    assert sky_before > 0.3  # without the test, the sky is given depths
+    assert sky_after < sky_before / 4
+    assert ground_after > ground_before - 0.03
+    with pytest.raises(ConfigError, match="min_distinctness"):
+        StereoOptions(min_distinctness=-0.1).validate()
