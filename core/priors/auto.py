@@ -19,9 +19,10 @@ rule documented in docs/priors.md ("The auto source"):
   gradient fill (:mod:`.hole_fill`): NDN's shape, level with the labels at each hole's border
   and drawn to the SfM points inside it, unless those points prefer pinned NDN in that view
   (``fill_check``; ``hole_fill="pinned"``: NDN pinned to the points as it is, everywhere);
-  where a plane through the view's nearer labelled ground meets the hole's rays at more than
-  ``ground_guide_angle`` degrees, that plane is the fill's shape instead of NDN's
-  (:mod:`.ground_plane`: the near ground of rover views, where the network is weakest);
+  in a view that looks across the ground (the camera's height over the plane through the view's
+  nearer labels under ``ground_guide_height`` of their median depth), where that plane meets
+  the hole's rays at more than ``ground_guide_angle`` degrees it is the fill's shape instead of
+  NDN's (:mod:`.ground_plane`: the near ground of rover views, where the network is weakest);
 - where both exist and differ by more than ``disagreement`` (relative), labels' confidence is
   halved: one of two independent estimates is wrong there;
 - sfm points where no dense source has a value: confidence 1, depth only;
@@ -99,6 +100,9 @@ class AutoPriorSettings:
     ground_guide_angle: float = field(default=5.0, metadata={
         "help": "with hole_fill 'gradient': in a hole, where the plane through the view's nearer labels meets the "
                 "ray at more than this angle (degrees), fill with the plane's shape instead of NDN's (0 = never)"})
+    ground_guide_height: float = field(default=0.3, metadata={
+        "help": "the plane shapes holes only in views that look across the ground: the camera's height over that "
+                "plane below this share of the median labelled depth (rover views; aerial views keep NDN's shape)"})
     fill_border_tolerance: float = field(default=DEFAULT_BORDER_TOLERANCE, metadata={
         "help": "with hole_fill 'gradient': a label at a hole's border whose level (log of labels over NDN) is "
                 "farther than this from what the rest of that border predicts there is not used (0 = use every border label)"})
@@ -117,6 +121,8 @@ class AutoPriorSettings:
             raise ConfigError(f"fill_border_fit must be one of {', '.join(BORDER_FITS)}, got {self.fill_border_fit!r}")
         if not 0 <= self.ground_guide_angle < 90:
             raise ConfigError(f"ground_guide_angle must be in [0, 90) degrees, got {self.ground_guide_angle}")
+        if self.ground_guide_height <= 0:
+            raise ConfigError(f"ground_guide_height must be > 0, got {self.ground_guide_height}")
         if self.fill_border_tolerance < 0:
             raise ConfigError(f"fill_border_tolerance must be >= 0, got {self.fill_border_tolerance}")
         if self.fill_anchor_weight < 0:
@@ -189,10 +195,16 @@ def _ground_guided(guide: np.ndarray, labels_depth: np.ndarray, labels_valid: np
     plane = fit_view_plane(labels_depth, labels_valid, intrinsics)
     if plane is None:
         return guide, {"share": 0.0, "reason": "too few labels for a plane"}
+    height_share = plane.offset / float(np.median(labels_depth[labels_valid]))
+    if height_share >= settings.ground_guide_height:
+        # seen from above (an orbit or nadir view): the holes are patches amid the labels, where
+        # a plane flattens relief the network does see (measured: worse than NDN's shape there)
+        return guide, {"share": 0.0, "height_share": height_share, "reason": "not a view across the ground"}
     height, width = guide.shape
     depth, angle = plane_depth(plane, intrinsics, height, width)
     use = fill & (depth > 0) & (angle > settings.ground_guide_angle)
-    note = {"share": float(use.sum() / max(int(fill.sum()), 1)), "inlier_share": plane.inlier_share}
+    note = {"share": float(use.sum() / max(int(fill.sum()), 1)), "inlier_share": plane.inlier_share,
+            "height_share": height_share}
     return np.where(use, depth, guide).astype(np.float32), note
 
 

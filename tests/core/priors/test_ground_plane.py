@@ -81,3 +81,26 @@ def test_the_gate_is_validated():
 
     with pytest.raises(ConfigError, match="ground_guide_angle"):
         AutoPriorSettings(ground_guide_angle=95).validate()
+
+
+def test_a_view_from_above_keeps_the_networks_shape_in_its_holes():
+    """A nadir view 10 m over flat ground: its rays meet the plane steeply everywhere, but the
+    camera is as high over it as the ground is far, so the holes are patches amid the labels
+    and keep NDN's shape (the plane would flatten relief the network sees)."""
+    truth = np.full((H, W), 10.0, np.float32)
+    hole = np.zeros((H, W), bool)
+    hole[20:35, 30:60] = True
+    labels = PriorMaps(depth=np.where(hole, 0.0, truth).astype(np.float32), normal=None, mask=~hole)
+    bump = truth * (1 + 0.1 * hole)  # the network sees a mound in the hole
+    ndn = PriorMaps(depth=bump.astype(np.float32), normal=None, mask=np.ones((H, W), bool))
+    sfm = np.zeros_like(truth)
+    sfm[::4, ::4] = np.where(hole, 0.0, truth)[::4, ::4]
+    guided = fuse_view(sfm, labels, ndn, None, AutoPriorSettings(), intrinsics=K)
+    without = fuse_view(sfm, labels, ndn, None, AutoPriorSettings(ground_guide_angle=0), intrinsics=K)
+    assert guided.report["ground_guide"]["share"] == 0.0
+    assert guided.report["ground_guide"]["height_share"] == pytest.approx(1.0, rel=0.02)
+    np.testing.assert_array_equal(guided.depth, without.depth)
+    # the same view counted as low (a gate above its height share) takes the plane's flat shape
+    flat = fuse_view(sfm, labels, ndn, None, AutoPriorSettings(ground_guide_height=2.0), intrinsics=K)
+    assert flat.report["ground_guide"]["share"] == pytest.approx(1.0)
+    assert np.abs(flat.depth[hole] - without.depth[hole]).max() > 0.1
