@@ -20,12 +20,15 @@ mesh vertices). Steps:
    larger of the cell and the ground footprint of a pixel there (``cell_factor`` x depth /
    focal, divided by the sine of the grazing angle, at most 20x), so the sparsely sampled
    far range still meshes. Overhangs cannot be represented (rare on terrain).
-5. **Free-space carving**: a triangle that some view sees *through* (a consistent stereo depth
+5. **Free-space carving** (optional, ``carve_tolerance`` > 0): a triangle that some view sees
+   *through* (a consistent stereo depth
    of that view lies clearly behind the triangle on the same ray) is removed. On rover views
    the far range is sampled sparsely and long triangles bridge the valleys hidden behind each
    ridge; rendered, such a bridge stands in front of the slope the camera really sees, and its
    labels come out tens of percent too near. Removing it lets the rendering reach the surface
-   behind it (or leaves a hole for the prior's fill).
+   behind it (or leaves a hole for the prior's fill). Off by default: it also removes the chords
+   a height field draws across a crater's concave far wall, which are somewhat too near but
+   cover it (docs/labels.md).
 
 The mesh is written to ``SCENE/mesh/reconstructed.ply`` (world frame and units of the COLMAP
 model), with a report of every stage.
@@ -59,7 +62,7 @@ class ReconstructOptions:
         "help": "drop cells this many cells above/below their neighbourhood"})
     max_width: int = field(default=960, metadata={
         "help": "shrink wider images to this width for stereo (cost grows with pixels; 0 = full size)"})
-    carve_tolerance: float = field(default=0.1, metadata={
+    carve_tolerance: float = field(default=0.0, metadata={
         "help": "remove triangles a view's stereo depth lies behind by more than this relative depth "
                 "(free-space carving; 0 = off)"})
     carve_min_hits: int = field(default=2, metadata={
