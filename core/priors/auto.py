@@ -20,8 +20,9 @@ rule documented in docs/priors.md ("The auto source"):
   and drawn to the SfM points inside it, unless those points prefer pinned NDN in that view
   (``fill_check``; ``hole_fill="pinned"``: NDN pinned to the points as it is, everywhere);
   in a view that looks across the ground (the camera's height over the plane through the view's
-  nearer labels under ``ground_guide_height`` of their median depth), where that plane meets
-  the hole's rays at more than ``ground_guide_angle`` degrees it is the fill's shape instead of
+  nearer labels under ``ground_guide_height`` of their median depth) and whose nearer labels
+  lie on that plane (a share ``ground_guide_inliers`` of them), where the plane meets the
+  hole's rays at more than ``ground_guide_angle`` degrees it is the fill's shape instead of
   NDN's (:mod:`.ground_plane`: the near ground of rover views, where the network is weakest);
 - where both exist and differ by more than ``disagreement`` (relative), labels' confidence is
   halved: one of two independent estimates is wrong there;
@@ -103,6 +104,9 @@ class AutoPriorSettings:
     ground_guide_height: float = field(default=0.3, metadata={
         "help": "the plane shapes holes only in views that look across the ground: the camera's height over that "
                 "plane below this share of the median labelled depth (rover views; aerial views keep NDN's shape)"})
+    ground_guide_inliers: float = field(default=0.8, metadata={
+        "help": "the plane shapes holes only where it fits: at least this share of the nearer labels within 2 % "
+                "of their range from it (flat ground; a crater's floor and walls keep NDN's shape)"})
     fill_border_tolerance: float = field(default=DEFAULT_BORDER_TOLERANCE, metadata={
         "help": "with hole_fill 'gradient': a label at a hole's border whose level (log of labels over NDN) is "
                 "farther than this from what the rest of that border predicts there is not used (0 = use every border label)"})
@@ -123,6 +127,8 @@ class AutoPriorSettings:
             raise ConfigError(f"ground_guide_angle must be in [0, 90) degrees, got {self.ground_guide_angle}")
         if self.ground_guide_height <= 0:
             raise ConfigError(f"ground_guide_height must be > 0, got {self.ground_guide_height}")
+        if not 0 <= self.ground_guide_inliers <= 1:
+            raise ConfigError(f"ground_guide_inliers must be in [0, 1], got {self.ground_guide_inliers}")
         if self.fill_border_tolerance < 0:
             raise ConfigError(f"fill_border_tolerance must be >= 0, got {self.fill_border_tolerance}")
         if self.fill_anchor_weight < 0:
@@ -200,6 +206,10 @@ def _ground_guided(guide: np.ndarray, labels_depth: np.ndarray, labels_valid: np
         # seen from above (an orbit or nadir view): the holes are patches amid the labels, where
         # a plane flattens relief the network does see (measured: worse than NDN's shape there)
         return guide, {"share": 0.0, "height_share": height_share, "reason": "not a view across the ground"}
+    if plane.inlier_share < settings.ground_guide_inliers:
+        # the near ground is not a plane (inside a crater): extending one would cut through it
+        return guide, {"share": 0.0, "height_share": height_share, "inlier_share": plane.inlier_share,
+                       "reason": "the nearer labels do not lie on a plane"}
     height, width = guide.shape
     depth, angle = plane_depth(plane, intrinsics, height, width)
     use = fill & (depth > 0) & (angle > settings.ground_guide_angle)

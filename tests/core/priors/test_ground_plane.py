@@ -104,3 +104,26 @@ def test_a_view_from_above_keeps_the_networks_shape_in_its_holes():
     flat = fuse_view(sfm, labels, ndn, None, AutoPriorSettings(ground_guide_height=2.0), intrinsics=K)
     assert flat.report["ground_guide"]["share"] == pytest.approx(1.0)
     assert np.abs(flat.depth[hole] - without.depth[hole]).max() > 0.1
+
+
+def test_near_ground_that_is_not_a_plane_keeps_the_networks_shape():
+    """Inside a crater the nearer labels curve: few lie on any one plane, so the plane would cut
+    through the ground and the hole keeps NDN's shape."""
+    truth = _ground_depth()
+    ground = truth > 0
+    columns = np.arange(W, dtype=np.float32)[None, :] * np.ones((H, 1), np.float32)
+    curved = np.where(ground, truth * (1 + 0.15 * np.sin(columns / 6.0)), 0.0).astype(np.float32)
+    hole = np.zeros((H, W), bool)
+    hole[-12:, :] = True
+    labels = PriorMaps(depth=np.where(hole, 0.0, curved).astype(np.float32), normal=None, mask=ground & ~hole)
+    ndn = PriorMaps(depth=curved, normal=None, mask=ground)
+    sfm = np.zeros_like(curved)
+    sfm[:-12:4, ::4] = curved[:-12:4, ::4]
+    guided = fuse_view(sfm, labels, ndn, ~ground, AutoPriorSettings(), intrinsics=K)
+    without = fuse_view(sfm, labels, ndn, ~ground, AutoPriorSettings(ground_guide_angle=0), intrinsics=K)
+    assert guided.report["ground_guide"]["inlier_share"] < 0.8
+    assert guided.report["ground_guide"]["share"] == 0.0
+    np.testing.assert_array_equal(guided.depth, without.depth)
+    # told to accept any fit, the plane is used there
+    forced = fuse_view(sfm, labels, ndn, ~ground, AutoPriorSettings(ground_guide_inliers=0.0), intrinsics=K)
+    assert forced.report["ground_guide"]["share"] > 0.5
