@@ -2,12 +2,14 @@
 
 On rover-height views stereo leaves the ground right in front of the camera empty (seen by one
 view, or too oblique for the neighbours), and a learned network's shape is poor there: pinned
-and level-corrected, it is off by more than 25 % on a quarter of those pixels (measured on the
-generator's rover scenes, docs/ndn.md "The near ground as a plane"). The labelled ground a few
+and level-corrected, it is often more than 25 % off (measured on the generator's rover scenes,
+docs/priors.md "The near ground as a plane"). The labelled ground a few
 metres farther is nearly planar at that scale, and a plane through it extends to the near
 ground well: a ray that meets the plane steeply gets a depth that a small tilt of the plane
 barely moves. Near the horizon the opposite holds (a grazing ray's depth swings with the
-slightest tilt), so the plane is used only where its rays meet it at more than a set angle.
+slightest tilt), so the plane is used only where its rays meet it at more than a set angle,
+and ``priors/auto`` uses it only in views that look across the ground and whose nearer labels
+lie on it (:attr:`ViewPlane.inlier_share`): inside a crater a plane would cut through the ground.
 
 The plane is fitted in the camera frame, robustly (RANSAC, then a least-squares refit on its
 inliers), to the nearer half of the view's labelled pixels: the far half is where the terrain
