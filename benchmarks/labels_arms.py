@@ -24,12 +24,12 @@ BINS = (0.0, 5.0, 10.0, 20.0, 40.0, 80.0, float("inf"))
 
 def pooled_scores(copies: list[Path]) -> dict:
     """Pixel-pooled AbsRel / delta1 / coverage of the copies' labels, overall and by true depth."""
-    from esgs.core.formats.scene_dir import PriorSource
+    from esgs.core.formats.scene_dir import PriorSource, SceneDir
     from esgs.core.priors.io import load_prior_maps
 
     ratios, errors, depths, surface_pixels = [], [], [], 0
     for copy in copies:
-        for image in sorted((copy / "images").iterdir()):
+        for image in sorted(SceneDir(copy).images.iterdir()):
             truth = load_prior_maps(copy, PriorSource.GT, image.name)
             labels = load_prior_maps(copy, PriorSource.LABELS, image.name)
             surface = truth.mask & (truth.depth > 0)
