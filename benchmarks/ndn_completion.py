@@ -5,6 +5,8 @@ leaves holes is scored after the filling a user would get. Rows, per evaluation 
 
 - ``sfm_interpolated``: the view's triangulated points, interpolated (linear, nearest outside
   their hull), normals from the interpolated depth;
+- ``stereo_sfm``: no network at all: the stereo labels where they hold a value, the SfM
+  interpolation elsewhere (the labels' normals, else the interpolation's);
 - ``stereo_filled``: the ``auto`` prior as shipped before the completion network (stereo labels
   from ``esgs labels --reconstruct``, the shipped NDN pinned to the SfM points where labels are
   missing, SfM points), its remaining holes filled by the SfM interpolation;
@@ -19,7 +21,10 @@ leaves holes is scored after the filling a user would get. Rows, per evaluation 
   ``:auto_network_normals`` the same depth with the network's normals on every pixel (labels'
   normals nowhere): whether ``auto`` should take its normals from the network;
 - ``<depth weights>+<normal weights>_normals:auto`` (``--hybrid A:B``): A's ``:auto`` depth with
-  B's ``:auto`` normals, when one network's depth and another's normals are better.
+  B's ``:auto`` normals, when one network's depth and another's normals are better;
+  ``<A>+<B>:auto`` what ``esgs priors --method auto`` makes of that pair today: A's depth with
+  B's depth as the ``ndn`` source's second depth (blended in the holes of views with sky), B's
+  ``:auto`` normals.
 
 Depth is scored after the robust scale/shift fit the trainer uses (``abs_rel``, ``delta1``) and,
 for rows that are metric, without any alignment (``abs_rel_metric``, ``delta1_metric``);
@@ -139,11 +144,15 @@ def full_scores(depth: np.ndarray, normal: np.ndarray, data: dict, index: int) -
 
 def baseline_rows(data: dict) -> dict[str, list[dict]]:
     """Scores of the rows that need no network, per view."""
-    rows: dict[str, list[dict]] = {"sfm_interpolated": [], "stereo_filled": []}
+    rows: dict[str, list[dict]] = {"sfm_interpolated": [], "stereo_sfm": [], "stereo_filled": []}
     for index in range(len(data["names"])):
         surface = data["mask"][index]
         dense, normals = data["sfm_dense"][index], data["sfm_dense_normal"][index]
         rows["sfm_interpolated"].append(full_scores(dense, normals, data, index))
+        stereo, stereo_normal = data["stereo_depth"][index], data["stereo_normal"][index]
+        has_stereo_normal = (stereo > 0) & (np.linalg.norm(stereo_normal, axis=0) > 0.5)
+        rows["stereo_sfm"].append(full_scores(np.where(stereo > 0, stereo, dense),
+                                              np.where(has_stereo_normal[None], stereo_normal, normals), data, index))
         fused = data["auto_depth"][index]
         filled = stereo_filled_depth(data, index, dense)
         fused_normal = data["auto_normal"][index]
@@ -193,7 +202,7 @@ def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: 
                 guide = pin_to_labels(depth, data["stereo_depth"][index]) if metric else depth
                 filled, filled_normal, report = auto_fused(data, index, guide, normal, relative=not metric)
                 if auto_maps is not None:
-                    auto_maps.setdefault(name, []).append((filled, filled_normal))
+                    auto_maps.setdefault(name, []).append((filled, filled_normal, guide, not metric))
                 rows.setdefault(f"{name}:auto", []).append(
                     {**full_scores(filled, filled_normal, data, index),
                      "ndn_trust": report.get("ndn", {}).get("trust", 0.0),
@@ -212,13 +221,14 @@ def network_rows(name: str, weights: Path, data: dict, modes: list[str], steps: 
 
 
 def auto_fused(data: dict, index: int, network_depth: np.ndarray, network_normal: np.ndarray, *,
-               relative: bool = False, settings: Any = None) -> tuple[np.ndarray, np.ndarray, dict]:
+               relative: bool = False, settings: Any = None, second_depth: np.ndarray | None = None,
+               second_relative: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
     """View ``index`` fused by ``priors.auto.fuse_view`` (its default settings) at the working
     size, with the network's depth (as ``esgs priors --method ndn`` writes it: metric and fitted to
     the labels, or ``relative``, then pinned to the SfM points by the fusion) and normals in the NDN slot, the real stereo labels, the SfM cells and the true
     sky (the synthetic scenes' ``auto`` takes its sky from ``gt``); the pixels it leaves empty
-    take the SfM interpolation as in ``stereo_filled``. Returns (depth, normals [3, h, w], the
-    fusion's report)."""
+    take the SfM interpolation as in ``stereo_filled``. ``second_depth``: another network's depth
+    as the ``ndn`` source's second depth. Returns (depth, normals [3, h, w], the fusion's report)."""
     from esgs.core.priors.auto import fuse_view
     from esgs.core.priors.io import PriorMaps
 
@@ -227,7 +237,9 @@ def auto_fused(data: dict, index: int, network_depth: np.ndarray, network_normal
     surface = data["mask"][index]
     labels = PriorMaps(depth=stereo, normal=stereo_normal, mask=stereo > 0, source="labels")
     ndn = PriorMaps(depth=network_depth.astype(np.float32), normal=network_normal.transpose(1, 2, 0),
-                    mask=network_depth > 0, relative_depth=relative, source="ndn")
+                    mask=network_depth > 0, relative_depth=relative, source="ndn",
+                    second_depth=None if second_depth is None else second_depth.astype(np.float32),
+                    second_relative_depth=second_relative)
     fx, fy, cx, cy = data["intrinsics"]
     camera = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     fused = fuse_view(data["sfm_depth"][index], labels, ndn, ~surface, settings, intrinsics=camera)
@@ -242,8 +254,23 @@ def hybrid_rows(data: dict, depth_maps: list, normal_maps: list) -> list[dict]:
     """Per view: the ``:auto`` depth of one network with the ``:auto`` normals of another (the
     labels' normals where the labels hold, each network's in the holes it fills)."""
     rows = []
-    for index, ((depth, _), (_, normal)) in enumerate(zip(depth_maps, normal_maps)):
+    for index, ((depth, *_), (_, normal, *_)) in enumerate(zip(depth_maps, normal_maps)):
         rows.append(full_scores(depth, normal, data, index))
+    return rows
+
+
+def shipped_pair_rows(data: dict, depth_maps: list, normal_maps: list, settings: Any = None) -> list[dict]:
+    """Per view: the pair as ``priors/auto`` fuses it today (or with ``settings``): the first
+    network's depth with the second's as the ``ndn`` source's second depth, the second's
+    ``:auto`` normals."""
+    rows = []
+    for index, ((_, _, guide, relative), (_, normal, second, second_relative)) in enumerate(zip(depth_maps,
+                                                                                                normal_maps)):
+        depth, _, report = auto_fused(data, index, guide, normal, relative=relative, settings=settings,
+                                      second_depth=second, second_relative=second_relative)
+        rows.append({**full_scores(depth, normal, data, index),
+                     "blend_share": float((report.get("blend") or {}).get("share", 0.0)),
+                     "second_alone": float(report.get("ndn", {}).get("from") == "second depth")})
     return rows
 
 
@@ -327,6 +354,11 @@ def main(argv: list[str] | None = None) -> int:
                     parser.error(f"--hybrid: no :auto row for {sorted(missing)}; add sfm_stereo to --modes")
                 rows[f"{depth_name}+{normal_name}_normals:auto"] = hybrid_rows(data, auto_maps[depth_name],
                                                                                 auto_maps[normal_name])
+                rows[f"{depth_name}+{normal_name}:auto"] = shipped_pair_rows(data, auto_maps[depth_name],
+                                                                             auto_maps[normal_name])
+                for variant, settings in variants.items():
+                    rows[f"{depth_name}+{normal_name}:auto[{variant}]"] = shipped_pair_rows(
+                        data, auto_maps[depth_name], auto_maps[normal_name], settings)
             for row, scores in rows.items():
                 per_row.setdefault(row, []).extend(scores)
         result["sets"][set_name] = {"scenes": [str(s) for s in scenes], "views": view_names,

@@ -183,7 +183,7 @@ RECONSTRUCTED_MESH = "reconstructed.ply"
 SCENE_JSON = "scene.json"
 LABELS_REPORT = "labels.json"
 LABELS_ACCURACY = "accuracy.json"
-PRIOR_KINDS = ("depth", "normal", "mask", "confidence", "sky")
+PRIOR_KINDS = ("depth", "normal", "mask", "confidence", "sky", "second_depth")
 
 
 @dataclass(frozen=True)
@@ -249,6 +249,11 @@ class SceneDir:
     def confidence_map(self, source: str, image_name: str) -> Path:
         """``priors/<source>/confidence/<stem>.exr``: per-pixel trust in [0, 1] (optional; auto writes it)."""
         return self.prior_maps(source, "confidence") / f"{image_stem(image_name)}.exr"
+
+    def second_depth_map(self, source: str, image_name: str) -> Path:
+        """``priors/<source>/second_depth/<stem>.exr``: a second, independent depth estimate
+        (optional; ``ndn`` writes its normals network's own depth there)."""
+        return self.prior_maps(source, "second_depth") / f"{image_stem(image_name)}.exr"
 
     def sky_map(self, source: str, image_name: str) -> Path:
         """``priors/<source>/sky/<stem>.png``: 255 = no surface along the ray (optional; auto writes it)."""

@@ -248,7 +248,10 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
     it sees a surface (outside its own sky), replaces the normals (docs/ndn.md: its normals
     measured better on every evaluation set, its depth did not), and with ``sky_from_normals``
     (the default) its sky is added to the sky: it marks the sky of rover views at 0.999
-    precision, and training on scenes without ground truth gains from it (docs/ndn.md).
+    precision, and training on scenes without ground truth gains from it (docs/ndn.md). Its own
+    depth is written as the views' ``second_depth`` (on the same surface): ``priors/auto``
+    blends it with the depth network's in the holes of views with sky, where the two err in
+    opposite directions (docs/priors.md, "Two networks' fills").
 
     Weights that read evidence get each view's SfM points and, where ``priors/labels`` exists,
     its stereo labels (:func:`scene_evidence`); their depth is then written in metres, fitted to
@@ -290,6 +293,7 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
         metadata["sky_from"] = "depth and normals networks" if sky_from_normals else "depth network"
         metadata["normal_weights"] = str(networks.normals)
         metadata["normal_weights_sha"] = weights_digest(networks.normals)
+        metadata["second_depth"] = "normals network"
         if normal_net.config.model.evidence:
             metadata["normal_evidence"] = "sfm points" + (" + stereo labels" if normal_net.had_stereo else "")
     # all maps go to a staging folder that replaces priors/ndn only when complete: a failure
@@ -313,8 +317,12 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
                     mask &= ~sky
                     depth = np.where(mask, depth, 0.0).astype(np.float32)
                     normal = np.where(mask[..., None], normal, 0.0).astype(np.float32)
+                second, _, second_mask, _, second_metric = _view_maps(normal_net, index, image)
+                second = np.where(mask & second_mask, second, 0.0).astype(np.float32)
             write_prior_maps(work, "ndn", name, depth=depth, normal=normal, mask=mask, relative_depth=not metric,
-                             units="m" if metric else "relative", metadata=metadata, mask_kind="surface", sky=sky)
+                             units="m" if metric else "relative", metadata=metadata, mask_kind="surface", sky=sky,
+                             second_depth=second if normal_net is not None else None,
+                             second_relative_depth=normal_net is not None and not second_metric)
         with atomic_directory(prior_dir(scene_dir, "ndn"), overwrite=True) as staging:
             os.replace(prior_dir(work, "ndn"), staging)
     finally:
@@ -354,8 +362,8 @@ def outdated_ndn_priors(scene_dir: str | Path) -> str | None:
 
     Only priors the package's own networks made are judged (a user's chosen weights are kept):
     they are outdated when the package's networks have changed since (another digest, or a
-    folder from before the normals network shipped), or when the normals network read no
-    stereo labels and the scene has them now. Nothing is outdated while the environment names
+    folder from before the normals network shipped or before its depth was kept as the second
+    depth), or when the normals network read no stereo labels and the scene has them now. Nothing is outdated while the environment names
     other weights."""
     from ..errors import CheckpointError
     from .shipped import resolve_prior_networks, weights_digest
@@ -378,6 +386,8 @@ def outdated_ndn_priors(scene_dir: str | Path) -> str | None:
         return "the package's NDN weights changed since they were predicted"
     if header.get("sky_from") != expected["sky_from"]:
         return "the package's normals network marks the sky now"
+    if networks.normals and header.get("second_depth") != "normals network":
+        return "the package keeps its normals network's depth now (auto blends it in views with sky)"
     # the normals network reads the stereo labels when they exist (what was measured): priors
     # predicted before the labels were made are predicted again once they are
     if header.get("normal_evidence") == "sfm points" and SceneDir(scene_dir).has_prior_maps("labels", "depth"):

@@ -24,6 +24,10 @@ rule documented in docs/priors.md ("The auto source"):
   lie on that plane (a share ``ground_guide_inliers`` of them), where the plane meets the
   hole's rays at more than ``ground_guide_angle`` degrees it is the fill's shape instead of
   NDN's (:mod:`.ground_plane`: the near ground of rover views, where the network is weakest);
+  in views with sky (a share ``blend_min_sky`` of the pixels), where ``ndn`` also holds a
+  second depth (its normals network's own, written by ``esgs priors --method ndn``), the holes
+  take the geometric mean of the two depths, each filled that way: under the horizon one errs
+  near and the other far;
 - where both exist and differ by more than ``disagreement`` (relative), labels' confidence is
   halved: one of two independent estimates is wrong there;
 - sfm points where no dense source has a value: confidence 1, depth only;
@@ -65,7 +69,7 @@ MIN_CHECK_POINTS = MIN_PIN_SAMPLES
 #: Confidence of a dense source on a view whose error could not be checked (too few points).
 UNCHECKED_CONFIDENCE = 0.5
 #: Bumped when the fusion rule changes, so cached folders are rebuilt.
-RULE_VERSION = 3
+RULE_VERSION = 4
 #: How NDN fills the labels' holes (``AutoPriorSettings.hole_fill``).
 HOLE_FILLS = ("gradient", "pinned")
 
@@ -107,6 +111,13 @@ class AutoPriorSettings:
     ground_guide_inliers: float = field(default=0.8, metadata={
         "help": "the plane shapes holes only where it fits: at least this share of the nearer labels within 2 % "
                 "of their range from it (flat ground; a crater's floor and walls keep NDN's shape)"})
+    blend_min_sky: float = field(default=0.02, metadata={
+        "help": "in views with at least this share of sky, the labels' holes take the geometric mean of the two "
+                "networks' fills (ndn's depth and its second depth, each filled as above): near the horizon one "
+                "errs near, the other far (1 = never blend)"})
+    second_depth_fallback: bool = field(default=True, metadata={
+        "help": "in those views, where the first depth is not trusted (too far off the SfM points) and the second "
+                "is, the second alone fills the holes"})
     fill_border_tolerance: float = field(default=DEFAULT_BORDER_TOLERANCE, metadata={
         "help": "with hole_fill 'gradient': a label at a hole's border whose level (log of labels over NDN) is "
                 "farther than this from what the rest of that border predicts there is not used (0 = use every border label)"})
@@ -133,6 +144,8 @@ class AutoPriorSettings:
             raise ConfigError(f"fill_border_tolerance must be >= 0, got {self.fill_border_tolerance}")
         if self.fill_anchor_weight < 0:
             raise ConfigError(f"fill_anchor_weight must be >= 0, got {self.fill_anchor_weight}")
+        if not 0 <= self.blend_min_sky <= 1:
+            raise ConfigError(f"blend_min_sky must be in [0, 1], got {self.blend_min_sky}")
 
 
 @dataclass
@@ -218,6 +231,55 @@ def _ground_guided(guide: np.ndarray, labels_depth: np.ndarray, labels_valid: np
     return np.where(use, depth, guide).astype(np.float32), note
 
 
+def _checked_learned_depth(learned: np.ndarray, relative: bool, mask: np.ndarray, sfm_depth: np.ndarray,
+                           settings: AutoPriorSettings) -> tuple[Optional[np.ndarray], np.ndarray, dict[str, Any]]:
+    """A network's depth made metric (a relative one pinned to the SfM points) and checked
+    against them: (depth or None when it could not be pinned or is not trusted, its valid
+    pixels, the report: error, points, trust)."""
+    valid = mask & (learned > 0)
+    pinned = pin_relative_depth(learned, valid, sfm_depth) if relative else np.where(valid, learned, 0.0).astype(np.float32)
+    if pinned is None:
+        return None, np.zeros_like(valid), {"error": float("nan"), "points": 0, "trust": 0.0,
+                                            "reason": "could not be pinned"}
+    error, points = sfm_fit_error(pinned, valid, sfm_depth)
+    trust = settings.ndn_trust * _view_trust(error, settings)
+    if trust <= 0:
+        return None, np.zeros_like(valid), {"error": error, "points": points, "trust": trust}
+    return pinned, valid & (pinned > 0), {"error": error, "points": points, "trust": trust}
+
+
+def _holes_filled(learned: np.ndarray, fill: np.ndarray, labels_depth: Optional[np.ndarray], labels_valid: np.ndarray,
+                  known: np.ndarray, sfm_depth: np.ndarray, intrinsics: Optional[np.ndarray],
+                  settings: AutoPriorSettings, report: dict[str, Any]) -> np.ndarray:
+    """``learned`` with the labels' holes ``fill`` shaped by the ground plane where it applies and
+    levelled with the labels ``known`` by the gradient fill (``hole_fill`` "gradient" and some
+    labels); what was done goes into ``report`` (``ground_guide``, ``fill``)."""
+    if settings.hole_fill != "gradient" or not labels_valid.any():
+        return learned
+    if intrinsics is not None and settings.ground_guide_angle > 0 and fill.any():
+        learned, report["ground_guide"] = _ground_guided(learned, labels_depth, labels_valid, fill, intrinsics, settings)
+    learned, report["fill"] = _gradient_filled(learned, known, fill, sfm_depth, settings)
+    return learned
+
+
+def _blended(filled: np.ndarray, fill: np.ndarray, second: np.ndarray, second_valid: np.ndarray,
+             labels_depth: Optional[np.ndarray], labels_valid: np.ndarray, known: np.ndarray, sfm_depth: np.ndarray,
+             intrinsics: Optional[np.ndarray], settings: AutoPriorSettings) -> tuple[np.ndarray, dict[str, Any]]:
+    """``filled`` (the first depth's fill of the holes ``fill``) replaced, where the checked
+    ``second`` depth fills them too, by the geometric mean of both fills, each made the same way.
+
+    Why: in views with sky the holes lie mostly on the far ground under the horizon, beyond the
+    labels, where the diffusion NDN's fill (levelled with the labels' far edge) stays too near
+    and the completion network, which reads the labels and SfM points, often lands too far
+    (docs/priors.md, "Two networks' fills in views with sky")."""
+    inner: dict[str, Any] = {}
+    second = _holes_filled(second, second_valid & fill, labels_depth, labels_valid, known, sfm_depth, intrinsics,
+                           settings, inner)
+    both = fill & second_valid & (filled > 0) & (second > 0)
+    mean = np.sqrt(np.maximum(filled, 1e-12) * np.maximum(second, 1e-12))
+    return np.where(both, mean, filled).astype(np.float32), {"share": float(both.sum() / max(int(fill.sum()), 1))}
+
+
 def fuse_view(sfm_depth: np.ndarray, labels: Any = None, ndn: Any = None, sky: Optional[np.ndarray] = None,
               settings: Optional[AutoPriorSettings] = None, intrinsics: Optional[np.ndarray] = None) -> FusedView:
     """Fuse one view (module docstring: the rule).
@@ -245,18 +307,21 @@ def fuse_view(sfm_depth: np.ndarray, labels: Any = None, ndn: Any = None, sky: O
         report["labels"] = {"error": error, "points": points, "trust": trust}
         if trust <= 0:
             labels_valid = np.zeros_like(labels_valid)
+    second = None  # the ndn source's second depth, checked, in views with sky
     if ndn is not None and ndn.depth is not None:
-        valid = ndn.mask & (ndn.depth > 0) & free
-        pinned = pin_relative_depth(ndn.depth, valid, sfm_depth) if ndn.relative_depth else \
-            np.where(valid, ndn.depth, 0.0).astype(np.float32)
-        if pinned is None:
-            report["ndn"] = {"error": float("nan"), "points": 0, "trust": 0.0, "reason": "could not be pinned"}
-        else:
-            error, points = sfm_fit_error(pinned, valid, sfm_depth)
-            trust = settings.ndn_trust * _view_trust(error, settings)
-            report["ndn"] = {"error": error, "points": points, "trust": trust}
-            if trust > 0:
-                ndn_depth, ndn_valid = pinned, valid & (pinned > 0)
+        ndn_depth, ndn_valid, report["ndn"] = _checked_learned_depth(ndn.depth, ndn.relative_depth, ndn.mask & free,
+                                                                     sfm_depth, settings)
+        sky_share = float(sky.mean()) if sky is not None else 0.0
+        if ndn.second_depth is not None and settings.blend_min_sky < 1 and sky_share >= settings.blend_min_sky:
+            second = _checked_learned_depth(ndn.second_depth, ndn.second_relative_depth, ndn.mask & free, sfm_depth,
+                                            settings)
+            report["second"] = second[2]
+            if second[0] is None:
+                second = None
+            elif ndn_depth is None and settings.second_depth_fallback:
+                # the first depth is not trusted here: the second, which is, fills the holes alone
+                ndn_depth, ndn_valid, report["ndn"] = second[0], second[1], {**second[2], "from": "second depth"}
+                second = None
 
     if labels_depth is not None and labels_valid.any():
         trust = report["labels"]["trust"]
@@ -274,12 +339,12 @@ def fuse_view(sfm_depth: np.ndarray, labels: Any = None, ndn: Any = None, sky: O
     fill = np.zeros((height, width), bool)
     if ndn_depth is not None:
         fill = ndn_valid & (depth <= 0)
-        if settings.hole_fill == "gradient" and labels_valid.any():
-            if intrinsics is not None and settings.ground_guide_angle > 0 and fill.any():
-                ndn_depth, report["ground_guide"] = _ground_guided(ndn_depth, labels_depth, labels_valid, fill,
-                                                                   intrinsics, settings)
-            ndn_depth, report["fill"] = _gradient_filled(ndn_depth, np.where(labels_valid, depth, 0.0), fill,
-                                                         sfm_depth, settings)
+        known = np.where(labels_valid, depth, 0.0)
+        ndn_depth = _holes_filled(ndn_depth, fill, labels_depth, labels_valid, known, sfm_depth, intrinsics, settings,
+                                  report)
+        if second is not None and fill.any():
+            ndn_depth, report["blend"] = _blended(ndn_depth, fill, second[0], second[1], labels_depth, labels_valid,
+                                                  known, sfm_depth, intrinsics, settings)
         depth[fill] = ndn_depth[fill]
         confidence[fill] = report["ndn"]["trust"]
         if ndn.normal is not None:

@@ -13,12 +13,15 @@ One format for every source (``gt`` synthetic ground truth, ``labels`` rendered 
   surface at all: 0 is sky; gt and ndn) or ``coverage`` (0 only means "no value here": sparse
   SfM points, stereo holes). Files without the header follow their source (:attr:`PriorSource.mask_kind`).
 
-Two optional kinds (the fused ``auto`` source writes them):
+Optional kinds (the fused ``auto`` source writes the first two, ``ndn`` the last two):
 
 - confidence EXR, channel ``Z``: per-pixel trust in [0, 1] that scales the prior losses
   (missing: 1 wherever the mask is valid);
 - sky PNG: 255 = no surface along the ray. It wins over a ``surface`` mask's zeros, so a
-  source whose mask only means coverage can still say where the sky is.
+  source whose mask only means coverage can still say where the sky is;
+- second depth EXR (``second_depth/<stem>.exr``), channel ``Z``: a second, independent
+  estimate of the same depth with its own ``depth_kind`` (``ndn``: its normals network's own
+  depth, which ``auto`` blends with the first in the holes of views with sky).
 
 ``<stem>`` is the image name without its extension (sub-folders kept).
 """
@@ -48,6 +51,10 @@ class PriorMaps:
     source: str = ""
     sky: np.ndarray | None = None  # [H, W] bool, True = no surface along the ray; None = unknown
     confidence: np.ndarray | None = None  # [H, W] float32 in [0, 1]; None = full trust where valid
+    # a second, independent depth estimate of the same view (0 = invalid; ``ndn``: its normals
+    # network's own depth), and whether it is relative; None = the source has none
+    second_depth: np.ndarray | None = None
+    second_relative_depth: bool = False
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -80,12 +87,14 @@ def write_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, dep
                      normal: np.ndarray | None = None, mask: np.ndarray | None = None, relative_depth: bool = False,
                      units: str = "m", metadata: dict[str, str] | None = None,
                      mask_kind: str = "coverage", confidence: np.ndarray | None = None,
-                     sky: np.ndarray | None = None) -> None:
+                     sky: np.ndarray | None = None, second_depth: np.ndarray | None = None,
+                     second_relative_depth: bool = False) -> None:
     """Write one view's prior maps atomically in the standard layout.
 
     ``mask_kind`` "surface" when the mask's zeros are pixels with no surface at all (sky), so
     training may push them far away; "coverage" when they only lack a value. ``confidence``
-    [H, W] in [0, 1] and ``sky`` [H, W] bool are the optional kinds (module docstring).
+    [H, W] in [0, 1], ``sky`` [H, W] bool and ``second_depth`` [H, W] (a second estimate of the
+    view's depth, relative when ``second_relative_depth``) are the optional kinds (module docstring).
     """
     if mask_kind not in MASK_KINDS:
         raise ValueError(f"mask_kind must be one of {MASK_KINDS}, got {mask_kind!r}")
@@ -105,6 +114,12 @@ def write_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, dep
                         metadata={**extra, "kind": "confidence"})
     if sky is not None:
         write_png(scene.sky_map(source, image_name), np.where(np.asarray(sky, bool), 255, 0).astype(np.uint8))
+    if second_depth is not None:
+        second_units = "relative" if second_relative_depth else ("m" if units == "relative" else units)
+        write_depth_exr(scene.second_depth_map(source, image_name), np.asarray(second_depth, np.float32),
+                        units=second_units,
+                        metadata={**extra, "depth_kind": "relative" if second_relative_depth else "metric",
+                                  "kind": "second_depth"})
 
 
 def _resize_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -223,8 +238,27 @@ def load_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, size
     confidence_path = scene.confidence_map(source, image_name)
     if confidence_path.exists():
         confidence = np.clip(_read_plane(confidence_path, (width, height), out_size, kind="confidence"), 0.0, 1.0)
+    second_depth, second_relative = _read_second_depth(scene.second_depth_map(source, image_name), (width, height),
+                                                       out_size)
     return PriorMaps(depth=depth, normal=normal, mask=mask, relative_depth=relative, source=source, sky=sky,
-                     confidence=confidence)
+                     confidence=confidence, second_depth=second_depth, second_relative_depth=second_relative)
+
+
+def _read_second_depth(path: Path, stored: tuple[int, int],
+                       size: tuple[int, int]) -> tuple[np.ndarray | None, bool]:
+    """The optional second depth map (None when absent) at ``size``, resized as depth is, and
+    whether it is relative; checked against the stored prior maps' size (width, height)."""
+    if not path.exists():
+        return None, False
+    depth, header = read_depth_exr(path)
+    kind = header.get("depth_kind", "metric")
+    if kind not in ("metric", "relative"):
+        raise DatasetError(f"unknown depth_kind {kind!r} (expected metric or relative)", path=path)
+    if (depth.shape[1], depth.shape[0]) != stored:
+        raise DatasetError(f"second depth map {depth.shape[1]}x{depth.shape[0]} does not match the prior maps "
+                           f"{stored[0]}x{stored[1]}", path=path, hint="recompute the priors (esgs priors SCENE --method ndn)")
+    depth = np.nan_to_num(depth.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    return _resize_depth(depth, *size), kind == "relative"
 
 
 def _read_plane(path: Path, stored: tuple[int, int], size: tuple[int, int], *, kind: str) -> np.ndarray:

@@ -10,6 +10,8 @@ import pytest
 import torch
 
 from esgs.core.errors import CheckpointError
+from esgs.core.formats.imageio import read_depth_exr, write_depth_exr
+from esgs.core.formats.scene_dir import SceneDir
 from esgs.core.ndn import shipped
 from esgs.core.ndn.checkpoint import save_checkpoint
 from esgs.core.ndn.train import build_model
@@ -87,6 +89,17 @@ def test_depth_and_mask_come_from_one_network_and_normals_from_the_other(scene, 
     assert header["networks"] == "default"
     assert header["weights"] == str(depth) and header["normal_weights"] == str(normals)
     assert header["weights_sha"] == shipped.weights_digest(depth) != header["normal_weights_sha"]
+    # the normals network's own depth is kept as the second depth, on the depth network's surface
+    assert header["second_depth"] == "normals network"
+    write_ndn_priors(scene, normals, normal_weights="same")
+    own = {name: load_prior_maps(scene, "ndn", name) for name in alone}
+    write_ndn_priors(scene)
+    for name, single in alone.items():
+        assert single.second_depth is None  # one network: no second opinion
+        maps = load_prior_maps(scene, "ndn", name)
+        assert maps.second_depth is not None and (maps.second_depth[maps.mask] > 0).all()
+        np.testing.assert_allclose(maps.second_depth, np.where(maps.mask, own[name].depth, 0.0), rtol=1e-6)
+        assert maps.second_relative_depth == own[name].relative_depth
 
 
 def test_where_the_normals_network_sees_sky_the_depth_networks_normals_stay(scene, pair, tmp_path):
@@ -120,6 +133,15 @@ def test_priors_of_the_package_are_outdated_when_its_networks_change_and_auto_pr
     write_ndn_priors(scene, sky_from_normals=False)
     assert "marks the sky" in outdated_ndn_priors(scene)
     write_ndn_priors(scene)
+    # priors of the pair from before the normals network's depth was kept
+    for index in range(4):
+        SceneDir(scene).second_depth_map("ndn", f"view_{index:03d}.png").unlink()
+    header_path = sorted(SceneDir(scene).prior_maps("ndn", "depth").glob("*.exr"))[0]  # the header read
+    old_depth, old_header = read_depth_exr(header_path)
+    write_depth_exr(header_path, old_depth, metadata={k: v for k, v in old_header.items() if k != "second_depth"})
+    assert "normals network's depth" in outdated_ndn_priors(scene)
+    write_ndn_priors(scene)
+    assert outdated_ndn_priors(scene) is None
     # the package ships other normal weights: the same path, other contents
     _constant(normals, (0.0, 0.6, -0.8), evidence=True)
     assert "changed" in outdated_ndn_priors(scene)

@@ -95,6 +95,57 @@ def test_sfm_is_the_floor_and_sky_pixels_get_no_depth():
     assert not fused.mask[sky].any() and fused.mask[~sky].all()
 
 
+def test_in_views_with_sky_the_holes_take_the_geometric_mean_of_the_two_networks_depths():
+    truth = _truth()
+    sky = np.zeros((H, W), bool)
+    sky[:4] = True  # above the horizon
+    hole = np.zeros((H, W), bool)
+    hole[4:14, :] = True  # the far ground under it, beyond the labels
+    labels = _maps(np.where(hole | sky, 0.0, truth), ~(hole | sky))
+    points = np.where(hole, 0.0, _sfm(truth))  # the points check both networks where they are exact
+    near, far = np.where(hole, truth / 1.3, truth), np.where(hole, truth * 1.3, truth)
+    ndn = _maps(near)
+    ndn.second_depth = far
+    settings = AutoPriorSettings(hole_fill="pinned")  # each network's own depth in the hole, as it is
+    fused = fuse_view(points, labels, ndn, sky, settings)
+    np.testing.assert_allclose(fused.depth[hole], truth[hole], rtol=1e-5)  # sqrt(t / 1.3 * t * 1.3)
+    assert not fused.mask[sky].any()
+    assert fused.report["blend"]["share"] == pytest.approx(1.0)
+    assert fused.report["second"]["trust"] == pytest.approx(settings.ndn_trust)
+    # no sky in the view, a smaller sky share than asked, or no second depth: the first network alone
+    for view_sky, blend_min_sky, second in ((None, 0.02, far), (sky, 0.2, far), (sky, 0.02, None)):
+        ndn.second_depth = second
+        alone = fuse_view(points, labels, ndn, view_sky, AutoPriorSettings(hole_fill="pinned", blend_min_sky=blend_min_sky))
+        np.testing.assert_allclose(alone.depth[hole], near[hole], rtol=1e-6)
+        assert "blend" not in alone.report
+    # a second depth the points contradict is not trusted, so not blended
+    ndn.second_depth = far * 1.5
+    doubted = fuse_view(points, labels, ndn, sky, settings)
+    np.testing.assert_allclose(doubted.depth[hole], near[hole], rtol=1e-6)
+    assert doubted.report["second"]["error"] == pytest.approx(0.5, rel=1e-3)
+    assert doubted.report["second"]["trust"] == 0.0 and "blend" not in doubted.report
+    # a first depth they contradict gives way to a trusted second one, alone; or to nothing
+    ndn = _maps(near * 1.5)
+    ndn.second_depth = far
+    fallback = fuse_view(points, labels, ndn, sky, settings)
+    np.testing.assert_allclose(fallback.depth[hole], far[hole], rtol=1e-6)
+    assert fallback.report["ndn"]["from"] == "second depth" and "blend" not in fallback.report
+    strict = fuse_view(points, labels, ndn, sky, AutoPriorSettings(hole_fill="pinned", second_depth_fallback=False))
+    assert not strict.mask[hole].any() and strict.report["ndn"]["trust"] == 0.0
+
+
+def test_the_second_depth_is_written_and_read_back_at_the_size_asked(tmp_path):
+    truth = _truth()
+    names = ("view_000.png",)
+    write_prior_maps(tmp_path, "ndn", names[0], depth=truth, mask=np.ones((H, W), bool), relative_depth=True,
+                     units="relative", mask_kind="surface", second_depth=2.0 * truth)
+    maps = load_prior_maps(tmp_path, "ndn", names[0], size=(W // 2, H // 2))
+    assert maps.relative_depth and not maps.second_relative_depth  # each map keeps its own kind
+    assert maps.second_depth.shape == maps.depth.shape == (H // 2, W // 2)
+    np.testing.assert_allclose(maps.second_depth, 2.0 * maps.depth, rtol=1e-6)
+    assert load_prior_maps(tmp_path, "ndn", names[0]).second_depth.shape == (H, W)
+
+
 def test_a_prediction_that_inverts_near_and_far_is_not_pinned():
     truth = _truth()
     assert pin_relative_depth(20.0 - truth, np.ones((H, W), bool), _sfm(truth)) is None
