@@ -111,8 +111,9 @@ def card(weights: Path, slice_scores: dict, *, evaluation_path: Path = EVALUATIO
         "this network writes the **normals** wherever it sees a surface, and the **sky** (probability above one "
         "half), which the trainer then takes as its sky mask on scenes without ground truth. It reads, besides "
         "the three views, the view's SfM points and (when `priors/labels` exists) its stereo labels. Its depth "
-        "is not used: it measured worse than the NDN's on two of the four sets below (docs/ndn.md, \"Shipped as "
-        "the normals network, and its sky\").", "",
+        "is written as the views' second depth and used only in the stereo labels' holes of views with sky, "
+        "blended with the NDN's (since 2026-12-08; alone it measured worse than the NDN's on two of the four "
+        "sets below: docs/ndn.md, \"The completion network's depth, blended under the horizon\").", "",
         "## Model", "",
         f"- UNet, {parameter_count(model):,} parameters, working size {config.model.working_size} px, "
         f"{config.model.levels} levels, base width {config.model.base_channels}; inputs: three views, the SfM "

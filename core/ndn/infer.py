@@ -306,7 +306,7 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
             image = _scene_rgb(scene_dir, name)
             depth, normal, mask, sky, metric = _view_maps(depth_net, index, image)
             if normal_net is not None:
-                # its normals and sky only (its depth is not used): no depth fit or upsampling
+                # its normals and sky here; its depth is written apart, as the second depth (below)
                 better, sees_surface = unit_normals(normal_net.normal_states[index], image)
                 normal_sky = _sky_mask(normal_net, index, image)
                 if normal_sky is not None:
