@@ -27,7 +27,8 @@ rule documented in docs/priors.md ("The auto source"):
   in views with sky (a share ``blend_min_sky`` of the pixels), where ``ndn`` also holds a
   second depth (its normals network's own, written by ``esgs priors --method ndn``), the holes
   take the geometric mean of the two depths, each filled that way: under the horizon one errs
-  near and the other far;
+  near and the other far; where only the second is trusted in such a view, it fills them alone
+  (``second_depth_fallback``);
 - where both exist and differ by more than ``disagreement`` (relative), labels' confidence is
   halved: one of two independent estimates is wrong there;
 - sfm points where no dense source has a value: confidence 1, depth only;
@@ -272,9 +273,8 @@ def _blended(filled: np.ndarray, fill: np.ndarray, second: np.ndarray, second_va
     labels, where the diffusion NDN's fill (levelled with the labels' far edge) stays too near
     and the completion network, which reads the labels and SfM points, often lands too far
     (docs/priors.md, "Two networks' fills in views with sky")."""
-    inner: dict[str, Any] = {}
     second = _holes_filled(second, second_valid & fill, labels_depth, labels_valid, known, sfm_depth, intrinsics,
-                           settings, inner)
+                           settings, report={})  # how the second was filled is not reported apart
     both = fill & second_valid & (filled > 0) & (second > 0)
     mean = np.sqrt(np.maximum(filled, 1e-12) * np.maximum(second, 1e-12))
     return np.where(both, mean, filled).astype(np.float32), {"share": float(both.sum() / max(int(fill.sum()), 1))}
