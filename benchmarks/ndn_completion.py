@@ -22,9 +22,9 @@ leaves holes is scored after the filling a user would get. Rows, per evaluation 
   normals nowhere): whether ``auto`` should take its normals from the network;
 - ``<depth weights>+<normal weights>_normals:auto`` (``--hybrid A:B``): A's ``:auto`` depth with
   B's ``:auto`` normals, when one network's depth and another's normals are better;
-  ``<A>+<B>:auto`` what ``esgs priors --method auto`` makes of that pair today: A's depth with
-  B's depth as the ``ndn`` source's second depth (blended in the holes of views with sky), B's
-  ``:auto`` normals.
+  ``<A>+<B>:auto`` what ``esgs priors --method auto`` makes of that pair: A's depth with B's
+  depth as the ``ndn`` source's second depth, B's ``:auto`` normals (the blend of the second
+  depth is opt-in: ``--auto-variant blend:blend_second_depth=true`` adds that row).
 
 Depth is scored after the robust scale/shift fit the trainer uses (``abs_rel``, ``delta1``) and,
 for rows that are metric, without any alignment (``abs_rel_metric``, ``delta1_metric``);

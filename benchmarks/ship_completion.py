@@ -111,9 +111,10 @@ def card(weights: Path, slice_scores: dict, *, evaluation_path: Path = EVALUATIO
         "this network writes the **normals** wherever it sees a surface, and the **sky** (probability above one "
         "half), which the trainer then takes as its sky mask on scenes without ground truth. It reads, besides "
         "the three views, the view's SfM points and (when `priors/labels` exists) its stereo labels. Its depth "
-        "is written as the views' second depth and used only in the stereo labels' holes of views with sky, "
-        "blended with the NDN's (since 2026-12-08; alone it measured worse than the NDN's on two of the four "
-        "sets below: docs/ndn.md, \"The completion network's depth, blended under the horizon\").", "",
+        "is written as the views' second depth, which `priors/auto` blends into the stereo labels' holes of "
+        "views with sky only when asked (`blend_second_depth`, off by default since ESGS trained on it left far "
+        "outliers off a real mesh; alone it measured worse than the NDN's on two of the four sets below: "
+        "docs/ndn.md, \"The completion network's depth, blended under the horizon\").", "",
         "## Model", "",
         f"- UNet, {parameter_count(model):,} parameters, working size {config.model.working_size} px, "
         f"{config.model.levels} levels, base width {config.model.base_channels}; inputs: three views, the SfM "

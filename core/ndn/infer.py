@@ -249,9 +249,9 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
     measured better on every evaluation set, its depth did not), and with ``sky_from_normals``
     (the default) its sky is added to the sky: it marks the sky of rover views at 0.999
     precision, and training on scenes without ground truth gains from it (docs/ndn.md). Its own
-    depth is written as the views' ``second_depth`` (on the same surface): ``priors/auto``
-    blends it with the depth network's in the holes of views with sky, where the two err in
-    opposite directions (docs/priors.md, "Two networks' fills").
+    depth is written as the views' ``second_depth`` (on the same surface), which ``priors/auto``
+    can blend with the depth network's in the holes of views with sky (off by default;
+    docs/priors.md, "Two networks' fills in views with sky").
 
     Weights that read evidence get each view's SfM points and, where ``priors/labels`` exists,
     its stereo labels (:func:`scene_evidence`); their depth is then written in metres, fitted to
@@ -362,8 +362,9 @@ def outdated_ndn_priors(scene_dir: str | Path) -> str | None:
 
     Only priors the package's own networks made are judged (a user's chosen weights are kept):
     they are outdated when the package's networks have changed since (another digest, or a
-    folder from before the normals network shipped or before its depth was kept as the second
-    depth), or when the normals network read no stereo labels and the scene has them now. Nothing is outdated while the environment names
+    folder from before the normals network shipped), or when the normals network read no
+    stereo labels and the scene has them now. (A folder from before the normals network's depth
+    was kept as the second depth is kept: only the opt-in blend reads it.) Nothing is outdated while the environment names
     other weights."""
     from ..errors import CheckpointError
     from .shipped import resolve_prior_networks, weights_digest
@@ -386,8 +387,6 @@ def outdated_ndn_priors(scene_dir: str | Path) -> str | None:
         return "the package's NDN weights changed since they were predicted"
     if header.get("sky_from") != expected["sky_from"]:
         return "the package's normals network marks the sky now"
-    if networks.normals and header.get("second_depth") != "normals network":
-        return "the package keeps its normals network's depth now (auto blends it in views with sky)"
     # the normals network reads the stereo labels when they exist (what was measured): priors
     # predicted before the labels were made are predicted again once they are
     if header.get("normal_evidence") == "sfm points" and SceneDir(scene_dir).has_prior_maps("labels", "depth"):

@@ -24,11 +24,13 @@ rule documented in docs/priors.md ("The auto source"):
   lie on that plane (a share ``ground_guide_inliers`` of them), where the plane meets the
   hole's rays at more than ``ground_guide_angle`` degrees it is the fill's shape instead of
   NDN's (:mod:`.ground_plane`: the near ground of rover views, where the network is weakest);
-  in views with sky (a share ``blend_min_sky`` of the pixels), where ``ndn`` also holds a
-  second depth (its normals network's own, written by ``esgs priors --method ndn``), the holes
-  take the geometric mean of the two depths, each filled that way: under the horizon one errs
-  near and the other far; where only the second is trusted in such a view, it fills them alone
-  (``second_depth_fallback``);
+  with ``blend_second_depth`` (off by default), in views with sky (a share ``blend_min_sky`` of
+  the pixels), where ``ndn`` also holds a second depth (its normals network's own, written by
+  ``esgs priors --method ndn``), the holes take the geometric mean of the two depths, each
+  filled that way: under the horizon one errs near and the other far; where only the second is
+  trusted in such a view, it fills them alone (``second_depth_fallback``). Off because, though
+  the prior is better on rover views, ESGS trained on it put far outliers off the real mesh
+  (docs/priors.md, "Two networks' fills in views with sky");
 - where both exist and differ by more than ``disagreement`` (relative), labels' confidence is
   halved: one of two independent estimates is wrong there;
 - sfm points where no dense source has a value: confidence 1, depth only;
@@ -112,10 +114,13 @@ class AutoPriorSettings:
     ground_guide_inliers: float = field(default=0.8, metadata={
         "help": "the plane shapes holes only where it fits: at least this share of the nearer labels within 2 % "
                 "of their range from it (flat ground; a crater's floor and walls keep NDN's shape)"})
+    blend_second_depth: bool = field(default=False, metadata={
+        "help": "blend ndn's second depth (its normals network's own) into the labels' holes of views with sky "
+                "(off: a better prior on rover views, but ESGS trained on it left far outliers off the real mesh)"})
     blend_min_sky: float = field(default=0.02, metadata={
-        "help": "in views with at least this share of sky, the labels' holes take the geometric mean of the two "
-                "networks' fills (ndn's depth and its second depth, each filled as above): near the horizon one "
-                "errs near, the other far (1 = never blend)"})
+        "help": "with blend_second_depth, in views with at least this share of sky, the labels' holes take the "
+                "geometric mean of the two networks' fills (ndn's depth and its second depth, each filled as above): "
+                "near the horizon one errs near, the other far"})
     second_depth_fallback: bool = field(default=True, metadata={
         "help": "in those views, where the first depth is not trusted (too far off the SfM points) and the second "
                 "is, the second alone fills the holes"})
@@ -312,7 +317,7 @@ def fuse_view(sfm_depth: np.ndarray, labels: Any = None, ndn: Any = None, sky: O
         ndn_depth, ndn_valid, report["ndn"] = _checked_learned_depth(ndn.depth, ndn.relative_depth, ndn.mask & free,
                                                                      sfm_depth, settings)
         sky_share = float(sky.mean()) if sky is not None else 0.0
-        if ndn.second_depth is not None and settings.blend_min_sky < 1 and sky_share >= settings.blend_min_sky:
+        if settings.blend_second_depth and ndn.second_depth is not None and sky_share >= settings.blend_min_sky:
             second = _checked_learned_depth(ndn.second_depth, ndn.second_relative_depth, ndn.mask & free, sfm_depth,
                                             settings)
             report["second"] = second[2]

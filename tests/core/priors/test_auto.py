@@ -95,7 +95,7 @@ def test_sfm_is_the_floor_and_sky_pixels_get_no_depth():
     assert not fused.mask[sky].any() and fused.mask[~sky].all()
 
 
-def test_in_views_with_sky_the_holes_take_the_geometric_mean_of_the_two_networks_depths():
+def test_with_the_blend_on_the_holes_of_views_with_sky_take_the_geometric_mean_of_both_depths():
     truth = _truth()
     sky = np.zeros((H, W), bool)
     sky[:4] = True  # above the horizon
@@ -106,16 +106,20 @@ def test_in_views_with_sky_the_holes_take_the_geometric_mean_of_the_two_networks
     near, far = np.where(hole, truth / 1.3, truth), np.where(hole, truth * 1.3, truth)
     ndn = _maps(near)
     ndn.second_depth = far
-    settings = AutoPriorSettings(hole_fill="pinned")  # each network's own depth in the hole, as it is
+    # each network's own depth in the hole, as it is
+    settings = AutoPriorSettings(hole_fill="pinned", blend_second_depth=True)
+    assert not AutoPriorSettings().blend_second_depth  # opt-in (docs/priors.md: measured downstream)
     fused = fuse_view(points, labels, ndn, sky, settings)
     np.testing.assert_allclose(fused.depth[hole], truth[hole], rtol=1e-5)  # sqrt(t / 1.3 * t * 1.3)
     assert not fused.mask[sky].any()
     assert fused.report["blend"]["share"] == pytest.approx(1.0)
     assert fused.report["second"]["trust"] == pytest.approx(settings.ndn_trust)
     # no sky in the view, a smaller sky share than asked, or no second depth: the first network alone
-    for view_sky, blend_min_sky, second in ((None, 0.02, far), (sky, 0.2, far), (sky, 0.02, None)):
+    for view_sky, blend_min_sky, second, blend in ((None, 0.02, far, True), (sky, 0.2, far, True),
+                                                   (sky, 0.02, None, True), (sky, 0.02, far, False)):
         ndn.second_depth = second
-        alone = fuse_view(points, labels, ndn, view_sky, AutoPriorSettings(hole_fill="pinned", blend_min_sky=blend_min_sky))
+        alone = fuse_view(points, labels, ndn, view_sky, AutoPriorSettings(
+            hole_fill="pinned", blend_min_sky=blend_min_sky, blend_second_depth=blend))
         np.testing.assert_allclose(alone.depth[hole], near[hole], rtol=1e-6)
         assert "blend" not in alone.report
     # a second depth the points contradict is not trusted, so not blended
@@ -130,7 +134,8 @@ def test_in_views_with_sky_the_holes_take_the_geometric_mean_of_the_two_networks
     fallback = fuse_view(points, labels, ndn, sky, settings)
     np.testing.assert_allclose(fallback.depth[hole], far[hole], rtol=1e-6)
     assert fallback.report["ndn"]["from"] == "second depth" and "blend" not in fallback.report
-    strict = fuse_view(points, labels, ndn, sky, AutoPriorSettings(hole_fill="pinned", second_depth_fallback=False))
+    strict = fuse_view(points, labels, ndn, sky, AutoPriorSettings(hole_fill="pinned", blend_second_depth=True,
+                                                                   second_depth_fallback=False))
     assert not strict.mask[hole].any() and strict.report["ndn"]["trust"] == 0.0
 
 
