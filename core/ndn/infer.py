@@ -364,8 +364,8 @@ def outdated_ndn_priors(scene_dir: str | Path) -> str | None:
     they are outdated when the package's networks have changed since (another digest, or a
     folder from before the normals network shipped), or when the normals network read no
     stereo labels and the scene has them now. (A folder from before the normals network's depth
-    was kept as the second depth is kept: only the opt-in blend reads it.) Nothing is outdated while the environment names
-    other weights."""
+    was kept as the second depth is kept: only the opt-in blend reads it.) Nothing is outdated
+    while the environment names other weights."""
     from ..errors import CheckpointError
     from .shipped import resolve_prior_networks, weights_digest
 
