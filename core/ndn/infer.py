@@ -306,19 +306,16 @@ def write_ndn_priors(scene_dir: str | Path, weights: str | Path | None = None, *
             image = _scene_rgb(scene_dir, name)
             depth, normal, mask, sky, metric = _view_maps(depth_net, index, image)
             if normal_net is not None:
-                # its normals and sky here; its depth is written apart, as the second depth (below)
-                better, sees_surface = unit_normals(normal_net.normal_states[index], image)
-                normal_sky = _sky_mask(normal_net, index, image)
-                if normal_sky is not None:
-                    sees_surface &= ~normal_sky
+                # one pass over its maps: normals and sky here, its depth as the second depth (below);
+                # its surface is already without its own sky
+                second, better, sees_surface, normal_sky, second_metric = _view_maps(normal_net, index, image)
                 normal = np.where((sees_surface & mask)[..., None], better, normal).astype(np.float32)
                 if sky_from_normals and normal_sky is not None:
                     sky = normal_sky if sky is None else sky | normal_sky
                     mask &= ~sky
                     depth = np.where(mask, depth, 0.0).astype(np.float32)
                     normal = np.where(mask[..., None], normal, 0.0).astype(np.float32)
-                second, _, second_mask, _, second_metric = _view_maps(normal_net, index, image)
-                second = np.where(mask & second_mask, second, 0.0).astype(np.float32)
+                second = np.where(mask & sees_surface, second, 0.0).astype(np.float32)
             write_prior_maps(work, "ndn", name, depth=depth, normal=normal, mask=mask, relative_depth=not metric,
                              units="m" if metric else "relative", metadata=metadata, mask_kind="surface", sky=sky,
                              second_depth=second if normal_net is not None else None,

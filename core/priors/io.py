@@ -168,13 +168,8 @@ def load_prior_maps(scene_dir: str | Path, source: str, image_name: str, *, size
     relative = False
     mask_kind = ""
     if depth_path.exists():
-        depth, header = read_depth_exr(depth_path)
+        depth, header, relative = _read_depth_map(depth_path)
         mask_kind = header.get("mask_kind", "")
-        kind = header.get("depth_kind", "metric")
-        if kind not in ("metric", "relative"):
-            raise DatasetError(f"unknown depth_kind {kind!r} (expected metric or relative)", path=depth_path)
-        relative = kind == "relative"
-        depth = np.nan_to_num(depth.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
     if normal_path.exists():
         normal, header = read_normal_exr(normal_path)
         mask_kind = mask_kind or header.get("mask_kind", "")
@@ -250,15 +245,21 @@ def _read_second_depth(path: Path, stored: tuple[int, int],
     whether it is relative; checked against the stored prior maps' size (width, height)."""
     if not path.exists():
         return None, False
+    depth, _, relative = _read_depth_map(path)
+    if (depth.shape[1], depth.shape[0]) != stored:
+        raise DatasetError(f"second depth map {depth.shape[1]}x{depth.shape[0]} does not match the prior maps "
+                           f"{stored[0]}x{stored[1]}", path=path, hint="recompute the priors (esgs priors SCENE --method ndn)")
+    return _resize_depth(depth, *size), relative
+
+
+def _read_depth_map(path: Path) -> tuple[np.ndarray, dict[str, str], bool]:
+    """A depth EXR as (float32 depth with non-finite values as 0, its header, whether its
+    ``depth_kind`` is relative); :class:`DatasetError` for an unknown kind."""
     depth, header = read_depth_exr(path)
     kind = header.get("depth_kind", "metric")
     if kind not in ("metric", "relative"):
         raise DatasetError(f"unknown depth_kind {kind!r} (expected metric or relative)", path=path)
-    if (depth.shape[1], depth.shape[0]) != stored:
-        raise DatasetError(f"second depth map {depth.shape[1]}x{depth.shape[0]} does not match the prior maps "
-                           f"{stored[0]}x{stored[1]}", path=path, hint="recompute the priors (esgs priors SCENE --method ndn)")
-    depth = np.nan_to_num(depth.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    return _resize_depth(depth, *size), kind == "relative"
+    return np.nan_to_num(depth.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0), header, kind == "relative"
 
 
 def _read_plane(path: Path, stored: tuple[int, int], size: tuple[int, int], *, kind: str) -> np.ndarray:
